@@ -1,0 +1,106 @@
+// qsdem command line: run a case, benchmark a packing.
+#include <CLI/CLI.hpp>
+#include <fmt/format.h>
+#include <omp.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+
+#include "qsdem/config.hpp"
+#include "qsdem/default_case.hpp"
+#include "qsdem/run.hpp"
+
+namespace {
+
+// exit codes: 0 ok, 1 usage, 2 bad input, 3 run failed
+int report(const char* kind, const std::exception& e, int code) {
+  std::fprintf(stderr, "qsdem: %s: %s\n", kind, e.what());
+  return code;
+}
+
+void set_threads(int threads) {
+  if (threads > 0) omp_set_num_threads(threads);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "qsdem: quasi-static DEM of spheres (and, soon, ellipsoids) in a deformable periodic cell.\n"
+      "Drained triaxial tests with size-dependent (nd) or global mass (od) damping, and the equilibrium\n"
+      "indices UFR, Iuf and IMom of Yousefi (2018). Cases are TOML files (docs/config.md)."};
+  app.require_subcommand(1);
+  app.set_version_flag("--version", QSDEM_VERSION);
+
+  std::string case_path;
+  std::string out_dir;
+  std::vector<std::string> overrides;
+  int threads = 0;
+  bool quiet = false;
+  auto* run = app.add_subcommand(
+      "run",
+      "Generate a loose sample, compact it isotropically and shear it in drained triaxial compression "
+      "(SPEC 8). Writes DIR/series.csv (one row per sample point), DIR/summary.json, DIR/compaction.csv and "
+      "the compacted and final packings, then prints a summary table and the time spent per stage.");
+  run->add_option("case", case_path,
+                  "Case file (TOML, see docs/config.md). Without it, the built-in default case "
+                  "examples/spheres-A-small.toml is run.");
+  run->add_option("--out,-o", out_dir, "Directory for the results (created if needed)")->default_val("runs/default");
+  run->add_option("--set,-s", overrides,
+                  "Override a case key, e.g. --set damping.ratio=\"0.3 %\" --set triaxial.strain_rate=1e-6 "
+                  "--set sample.total_particles=2000 --set damping.model=od (repeatable)");
+  run->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  run->add_flag("--quiet,-q", quiet, "No progress line");
+
+  auto* prepare = app.add_subcommand(
+      "prepare",
+      "Generate and compact a sample only (SPEC 8): writes DIR/compacted.packing, DIR/compaction.csv and "
+      "DIR/summary.json. The packing can be benchmarked with `qsdem bench`.");
+  prepare->add_option("case", case_path, "Case file (TOML). Without it, the built-in default case.");
+  prepare->add_option("--out,-o", out_dir, "Directory for the results (created if needed)")->default_val("runs/prepared");
+  prepare->add_option("--set,-s", overrides, "Override a case key (as for run)");
+  prepare->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  prepare->add_flag("--quiet,-q", quiet, "No progress line");
+
+  std::string packing;
+  long steps = 1000;
+  auto* bench = app.add_subcommand(
+      "bench",
+      "Step a packing (qsdem packing format, e.g. DIR/compacted.packing of a run) with the triaxial "
+      "settings of a case, with no output, and print one JSON line: particles, contacts, steps, threads, "
+      "wall seconds, particle-steps per second, peak memory.");
+  bench->add_option("packing", packing, "Packing file")->required()->check(CLI::ExistingFile);
+  bench->add_option("--case,-c", case_path, "Case file giving material, friction and time step")->required();
+  bench->add_option("--steps,-n", steps, "Steps to run")->check(CLI::PositiveNumber);
+  bench->add_option("--set,-s", overrides, "Override a case key (as for run)");
+  bench->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+
+  CLI11_PARSE(app, argc, argv);
+
+  try {
+    set_threads(threads);
+    if (*run || *prepare) {
+      const qsdem::Params params =
+          case_path.empty() ? qsdem::parse_case(qsdem::default_case_toml, qsdem::default_case_name, overrides)
+                            : qsdem::load_case(case_path, overrides);
+      if (!quiet)
+        std::fprintf(stderr, "qsdem %s: case %s -> %s (%d threads)\n", QSDEM_VERSION, params.source.c_str(),
+                     out_dir.c_str(), omp_get_max_threads());
+      const auto summary = qsdem::run_case(params, {out_dir, quiet, bool(*prepare)});
+      std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
+                << summary["stage_table"].get<std::string>() << "\nResults in " << out_dir
+                << (*prepare ? "/ (compacted.packing, summary.json)\n" : "/ (series.csv, summary.json)\n");
+    } else if (*bench) {
+      const qsdem::Params params = qsdem::load_case(case_path, overrides);
+      std::cout << qsdem::bench_packing(params, packing, steps).dump() << std::endl;
+    }
+  } catch (const qsdem::InputError& e) {
+    return report("input error", e, 2);
+  } catch (const qsdem::RunError& e) {
+    return report("run stopped", e, 3);
+  } catch (const std::exception& e) {
+    return report("error", e, 3);
+  }
+  return 0;
+}

@@ -1,0 +1,108 @@
+// Google Benchmark micro-benchmarks: one contact evaluation, one full step.
+// The full-step benchmark runs on an FCC lattice of overlapping spheres (built here, no input
+// needed) and, when QSDEM_BENCH_PACKING names a packing file (e.g. runs/spheres-A/compacted.packing)
+// and QSDEM_BENCH_CASE its case, on that packing. Items per second = particle-steps per second.
+#include <benchmark/benchmark.h>
+#include <omp.h>
+
+#include <cstdlib>
+
+#include "qsdem/config.hpp"
+#include "qsdem/contact_law.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/packing_io.hpp"
+#include "qsdem/protocol.hpp"
+#include "qsdem/step.hpp"
+
+using namespace qsdem;
+
+namespace {
+
+Material paper_material() { return {2650, 7.8e10, 0.3}; }
+
+// n^3 unit cells of FCC (4 n^3 spheres of radius r) with a relative overlap of 1e-3.
+State fcc_state(int n, double r) {
+  State st;
+  const double a = 2 * std::sqrt(2.0) * r * (1 - 1e-3);  // nearest distance 2r(1 - 1e-3)
+  st.cell = make_cell(n * a * Mat3::Identity());
+  const Vec3 basis[4] = {{0, 0, 0}, {0.5, 0.5, 0}, {0.5, 0, 0.5}, {0, 0.5, 0.5}};
+  Random rng(7);
+  std::uint32_t id = 0;
+  for (int x = 0; x < n; ++x)
+    for (int y = 0; y < n; ++y)
+      for (int z = 0; z < n; ++z)
+        for (const Vec3& b : basis) {
+          const Vec3 s = (Vec3(x, y, z) + b) / n + 1e-4 * Vec3(rng.uniform(), rng.uniform(), rng.uniform()) / n;
+          st.particles.add(id++, ShapeKind::sphere, Vec3::Constant(r), 2650, s, Quat::Identity());
+        }
+  return st;
+}
+
+Model bench_model(const State& st) {
+  Model m;
+  m.material = paper_material();
+  m.friction = 0.5;
+  m.r_min = smallest_equiv_radius(st.particles);
+  m.critical_time = critical_time(m.material, m.r_min);
+  m.dt = 0.32 * m.critical_time;
+  m.damping = DampingModel::nd;
+  m.damping_ratio = 0.005;
+  m.skin = 0.2 * m.r_min;
+  return m;
+}
+
+void BM_HertzMindlinEvaluate(benchmark::State& bs) {
+  const Material mat = paper_material();
+  const HertzMindlin law{mat.effective_modulus(), mat.effective_shear_modulus(), 0.5};
+  Random rng(1);
+  std::vector<ContactGeometry> geo(1024);
+  std::vector<Vec3> vel(1024), shear(1024, Vec3::Zero());
+  for (std::size_t k = 0; k < geo.size(); ++k) {
+    const Vec3 l = Vec3(rng.uniform() - 0.5, rng.uniform() - 0.5, rng.uniform() - 0.5).normalized() * 1.998e-3;
+    geo[k] = sphere_sphere(l, 1e-3, 1e-3);
+    vel[k] = 1e-3 * Vec3(rng.uniform(), rng.uniform(), rng.uniform());
+  }
+  std::size_t k = 0;
+  for (auto _ : bs) {
+    benchmark::DoNotOptimize(law.evaluate(geo[k], vel[k], 1e-7, shear[k]));
+    k = (k + 1) & 1023;
+  }
+  bs.SetItemsProcessed(bs.iterations());
+}
+BENCHMARK(BM_HertzMindlinEvaluate);
+
+void run_steps(benchmark::State& bs, State st, const Model& model) {
+  assign_damping(model, st.particles);
+  evaluate_forces(model, st);
+  for (auto _ : bs) step(model, st);
+  bs.SetItemsProcessed(bs.iterations() * static_cast<long>(st.particles.size()));
+  bs.counters["pairs_per_particle"] = static_cast<double>(st.pairs.size()) / static_cast<double>(st.particles.size());
+  bs.counters["threads"] = omp_get_max_threads();
+}
+
+void BM_StepFCC(benchmark::State& bs) {
+  omp_set_num_threads(static_cast<int>(bs.range(1)));
+  State st = fcc_state(static_cast<int>(bs.range(0)), 1e-3);
+  const Model model = bench_model(st);
+  run_steps(bs, std::move(st), model);
+}
+BENCHMARK(BM_StepFCC)->Args({8, 1})->Args({8, 2})->Args({13, 1})->Args({13, 2})->Unit(benchmark::kMillisecond);
+
+void BM_StepPacking(benchmark::State& bs) {
+  const char* packing = std::getenv("QSDEM_BENCH_PACKING");
+  const char* case_file = std::getenv("QSDEM_BENCH_CASE");
+  if (!packing || !case_file) {
+    bs.SkipWithError("set QSDEM_BENCH_PACKING and QSDEM_BENCH_CASE");
+    return;
+  }
+  omp_set_num_threads(static_cast<int>(bs.range(0)));
+  const Params params = load_case(case_file);
+  State st = read_packing(packing, params.material.density);
+  const Model model = triaxial_model(params, st);
+  run_steps(bs, std::move(st), model);
+}
+BENCHMARK(BM_StepPacking)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
+
+}  // namespace
+
+BENCHMARK_MAIN();

@@ -1,0 +1,415 @@
+#include "qsdem/config.hpp"
+
+#include <fmt/format.h>
+
+#include <cmath>
+#include <fstream>
+#include <functional>
+#include <set>
+#include <sstream>
+
+#define TOML_EXCEPTIONS 1
+#include <toml++/toml.h>
+
+#include "qsdem/units.hpp"
+
+namespace qsdem {
+
+const char* to_string(DampingModel m) {
+  switch (m) {
+    case DampingModel::none: return "none";
+    case DampingModel::od: return "od";
+    case DampingModel::nd: return "nd";
+  }
+  return "?";
+}
+
+const char* to_string(ShapeKind k) { return k == ShapeKind::sphere ? "sphere" : "ellipsoid"; }
+
+namespace {
+
+std::vector<std::string> split_path(const std::string& path) {
+  std::vector<std::string> parts;
+  std::stringstream ss(path);
+  for (std::string p; std::getline(ss, p, '.');) parts.push_back(p);
+  return parts;
+}
+
+bool is_index(const std::string& s) {
+  return !s.empty() && s.find_first_not_of("0123456789") == std::string::npos;
+}
+
+// Applies "a.b.c=value" to the table; the value is parsed as TOML, or kept as a string.
+void apply_override(toml::table& root, const std::string& assignment) {
+  const auto eq = assignment.find('=');
+  if (eq == std::string::npos || eq == 0)
+    throw InputError(fmt::format("--set '{}': expected key=value, e.g. damping.ratio=\"0.3 %\"",
+                                 assignment));
+  const std::string key = assignment.substr(0, eq);
+  const std::string text = assignment.substr(eq + 1);
+  toml::table parsed;  // holds the value as "v"
+  try {
+    parsed = toml::parse("v = " + text, "--set " + key);
+  } catch (const toml::parse_error&) {
+    parsed = toml::table{};
+    parsed.insert("v", text);  // not TOML: a bare string such as nd or 0.3 %
+  }
+  toml::node& value = *parsed.get("v");
+  const auto parts = split_path(key);
+  toml::node* node = &root;
+  for (std::size_t k = 0; k + 1 < parts.size(); ++k) {
+    const std::string& p = parts[k];
+    if (auto* arr = node->as_array(); arr && is_index(p)) {
+      const auto idx = std::stoul(p);
+      if (idx >= arr->size())
+        throw InputError(fmt::format("--set '{}': index {} is out of range ({} entries)", key,
+                                     idx, arr->size()));
+      node = arr->get(idx);
+    } else if (auto* tbl = node->as_table()) {
+      if (!tbl->contains(p)) tbl->insert(p, toml::table{});
+      node = tbl->get(p);
+    } else {
+      throw InputError(fmt::format("--set '{}': '{}' is not a table", key, p));
+    }
+  }
+  const std::string& last = parts.back();
+  if (auto* arr = node->as_array(); arr && is_index(last)) {
+    const auto idx = std::stoul(last);
+    if (idx >= arr->size())
+      throw InputError(fmt::format("--set '{}': index out of range", key));
+    arr->replace(arr->begin() + static_cast<std::ptrdiff_t>(idx), std::move(value));
+  } else if (auto* tbl = node->as_table()) {
+    tbl->insert_or_assign(last, std::move(value));
+  } else {
+    throw InputError(fmt::format("--set '{}': parent of '{}' is not a table", key, last));
+  }
+}
+
+std::string describe(const toml::node& n) {
+  std::ostringstream os;
+  if (n.is_string())
+    os << '"' << *n.value<std::string>() << '"';
+  else if (n.is_table())
+    os << "(a table)";
+  else if (n.is_array())
+    os << "(an array)";
+  else
+    n.visit([&](auto&& v) { os << v; });
+  return os.str();
+}
+
+// Reads keys from the TOML tree, remembering which were read so that leftovers are reported
+// as unknown keys.
+class Reader {
+ public:
+  Reader(const toml::table& root, std::string source) : root_(root), source_(std::move(source)) {}
+
+  const toml::node* find(const std::string& path) const {
+    const toml::node* node = &root_;
+    for (const auto& p : split_path(path)) {
+      if (const auto* tbl = node->as_table()) {
+        node = tbl->get(p);
+      } else if (const auto* arr = node->as_array(); arr && is_index(p)) {
+        node = arr->get(std::stoul(p));
+      } else {
+        return nullptr;
+      }
+      if (!node) return nullptr;
+    }
+    return node;
+  }
+
+  std::string where(const toml::node* n) const {
+    if (!n) return source_;
+    const auto& src = n->source();
+    if (src.path && src.path->rfind("--set", 0) == 0) return *src.path;  // a command-line override
+    if (src.begin.line > 0) return fmt::format("{}:{}", source_, src.begin.line);
+    return source_;
+  }
+
+  [[noreturn]] void fail(const std::string& path, const toml::node* n, const std::string& why) const {
+    if (n)
+      throw InputError(fmt::format("{}: key '{}' = {}: {}", where(n), path, describe(*n), why));
+    throw InputError(fmt::format("{}: key '{}': {}", source_, path, why));
+  }
+
+  const toml::node* get(const std::string& path, bool required) {
+    const toml::node* n = find(path);
+    if (!n && required) fail(path, nullptr, "is required but missing");
+    if (n) used_.insert(path);
+    return n;
+  }
+
+  using Check = std::function<bool(double)>;
+
+  double quantity(const std::string& path, Dimension dim, std::optional<double> def,
+                  const Check& ok, const std::string& allowed) {
+    const toml::node* n = get(path, !def.has_value());
+    if (!n) return *def;
+    double v = 0;
+    if (n->is_string()) {
+      try {
+        v = parse_quantity(*n->value<std::string>(), dim);
+      } catch (const InputError& e) {
+        fail(path, n, e.what());
+      }
+    } else if (dim == Dimension::ratio && (n->is_floating_point() || n->is_integer())) {
+      v = *n->value<double>();
+    } else {
+      fail(path, n, fmt::format("expected a string with a unit ({}), e.g. \"{}\"",
+                                allowed_units(dim), example(dim)));
+    }
+    if (!std::isfinite(v) || !ok(v)) fail(path, n, "out of range: " + allowed);
+    return v;
+  }
+
+  double number(const std::string& path, std::optional<double> def, const Check& ok,
+                const std::string& allowed) {
+    const toml::node* n = get(path, !def.has_value());
+    if (!n) return *def;
+    if (!(n->is_floating_point() || n->is_integer())) fail(path, n, "expected a number");
+    const double v = *n->value<double>();
+    if (!std::isfinite(v) || !ok(v)) fail(path, n, "out of range: " + allowed);
+    return v;
+  }
+
+  long integer(const std::string& path, std::optional<long> def, long lo, long hi) {
+    const toml::node* n = get(path, !def.has_value());
+    if (!n) return *def;
+    if (!n->is_integer()) fail(path, n, "expected an integer");
+    const long v = static_cast<long>(*n->value<std::int64_t>());
+    if (v < lo || v > hi) fail(path, n, fmt::format("out of range: must be in [{}, {}]", lo, hi));
+    return v;
+  }
+
+  std::string text(const std::string& path, std::optional<std::string> def,
+                   const std::vector<std::string>& choices) {
+    const toml::node* n = get(path, !def.has_value());
+    if (!n) return *def;
+    if (!n->is_string()) fail(path, n, "expected a string");
+    std::string v = *n->value<std::string>();
+    if (!choices.empty() && std::find(choices.begin(), choices.end(), v) == choices.end()) {
+      std::string list;
+      for (const auto& c : choices) list += (list.empty() ? "" : ", ") + ("\"" + c + "\"");
+      fail(path, n, "allowed values: " + list);
+    }
+    return v;
+  }
+
+  const toml::array* array_of_tables(const std::string& path) {
+    const toml::node* n = get(path, true);
+    const auto* arr = n->as_array();
+    if (!arr || arr->empty() || !arr->is_array_of_tables())
+      fail(path, n, "expected a non-empty array of tables ([[sample.particles]] entries)");
+    return arr;
+  }
+
+  // Reports the first key that no reader asked for.
+  void reject_unknown() const { visit_unknown(root_, ""); }
+
+ private:
+  static const char* example(Dimension d) {
+    switch (d) {
+      case Dimension::length: return "2.13 mm";
+      case Dimension::stress: return "390 kPa";
+      case Dimension::density: return "2650 kg/m^3";
+      case Dimension::ratio: return "0.5 %";
+      case Dimension::time: return "1 s";
+    }
+    return "";
+  }
+
+  static bool known_section(const std::string& path) {
+    static const std::set<std::string> sections{"material", "sample", "sample.particles", "time", "damping",
+                                                "compaction", "triaxial", "servo", "neighbor"};
+    const bool table_entry = path.rfind("sample.particles.", 0) == 0 &&
+                             path.find('.', std::string("sample.particles.").size()) == std::string::npos;
+    return sections.count(path) > 0 || table_entry;
+  }
+
+  void visit_unknown(const toml::node& node, const std::string& prefix) const {
+    if (const auto* tbl = node.as_table()) {
+      for (const auto& [k, v] : *tbl) {
+        const std::string path = prefix.empty() ? std::string(k.str()) : prefix + "." + std::string(k.str());
+        if (v.is_table() || v.is_array_of_tables()) {
+          if (!known_section(path))
+            throw InputError(fmt::format("{}: unknown section '{}' (see docs/config.md for the sections)",
+                                         where(&v), path));
+          visit_unknown(v, path);
+        } else if (!used_.count(path)) {
+          throw InputError(fmt::format("{}: unknown key '{}' (see docs/config.md for the keys)",
+                                       where(&v), path));
+        }
+      }
+    } else if (const auto* arr = node.as_array()) {
+      for (std::size_t i = 0; i < arr->size(); ++i) visit_unknown(*arr->get(i), prefix + "." + std::to_string(i));
+    }
+  }
+
+  const toml::table& root_;
+  std::string source_;
+  std::set<std::string> used_;
+};
+
+const auto positive = [](double v) { return v > 0; };
+const auto non_negative = [](double v) { return v >= 0; };
+
+DampingModel damping_model(Reader& r, const std::string& path, const std::string& def) {
+  const std::string m = r.text(path, def, {"none", "od", "nd"});
+  return m == "none" ? DampingModel::none : m == "od" ? DampingModel::od : DampingModel::nd;
+}
+
+SizeClass read_size_class(Reader& r, const std::string& p) {
+  SizeClass c;
+  const std::string shape = r.text(p + ".shape", std::string("sphere"), {"sphere", "spheroid", "ellipsoid"});
+  const std::string allowed = "must be > 0";
+  if (shape == "sphere") {
+    const double d = r.quantity(p + ".diameter", Dimension::length, std::nullopt, positive, allowed);
+    c.shape = ShapeKind::sphere;
+    c.semi_axes = Vec3::Constant(d / 2);
+  } else if (shape == "spheroid") {
+    const double a = r.quantity(p + ".major_semi_axis", Dimension::length, std::nullopt, positive, allowed);
+    const double b = r.quantity(p + ".minor_semi_axis", Dimension::length, std::nullopt, positive, allowed);
+    if (a < b) r.fail(p + ".major_semi_axis", r.find(p + ".major_semi_axis"),
+                      "the major semi-axis must be >= the minor one (prolate spheroid, SPEC 2)");
+    c.shape = a == b ? ShapeKind::sphere : ShapeKind::ellipsoid;
+    c.semi_axes = Vec3(a, b, b);
+  } else {
+    const toml::node* n = r.get(p + ".semi_axes", true);
+    const auto* arr = n->as_array();
+    if (!arr || arr->size() != 3) r.fail(p + ".semi_axes", n, "expected 3 lengths [a, b, c]");
+    for (int k = 0; k < 3; ++k) {
+      const auto* e = arr->get(static_cast<std::size_t>(k));
+      if (!e->is_string()) r.fail(p + ".semi_axes", n, "each semi-axis is a string with a unit");
+      try {
+        c.semi_axes[k] = parse_quantity(*e->value<std::string>(), Dimension::length);
+      } catch (const InputError& err) {
+        r.fail(p + ".semi_axes", n, err.what());
+      }
+      if (!(c.semi_axes[k] > 0)) r.fail(p + ".semi_axes", n, "semi-axes must be > 0");
+    }
+    if (!(c.semi_axes[0] >= c.semi_axes[1] && c.semi_axes[1] >= c.semi_axes[2]))
+      r.fail(p + ".semi_axes", n, "order them a >= b >= c (SPEC 2)");
+    c.shape = c.semi_axes[0] == c.semi_axes[2] ? ShapeKind::sphere : ShapeKind::ellipsoid;
+  }
+  c.count = r.integer(p + ".count", std::nullopt, 1, 100'000'000);
+  return c;
+}
+
+nlohmann::json to_json(const toml::table& tbl) {
+  std::ostringstream os;
+  os << toml::json_formatter{tbl};
+  return nlohmann::json::parse(os.str());
+}
+
+}  // namespace
+
+Params parse_case(const std::string& toml_text, const std::string& source,
+                  const std::vector<std::string>& overrides) {
+  toml::table root;
+  try {
+    root = toml::parse(toml_text, source);
+  } catch (const toml::parse_error& e) {
+    throw InputError(fmt::format("{}:{}: TOML syntax error: {}", source, e.source().begin.line,
+                                 e.description()));
+  }
+  for (const auto& o : overrides) apply_override(root, o);
+
+  Reader r(root, source);
+  Params p;
+  p.source = source;
+  p.name = r.text("name", std::string("case"), {});
+
+  p.material.density = r.quantity("material.density", Dimension::density, std::nullopt, positive, "must be > 0");
+  p.material.young_modulus = r.quantity("material.young_modulus", Dimension::stress, std::nullopt, positive, "must be > 0");
+  p.material.poisson_ratio = r.number("material.poisson_ratio", std::nullopt,
+                                      [](double v) { return v > -1 && v < 0.5; }, "must be in (-1, 0.5)");
+
+  p.sample.seed = static_cast<std::uint64_t>(r.integer("sample.seed", 1, 0, std::numeric_limits<long>::max()));
+  p.sample.initial_solid_fraction = r.number("sample.initial_solid_fraction", 0.15,
+                                             [](double v) { return v > 0 && v <= 0.2; }, "must be in (0, 0.2] (SPEC 8: a loose sample)");
+  p.sample.total_particles = r.integer("sample.total_particles", 0, 0, 100'000'000);
+  const auto* table = r.array_of_tables("sample.particles");
+  for (std::size_t k = 0; k < table->size(); ++k)
+    p.sample.table.push_back(read_size_class(r, "sample.particles." + std::to_string(k)));
+
+  p.step_ratio = r.number("time.step_ratio", 0.32, [](double v) { return v > 0 && v <= 1; }, "must be in (0, 1]");
+
+  p.damping.model = damping_model(r, "damping.model", "nd");
+  p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+
+  auto& c = p.compaction;
+  c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
+  c.stress = r.quantity("compaction.stress", Dimension::stress, 390e3, positive, "must be > 0");
+  c.max_strain_rate = r.number("compaction.max_strain_rate", 1e-4, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
+  c.stress_tolerance = r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
+  c.ufr_tolerance = r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
+  c.damping_model = damping_model(r, "compaction.damping_model", "nd");
+  c.damping_ratio = r.quantity("compaction.damping_ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
+  c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
+
+  auto& t = p.triaxial;
+  t.friction = r.number("triaxial.friction", 0.5, non_negative, "must be >= 0");
+  t.confining_stress = r.quantity("triaxial.confining_stress", Dimension::stress, 390e3, positive, "must be > 0");
+  t.strain_rate = r.number("triaxial.strain_rate", 1e-5, [](double v) { return v > 0 && v < 0.01; }, "eps' must be in (0, 0.01)");
+  t.final_axial_strain = r.quantity("triaxial.final_axial_strain", Dimension::ratio, 0.10,
+                                    [](double v) { return v > 0 && v < 0.5; }, "must be in (0, 50 %)");
+  t.sample_points = static_cast<int>(r.integer("triaxial.sample_points", 250, 1, 1'000'000));
+  t.lateral_rate_factor = r.number("triaxial.lateral_rate_factor", 10.0, [](double v) { return v >= 1; }, "must be >= 1");
+
+  p.servo.proportional_gain = r.number("servo.proportional_gain", 0.1, [](double v) { return v > 0 && v < 1; }, "must be in (0, 1)");
+  p.servo.integral_gain = r.number("servo.integral_gain", 0.002, [](double v) { return v >= 0 && v <= 0.1; }, "must be in [0, 0.1]");
+
+  const double steps = t.final_axial_strain / (p.step_ratio * t.strain_rate);
+  if (t.sample_points > steps)
+    r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
+           fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "
+                       "strain_rate)): lower it or lower triaxial.strain_rate",
+                       steps));
+
+  p.neighbor.skin_ratio = r.number("neighbor.skin_ratio", 0.2, [](double v) { return v > 0 && v <= 2; }, "must be in (0, 2]");
+
+  r.reject_unknown();
+  p.as_written = to_json(root);
+  return p;
+}
+
+nlohmann::json to_json(const Params& p) {
+  nlohmann::json table = nlohmann::json::array();
+  for (const auto& c : p.sample.table)
+    table.push_back({{"shape", to_string(c.shape)},
+                     {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
+                     {"count", c.count}});
+  const auto& c = p.compaction;
+  const auto& t = p.triaxial;
+  return {
+      {"name", p.name},
+      {"source", p.source},
+      {"material", {{"density_kg_m3", p.material.density}, {"young_modulus_Pa", p.material.young_modulus},
+                    {"poisson_ratio", p.material.poisson_ratio}}},
+      {"sample", {{"seed", p.sample.seed}, {"initial_solid_fraction", p.sample.initial_solid_fraction},
+                  {"total_particles", p.sample.total_particles}, {"particles", table}}},
+      {"time", {{"step_ratio", p.step_ratio}}},
+      {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio}}},
+      {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
+                      {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},
+                      {"damping_model", to_string(c.damping_model)}, {"damping_ratio", c.damping_ratio},
+                      {"max_steps", c.max_steps}, {"check_interval", c.check_interval}}},
+      {"triaxial", {{"friction", t.friction}, {"confining_stress_Pa", t.confining_stress},
+                    {"strain_rate", t.strain_rate}, {"final_axial_strain", t.final_axial_strain},
+                    {"sample_points", t.sample_points}, {"lateral_rate_factor", t.lateral_rate_factor}}},
+      {"servo", {{"proportional_gain", p.servo.proportional_gain}, {"integral_gain", p.servo.integral_gain}}},
+      {"neighbor", {{"skin_ratio", p.neighbor.skin_ratio}}},
+  };
+}
+
+Params load_case(const std::string& path, const std::vector<std::string>& overrides) {
+  std::ifstream in(path);
+  if (!in) throw InputError(fmt::format("cannot open case file '{}'", path));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parse_case(ss.str(), path, overrides);
+}
+
+}  // namespace qsdem

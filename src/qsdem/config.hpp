@@ -1,0 +1,94 @@
+// The case file (TOML, docs/config.md) read into plain parameters. Every key is checked:
+// unknown keys, wrong types and out-of-range values raise InputError naming file, line, key,
+// value and what is allowed.
+#pragma once
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "qsdem/types.hpp"
+
+namespace qsdem {
+
+enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
+enum class DampingModel : std::uint8_t { none, od, nd };
+
+const char* to_string(DampingModel m);
+const char* to_string(ShapeKind k);
+
+// One row of the particle-size table (SPEC 9): a shape and how many of it.
+struct SizeClass {
+  ShapeKind shape = ShapeKind::sphere;
+  Vec3 semi_axes = Vec3::Zero();  // a >= b >= c (m); a sphere has a = b = c = R
+  long count = 0;
+};
+
+struct Params {
+  std::string name;
+  std::string source;  // file name, or "<built-in default>"
+
+  struct Material {
+    double density = 0;        // kg/m^3
+    double young_modulus = 0;  // Pa
+    double poisson_ratio = 0;
+  } material;
+
+  struct Sample {
+    std::uint64_t seed = 1;
+    double initial_solid_fraction = 0.15;
+    long total_particles = 0;  // 0: the table's counts as written
+    std::vector<SizeClass> table;
+  } sample;
+
+  double step_ratio = 0.32;  // c_t (SPEC 5)
+
+  struct Damping {
+    DampingModel model = DampingModel::nd;
+    double ratio = 0.005;  // xi_0
+  } damping;
+
+  struct Compaction {
+    double friction = 0.2;
+    double stress = 390e3;              // Pa, all three axes
+    double max_strain_rate = 1e-4;      // dimensionless, per t_c
+    double stress_tolerance = 0.01;     // relative
+    double ufr_tolerance = 0.01;
+    DampingModel damping_model = DampingModel::nd;
+    double damping_ratio = 0.005;
+    long max_steps = 2'000'000;
+    long check_interval = 200;
+  } compaction;
+
+  struct Triaxial {
+    double friction = 0.5;
+    double confining_stress = 390e3;    // Pa
+    double strain_rate = 1e-5;          // eps' (dimensionless, SPEC 8)
+    double final_axial_strain = 0.10;
+    int sample_points = 250;
+    double lateral_rate_factor = 10.0;  // max lateral rate = factor * axial rate
+  } triaxial;
+
+  struct Servo {
+    double proportional_gain = 0.1;
+    double integral_gain = 0.002;
+  } servo;
+
+  struct Neighbor {
+    double skin_ratio = 0.2;  // Verlet skin as a fraction of the smallest equal-volume radius
+  } neighbor;
+
+  nlohmann::json as_written;  // the TOML as read, after --set overrides
+};
+
+// Every parameter, defaults included, in SI units (for summary.json).
+nlohmann::json to_json(const Params& p);
+
+// Reads a case from TOML text. `overrides` are "dotted.key=value" strings (value is TOML, or a
+// bare string) applied before validation.
+Params parse_case(const std::string& toml_text, const std::string& source,
+                  const std::vector<std::string>& overrides = {});
+Params load_case(const std::string& path, const std::vector<std::string>& overrides = {});
+
+}  // namespace qsdem

@@ -1,0 +1,88 @@
+#include "qsdem/forces.hpp"
+
+#include <fmt/format.h>
+
+#include "qsdem/contact_law.hpp"
+
+namespace qsdem {
+namespace {
+constexpr std::size_t block_size = 1024;  // fixed, so sums do not depend on the thread count
+}
+
+void compute_contact_forces(const Model& model, State& state) {
+  const Particles& p = state.particles;
+  PairList& pairs = state.pairs;
+  const Cell& cell = state.cell;
+  const HertzMindlin law{model.material.effective_modulus(), model.material.effective_shear_modulus(),
+                         model.friction};
+  const double dt = model.dt;
+  const std::size_t np = pairs.size();
+  const std::size_t nblocks = (np + block_size - 1) / block_size;
+  state.blocks.resize(nblocks);
+
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
+  for (std::size_t b = 0; b < nblocks; ++b) {
+    ForceBlock acc;
+    const std::size_t end = std::min(np, (b + 1) * block_size);
+    for (std::size_t k = b * block_size; k < end; ++k) {
+      const std::uint32_t i = pairs.i[k], j = pairs.j[k];
+      const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
+      // Spheres: exact geometry. Ellipsoid pairs get their narrow phase in the ellipsoid issue.
+      const ContactGeometry g = sphere_sphere(l, p.bound_radius[i], p.bound_radius[j]);
+      pairs.overlap[k] = g.overlap;
+      if (g.overlap <= 0) {
+        pairs.shear[k].setZero();  // contact lost: the tangential spring is released
+        continue;                  // force and torques are read only where overlap > 0
+      }
+      // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
+      const Vec3 vrel = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + cell.L * l;
+      const ContactForce cf = law.evaluate(g, vrel, dt, pairs.shear[k]);
+      pairs.force[k] = cf.force;
+      pairs.torque_i[k] = g.arm_i.cross(-cf.force);  // SPEC 4: (x_c - x_i) x F
+      pairs.torque_j[k] = g.arm_j.cross(cf.force);
+      acc.stress_sum.noalias() += cf.force * l.transpose();  // Love-Weber (SPEC 7)
+      const Vec3 n2 = g.normal.cwiseProduct(g.normal);
+      acc.stiffness_sum += (cf.normal_stiffness * n2 + cf.tangential_stiffness * (Vec3::Ones() - n2))
+                               .cwiseProduct(l.cwiseProduct(l));
+    }
+    state.blocks[b] = acc;
+  }
+
+  Mat3 sum = Mat3::Zero();
+  Vec3 stiff = Vec3::Zero();
+  for (const ForceBlock& b : state.blocks) {
+    sum += b.stress_sum;
+    stiff += b.stiffness_sum;
+  }
+  const double v = cell.volume;
+  state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive
+  state.affine_stiffness = stiff / v;
+  state.stress_volume = v;
+  state.stress_h = cell.h;
+}
+
+void gather_resultants(State& state) {
+  Particles& p = state.particles;
+  const PairList& pairs = state.pairs;
+  const std::size_t n = p.size();
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t a = 0; a < n; ++a) {
+    Vec3 f = Vec3::Zero(), t = Vec3::Zero();
+    for (std::uint32_t e = pairs.first[a]; e < pairs.first[a + 1]; ++e) {
+      const std::uint32_t code = pairs.incident[e];
+      const std::size_t k = code >> 1;
+      if (pairs.overlap[k] <= 0) continue;  // not a contact: its force slots are stale
+      if (code & 1u) {
+        f += pairs.force[k];
+        t += pairs.torque_j[k];
+      } else {
+        f -= pairs.force[k];
+        t += pairs.torque_i[k];
+      }
+    }
+    p.force[a] = f;
+    p.torque[a] = t;
+  }
+}
+
+}  // namespace qsdem

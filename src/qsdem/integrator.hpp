@@ -1,0 +1,22 @@
+// Time integration (SPEC 5) with the particle damping of SPEC 6.
+#pragma once
+#include "qsdem/cell.hpp"
+#include "qsdem/model.hpp"
+#include "qsdem/particles.hpp"
+
+namespace qsdem {
+
+// Central-difference velocity update with viscous damping factor A (paper Eq. 10):
+//   v(t+dt/2) = [(1 - A dt/2) v(t-dt/2) + dt F/m] / (1 + A dt/2).
+inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, double dt) {
+  return ((1 - 0.5 * a * dt) * v + dt * force_over_mass) / (1 + 0.5 * a * dt);
+}
+
+// Velocities and angular momenta to t + dt/2 (SPEC 5); angular velocity from the body inertia.
+void integrate_velocities(const Model& model, Particles& p);
+
+// Positions and orientations to t + dt in the already deformed cell: s += dt h^-1 v (the affine
+// part moves with h, SPEC 3); q <- exp(dt omega / 2) q.
+void advance_positions(const Model& model, const Cell& cell, Particles& p);
+
+}  // namespace qsdem

@@ -1,0 +1,54 @@
+#include "qsdem/measures.hpp"
+
+#include <Eigen/Eigenvalues>
+#include <cmath>
+
+namespace qsdem {
+
+Measures measure(const State& state) {
+  const Particles& p = state.particles;
+  const PairList& pairs = state.pairs;
+  Measures m;
+  m.stress = state.stress;
+  m.volume = state.stress_volume;
+
+  Eigen::SelfAdjointEigenSolver<Mat3> eig(m.stress, Eigen::EigenvaluesOnly);
+  const Vec3 ev = eig.eigenvalues();  // ascending
+  m.principal = Vec3(ev[2], ev[1], ev[0]);
+  const double s1 = m.principal[0], s2 = m.principal[1], s3 = m.principal[2];
+  m.mean_stress = (s1 + s2 + s3) / 3;
+  m.deviator = std::sqrt(0.5 * ((s1 - s2) * (s1 - s2) + (s2 - s3) * (s2 - s3) + (s3 - s1) * (s3 - s1)));
+  m.octahedral = m.principal.norm() / std::sqrt(3.0);  // paper Eq. 5
+  m.friction_angle_deg = (s1 + s3) > 0 ? std::asin((s1 - s3) / (s1 + s3)) * 180 / pi : 0;
+
+  // Contact sums: n_c, sum |f_c|, sum |f_c|^2.
+  const Vec3 c = blocked_sum<Vec3>(pairs.size(), Vec3::Zero(), [&](std::size_t k) {
+    if (pairs.overlap[k] <= 0) return Vec3(Vec3::Zero());
+    const double f2 = pairs.force[k].squaredNorm();
+    return Vec3(1.0, std::sqrt(f2), f2);
+  });
+  // Particle sums: |f_p|, |f_p|^2, |M_p|, kinetic energies, solid volume.
+  using Vec6 = Eigen::Matrix<double, 6, 1>;
+  const Vec6 s = blocked_sum<Vec6>(p.size(), Vec6::Zero(), [&](std::size_t i) {
+    Vec6 r;
+    const double f2 = p.force[i].squaredNorm();
+    r << std::sqrt(f2), f2, p.torque[i].norm(), 0.5 * p.mass[i] * p.v[i].squaredNorm(),
+        0.5 * p.angmom[i].dot(p.omega[i]), ellipsoid_volume(p.semi_axes[i]);
+    return r;
+  });
+  const double np = static_cast<double>(p.size());
+  m.contacts = static_cast<long>(c[0]);
+  m.coordination = np > 0 ? 2 * c[0] / np : 0;
+  if (c[0] > 0) {
+    m.ufr = (s[0] / np) / (c[1] / c[0]);                        // paper Eq. 3
+    m.iuf = std::sqrt(s[1] / np) / std::sqrt(c[2] / c[0]);      // paper Eq. 2
+  }
+  if (m.octahedral > 0) m.imom = s[2] / (m.volume * m.octahedral);  // paper Eq. 4
+  m.ekin_trans = s[3];
+  m.ekin_rot = s[4];
+  m.solid_volume = s[5];
+  m.void_ratio = (m.volume - m.solid_volume) / m.solid_volume;
+  return m;
+}
+
+}  // namespace qsdem

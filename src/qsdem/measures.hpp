@@ -1,0 +1,46 @@
+// The measures of SPEC 7, evaluated at sample points from the last force evaluation.
+#pragma once
+#include "qsdem/model.hpp"
+#include "qsdem/state.hpp"
+
+namespace qsdem {
+
+struct Measures {
+  Mat3 stress = Mat3::Zero();  // compression positive (Pa)
+  Vec3 principal = Vec3::Zero();  // s1 >= s2 >= s3 (Pa)
+  double mean_stress = 0;      // p = tr(sigma)/3 (Pa)
+  double deviator = 0;         // q = sqrt(3 J2) (Pa); = s1 - s3 under axisymmetry
+  double octahedral = 0;       // sigma_oct = sqrt(s1^2+s2^2+s3^2)/sqrt(3) (paper Eq. 5)
+  double friction_angle_deg = 0;  // asin((s1 - s3)/(s1 + s3))
+  double ufr = 0;              // paper Eq. 3
+  double iuf = 0;              // paper Eq. 2
+  double imom = 0;             // paper Eq. 4
+  long contacts = 0;           // n_c: pairs with delta > 0
+  double coordination = 0;     // 2 n_c / n_p
+  double ekin_trans = 0, ekin_rot = 0;  // fluctuation kinetic energy (J)
+  double volume = 0;           // V (m^3)
+  double solid_volume = 0;     // sum of particle volumes (m^3)
+  double void_ratio = 0;       // (V - V_s)/V_s
+};
+
+Measures measure(const State& state);
+
+// Sum of a per-index term in fixed blocks, so the result does not depend on the thread count.
+template <class T, class Term>
+T blocked_sum(std::size_t n, const T& zero, Term term) {
+  constexpr std::size_t block = 2048;
+  const std::size_t nb = (n + block - 1) / block;
+  std::vector<T> partial(nb, zero);
+#pragma omp parallel for schedule(static) if (nb > 1)
+  for (std::size_t b = 0; b < nb; ++b) {
+    T acc = zero;
+    const std::size_t end = std::min(n, (b + 1) * block);
+    for (std::size_t k = b * block; k < end; ++k) acc += term(k);
+    partial[b] = acc;
+  }
+  T total = zero;
+  for (const T& x : partial) total += x;
+  return total;
+}
+
+}  // namespace qsdem

@@ -1,0 +1,65 @@
+// The immutable parameters of one phase of a run (MuJoCo-style model): material, contact law
+// constants, time step, damping model and loading. Protocols build one Model per phase.
+#pragma once
+#include <array>
+
+#include "qsdem/config.hpp"
+#include "qsdem/particles.hpp"
+#include "qsdem/types.hpp"
+
+namespace qsdem {
+
+struct Material {
+  double density = 2650;        // kg/m^3
+  double young_modulus = 7.8e10;  // Pa
+  double poisson_ratio = 0.3;
+
+  // Same material on both sides of a contact (SPEC 4).
+  double effective_modulus() const { return young_modulus / (2 * (1 - poisson_ratio * poisson_ratio)); }
+  double shear_modulus() const { return young_modulus / (2 * (1 + poisson_ratio)); }
+  double effective_shear_modulus() const { return shear_modulus() / (2 * (2 - poisson_ratio)); }
+  double wave_speed() const;  // sqrt(E / rho)
+};
+
+// How one axis of the cell is driven (SPEC 3). Compression positive.
+struct AxisControl {
+  enum class Kind { fixed, strain_rate, stress } kind = Kind::fixed;
+  double value = 0;  // strain_rate: engineering rate de/dt (1/s); stress: target (Pa)
+  double reference_length = 0;  // strain_rate: H0, the cell's length along the axis at e = 0 (m)
+};
+
+struct Servo {
+  double proportional_gain = 0.1;  // beta: fraction of the stress error removed per step
+  double integral_gain = 0.002;    // gamma: per-step weight of the accumulated error
+  double max_strain_rate = 0;      // |L_kk| cap on stress-controlled axes (1/s)
+};
+
+struct Model {
+  Material material;
+  double friction = 0.5;        // Coulomb mu
+  double r_min = 0;             // equal-volume radius of the smallest particle (m)
+  double critical_time = 0;     // t_c = 2 R_min sqrt(rho/E), SPEC 5
+  double dt = 0;                // c_t t_c
+  DampingModel damping = DampingModel::none;
+  double damping_ratio = 0;     // xi_0
+  std::array<AxisControl, 3> control{};
+  Servo servo;
+  double skin = 0;              // Verlet skin (m)
+};
+
+// t_c = 2 R_min sqrt(rho / E) (SPEC 5, paper section 4).
+double critical_time(const Material& mat, double r_min);
+
+// A_i = B_i of SPEC 6: 0 (none), 2 xi0 omega_max (od, paper Eq. 15), 2 xi0 omega#_i (nd, Eq. 19)
+// with omega#_i = sqrt(E/rho) / R_i (paper Eq. 17).
+double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat);
+
+// Fills particles.damping for the model's damping law.
+void assign_damping(const Model& model, Particles& particles);
+
+double smallest_equiv_radius(const Particles& particles);
+
+// The model of a phase from the case parameters; the caller sets friction, damping, control.
+Model base_model(const Params& params, const Particles& particles);
+
+}  // namespace qsdem

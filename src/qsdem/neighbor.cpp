@@ -1,0 +1,218 @@
+#include "qsdem/neighbor.hpp"
+
+#include <fmt/format.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <tuple>
+
+namespace qsdem {
+namespace {
+
+struct Candidate {
+  std::uint32_t i, j;
+  Vec3i image;
+};
+
+bool key_less(std::uint32_t ai, std::uint32_t aj, const Vec3i& ak, std::uint32_t bi, std::uint32_t bj,
+              const Vec3i& bk) {
+  return std::tie(ai, aj, ak.x(), ak.y(), ak.z()) < std::tie(bi, bj, bk.x(), bk.y(), bk.z());
+}
+
+int floor_div(int a, int n) { return (a >= 0) ? a / n : -((-a + n - 1) / n); }
+
+// One linked-cell grid over the fractional cell for the particles of one size class.
+struct Grid {
+  Eigen::Vector3i n = Eigen::Vector3i::Ones();   // bins per axis
+  double r_max = 0;                              // largest bounding radius in the class
+  std::vector<std::uint32_t> start, members;     // CSR: bin -> particles
+
+  int bin_index(const Eigen::Vector3i& b) const { return (b.z() * n.y() + b.y()) * n.x() + b.x(); }
+};
+
+// Size classes: greedy groups of bounding radii within a factor 2, smallest first.
+std::vector<int> size_classes(const Particles& p, std::vector<double>& class_rmax) {
+  std::vector<double> radii = p.bound_radius;
+  std::sort(radii.begin(), radii.end());
+  radii.erase(std::unique(radii.begin(), radii.end()), radii.end());
+  std::vector<double> lower;  // lower bound of each class
+  for (double r : radii)
+    if (lower.empty() || r > 2 * lower.back()) lower.push_back(r);
+  class_rmax.assign(lower.size(), 0.0);
+  std::vector<int> cls(p.size());
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const double r = p.bound_radius[i];
+    const int c = static_cast<int>(std::upper_bound(lower.begin(), lower.end(), r) - lower.begin()) - 1;
+    cls[i] = c;
+    class_rmax[c] = std::max(class_rmax[c], r);
+  }
+  return cls;
+}
+
+}  // namespace
+
+void check_cell_size(const Particles& p, const Cell& cell, double skin) {
+  double rmax = 0;
+  for (double r : p.bound_radius) rmax = std::max(rmax, r);
+  const double wmin = cell.widths().minCoeff();
+  // A particle must stay smaller than half the cell (SPEC 3); the skin keeps the list exact.
+  if (2 * rmax + skin >= 0.5 * wmin)
+    throw InputError(fmt::format(
+        "the largest particle (diameter {:.4g} mm, plus skin {:.3g} mm) is not smaller than half the "
+        "smallest cell width ({:.4g} mm): use more particles (sample.total_particles) or smaller ones",
+        2e3 * rmax, 1e3 * skin, 1e3 * wmin));
+}
+
+bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell) {
+  if (!ns.valid) return true;
+  double d2max = 0;
+  const std::size_t n = p.size();
+#pragma omp parallel for reduction(max : d2max) schedule(static) if (n > parallel_threshold)
+  for (std::size_t i = 0; i < n; ++i) d2max = std::max(d2max, (cell.h * (p.s[i] - ns.s_at_build[i])).squaredNorm());
+  // Stretch of any listed branch by the cell deformation F = h h0^-1 (Frobenius bounds the 2-norm).
+  const double strain = (cell.h * ns.h_at_build.inverse() - Mat3::Identity()).norm();
+  return 2 * std::sqrt(d2max) + strain * (2 * ns.max_bound_radius + ns.skin) > ns.skin;
+}
+
+void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
+  check_cell_size(p, cell, skin);
+  const std::size_t n = p.size();
+  const Vec3 w = cell.widths();
+
+  // Wrapped fractional positions and their integer offsets: s = s_wrapped + wrap.
+  std::vector<Vec3> sw(n);
+  std::vector<Vec3i> wrap(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    const Vec3 f = p.s[i].array().floor();
+    wrap[i] = f.cast<int>();
+    sw[i] = p.s[i] - f;
+  }
+
+  std::vector<double> class_rmax;
+  const std::vector<int> cls = size_classes(p, class_rmax);
+  const int nclass = static_cast<int>(class_rmax.size());
+  std::vector<Grid> grids(nclass);
+  std::vector<Eigen::Vector3i> bin_of(n);
+  for (int c = 0; c < nclass; ++c) {
+    Grid& g = grids[c];
+    g.r_max = class_rmax[c];
+    for (int k = 0; k < 3; ++k) g.n[k] = std::max(1, static_cast<int>(w[k] / (2 * g.r_max + skin)));
+    const int nb = g.n.prod();
+    g.start.assign(nb + 1, 0);
+    for (std::size_t i = 0; i < n; ++i) {
+      if (cls[i] != c) continue;
+      Eigen::Vector3i b;
+      for (int k = 0; k < 3; ++k) b[k] = std::min(g.n[k] - 1, static_cast<int>(sw[i][k] * g.n[k]));
+      bin_of[i] = b;
+      ++g.start[g.bin_index(b) + 1];
+    }
+    std::partial_sum(g.start.begin(), g.start.end(), g.start.begin());
+    g.members.resize(g.start.back());
+    std::vector<std::uint32_t> fill(g.start.begin(), g.start.end() - 1);
+    for (std::size_t i = 0; i < n; ++i)
+      if (cls[i] == c) g.members[fill[g.bin_index(bin_of[i])]++] = static_cast<std::uint32_t>(i);
+  }
+
+  // Each particle searches its own class (partners of higher index) and every smaller class, so
+  // that each pair is found once, from the side of the larger particle.
+  std::vector<std::vector<Candidate>> found(static_cast<std::size_t>(omp_get_max_threads()));
+  long checked = 0;
+#pragma omp parallel if (n > parallel_threshold) reduction(+ : checked)
+  {
+    auto& out = found[static_cast<std::size_t>(omp_get_thread_num())];
+#pragma omp for schedule(dynamic, 256)
+    for (std::size_t i = 0; i < n; ++i) {
+      const double ri = p.bound_radius[i];
+      for (int c = 0; c <= cls[i]; ++c) {
+        const Grid& g = grids[c];
+        const double reach = ri + g.r_max + skin;
+        Eigen::Vector3i lo, hi;
+        for (int k = 0; k < 3; ++k) {
+          lo[k] = static_cast<int>(std::floor((sw[i][k] - reach / w[k]) * g.n[k]));
+          hi[k] = static_cast<int>(std::floor((sw[i][k] + reach / w[k]) * g.n[k]));
+        }
+        for (int uz = lo.z(); uz <= hi.z(); ++uz)
+          for (int uy = lo.y(); uy <= hi.y(); ++uy)
+            for (int ux = lo.x(); ux <= hi.x(); ++ux) {
+              const Eigen::Vector3i u(ux, uy, uz);
+              Eigen::Vector3i bin, img;
+              for (int k = 0; k < 3; ++k) {
+                img[k] = floor_div(u[k], g.n[k]);
+                bin[k] = u[k] - img[k] * g.n[k];
+              }
+              const int b = g.bin_index(bin);
+              for (std::uint32_t m = g.start[b]; m < g.start[b + 1]; ++m) {
+                const std::uint32_t j = g.members[m];
+                if (c == cls[i] && j <= i) continue;
+                ++checked;
+                const Vec3 l = cell.h * (sw[j] + img.cast<double>() - sw[i]);
+                const double cut = ri + p.bound_radius[j] + skin;
+                if (l.squaredNorm() >= cut * cut) continue;
+                const Vec3i k = img + wrap[i] - wrap[j];  // image in unwrapped coordinates
+                if (i < j)
+                  out.push_back({static_cast<std::uint32_t>(i), j, k});
+                else
+                  out.push_back({j, static_cast<std::uint32_t>(i), Vec3i(-k)});
+              }
+            }
+      }
+    }
+  }
+  std::vector<Candidate> all;
+  for (auto& f : found) all.insert(all.end(), f.begin(), f.end());
+  std::sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {
+    return key_less(a.i, a.j, a.image, b.i, b.j, b.image);
+  });
+
+  // New list; history copied from the old list where the key matches (both sorted).
+  PairList next;
+  const std::size_t np = all.size();
+  next.i.resize(np);
+  next.j.resize(np);
+  next.image.resize(np);
+  next.shear.assign(np, Vec3::Zero());
+  next.pw_lambda.assign(np, -1.0);
+  next.force.assign(np, Vec3::Zero());
+  next.torque_i.assign(np, Vec3::Zero());
+  next.torque_j.assign(np, Vec3::Zero());
+  next.overlap.assign(np, 0.0);
+  std::size_t o = 0;
+  for (std::size_t k = 0; k < np; ++k) {
+    const Candidate& c = all[k];
+    next.i[k] = c.i;
+    next.j[k] = c.j;
+    next.image[k] = c.image;
+    while (o < pairs.size() && key_less(pairs.i[o], pairs.j[o], pairs.image[o], c.i, c.j, c.image)) ++o;
+    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) {
+      next.shear[k] = pairs.shear[o];
+      next.pw_lambda[k] = pairs.pw_lambda[o];
+    }
+  }
+
+  // Incidence lists, in pair order: the gather sums in a fixed order for any thread count.
+  next.first.assign(n + 1, 0);
+  for (std::size_t k = 0; k < np; ++k) {
+    ++next.first[next.i[k] + 1];
+    ++next.first[next.j[k] + 1];
+  }
+  std::partial_sum(next.first.begin(), next.first.end(), next.first.begin());
+  next.incident.resize(2 * np);
+  std::vector<std::uint32_t> fill(next.first.begin(), next.first.end() - 1);
+  for (std::size_t k = 0; k < np; ++k) {
+    next.incident[fill[next.i[k]]++] = static_cast<std::uint32_t>(k << 1);
+    next.incident[fill[next.j[k]]++] = static_cast<std::uint32_t>((k << 1) | 1u);
+  }
+  pairs = std::move(next);
+
+  ns.s_at_build = p.s;
+  ns.h_at_build = cell.h;
+  ns.skin = skin;
+  ns.max_bound_radius = *std::max_element(p.bound_radius.begin(), p.bound_radius.end());
+  ns.valid = true;
+  ns.distance_checks = checked;
+  ++ns.builds;
+}
+
+}  // namespace qsdem

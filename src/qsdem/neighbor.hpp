@@ -1,0 +1,54 @@
+// Broad phase (SPEC 4): candidate pairs within a Verlet skin, found with one linked-cell grid per
+// particle-size class so that a wide size distribution (Sample A: size ratio 7.5) costs O(N).
+// Each pair is keyed by (i, j, image) with i < j; the image K is an integer cell shift of j in
+// terms of the unwrapped fractional coordinates, so a physical contact keeps its key for ever
+// and its tangential history survives every rebuild.
+#pragma once
+#include <cstdint>
+#include <vector>
+
+#include "qsdem/cell.hpp"
+#include "qsdem/particles.hpp"
+
+namespace qsdem {
+
+struct PairList {
+  // Key, sorted lexicographically by (i, j, image).
+  std::vector<std::uint32_t> i, j;
+  std::vector<Vec3i> image;
+  // History carried across steps and rebuilds.
+  std::vector<Vec3> shear;         // tangential force on j (N), SPEC 4
+  std::vector<double> pw_lambda;   // Perram-Wertheim warm start (ellipsoids)
+  // Results of the last force evaluation (at time t). force and torques are valid only where
+  // overlap > 0 (non-contacts are not written, to save memory traffic).
+  std::vector<Vec3> force;         // contact force on j (N); i receives -force
+  std::vector<Vec3> torque_i, torque_j;
+  std::vector<double> overlap;     // delta (m); > 0 when the pair is a contact
+  // Incidence lists for the deterministic per-particle gather (CSR by particle).
+  std::vector<std::uint32_t> first;     // size n + 1
+  std::vector<std::uint32_t> incident;  // (pair index << 1) | (particle is j)
+
+  std::size_t size() const { return i.size(); }
+};
+
+struct NeighborState {
+  std::vector<Vec3> s_at_build;
+  Mat3 h_at_build = Mat3::Identity();
+  double skin = 0;
+  double max_bound_radius = 0;
+  long builds = 0;
+  long distance_checks = 0;  // pair distances computed by the last build (linear in N, not N^2)
+  bool valid = false;
+};
+
+// True when some pair outside the list could now be closer than touching (SPEC 4): twice the
+// largest fluctuation displacement plus the stretch of the longest listed branch exceeds the skin.
+bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell);
+
+// Rebuilds `pairs` (keeping the history of pairs present before) and the incidence lists.
+void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns);
+
+// Refuses a cell in which a particle could touch its own image (SPEC 3).
+void check_cell_size(const Particles& p, const Cell& cell, double skin);
+
+}  // namespace qsdem

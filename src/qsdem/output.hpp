@@ -1,0 +1,38 @@
+// Result files (SPEC 10). Files appear complete or not at all: each is written to a temporary
+// name and renamed into place.
+#pragma once
+#include <cstdio>
+#include <filesystem>
+#include <string>
+
+#include "qsdem/measures.hpp"
+
+namespace qsdem {
+
+// The exact header of SPEC 10 (more columns may follow).
+inline constexpr const char* series_header =
+    "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
+    "ekin_trans_J,ekin_rot_J";
+
+// One row of series.csv: strains are given by the caller (they depend on the phase's reference).
+std::string series_row(long step, double time, double e1, double ev, const Measures& m);
+
+// Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
+class SeriesWriter {
+ public:
+  explicit SeriesWriter(std::filesystem::path path);
+  ~SeriesWriter();
+  SeriesWriter(const SeriesWriter&) = delete;
+  SeriesWriter& operator=(const SeriesWriter&) = delete;
+  void write(const std::string& row);
+  void commit();
+
+ private:
+  std::filesystem::path path_, partial_;
+  std::FILE* file_ = nullptr;
+};
+
+// Writes text to path atomically (temporary file, fsync, rename).
+void write_file_atomic(const std::filesystem::path& path, const std::string& text);
+
+}  // namespace qsdem

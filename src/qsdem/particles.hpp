@@ -1,0 +1,51 @@
+// Particle storage, structure of arrays (SPEC 2). Static properties (shape, mass, inertia,
+// damping factor) and dynamic state live side by side so that a re-sort permutes one object.
+#pragma once
+#include <cstdint>
+#include <vector>
+
+#include "qsdem/config.hpp"
+#include "qsdem/types.hpp"
+
+namespace qsdem {
+
+struct Particles {
+  // Static per run.
+  std::vector<std::uint32_t> id;       // stable id, as generated or read
+  std::vector<ShapeKind> shape;
+  std::vector<Vec3> semi_axes;         // a >= b >= c, body frame (m)
+  std::vector<double> bound_radius;    // radius of the bounding sphere = a (m)
+  std::vector<double> equiv_radius;    // R_i = (abc)^(1/3) (m), SPEC 2
+  std::vector<double> mass;            // kg
+  std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2)
+  std::vector<double> damping;         // A_i = B_i (1/s) of the current phase, SPEC 6
+
+  // Dynamic state.
+  std::vector<Vec3> s;                 // fractional position h^-1 x, never wrapped (SPEC 3)
+  std::vector<Quat> q;                 // orientation, body -> world
+  std::vector<Vec3> v;                 // fluctuation velocity at t - dt/2 (m/s)
+  std::vector<Vec3> angmom;            // angular momentum, world frame, at t - dt/2
+  std::vector<Vec3> omega;             // angular velocity, world frame, derived from angmom
+
+  // Contact resultants at t (contact forces only, no damping), SPEC 7.
+  std::vector<Vec3> force;
+  std::vector<Vec3> torque;
+
+  std::size_t size() const { return id.size(); }
+  void resize(std::size_t n);
+  // Appends one particle at rest with mass properties from the shape (SPEC 2).
+  void add(std::uint32_t pid, ShapeKind kind, const Vec3& semi_axes, double density,
+           const Vec3& frac_pos, const Quat& orientation);
+};
+
+// Mass and principal moments of a solid ellipsoid (SPEC 2).
+double ellipsoid_volume(const Vec3& semi_axes);
+Vec3 ellipsoid_inertia(double mass, const Vec3& semi_axes);
+
+// World-frame angular velocity from angular momentum: omega = R I^-1 R^T L.
+inline Vec3 angular_velocity(const Quat& q, const Vec3& inertia, const Vec3& angmom) {
+  const Vec3 body = q.conjugate() * angmom;
+  return q * Vec3(body.x() / inertia.x(), body.y() / inertia.y(), body.z() / inertia.z());
+}
+
+}  // namespace qsdem

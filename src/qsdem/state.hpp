@@ -1,0 +1,38 @@
+// The mutable state of a run (MuJoCo-style data): particles, cell, pairs and what the last step
+// computed, plus the timers of every stage.
+#pragma once
+#include <vector>
+
+#include "qsdem/cell.hpp"
+#include "qsdem/neighbor.hpp"
+#include "qsdem/particles.hpp"
+#include "qsdem/timers.hpp"
+
+namespace qsdem {
+
+// Per-block partial sums of the force stage, summed in block order (thread-count independent).
+struct ForceBlock {
+  Mat3 stress_sum = Mat3::Zero();      // sum f (x) l over contacts (N m)
+  Vec3 stiffness_sum = Vec3::Zero();   // sum (k_n n_k^2 + k_t (1 - n_k^2)) l_k^2 (N m)
+};
+
+struct State {
+  Particles particles;
+  Cell cell;
+  PairList pairs;
+  NeighborState neighbor;
+  Vec3 servo_integral = Vec3::Zero();  // accumulated relative stress error per axis
+  long step = 0;
+  double time = 0;
+
+  // From the last force evaluation (time t).
+  Mat3 stress = Mat3::Zero();           // Love-Weber, compression positive (Pa), SPEC 7
+  Vec3 affine_stiffness = Vec3::Zero(); // d sigma_kk / d eps_kk of an affine strain (Pa)
+  double stress_volume = 1;             // V at which stress was evaluated (m^3)
+  Mat3 stress_h = Mat3::Identity();     // cell matrix at which stress was evaluated (m)
+
+  StageTimers timers;
+  std::vector<ForceBlock> blocks;       // scratch for the force stage
+};
+
+}  // namespace qsdem
