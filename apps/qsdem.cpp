@@ -67,8 +67,8 @@ int main(int argc, char** argv) {
   long steps = 1000;
   auto* bench = app.add_subcommand(
       "bench",
-      "Step a packing (qsdem packing format, e.g. DIR/compacted.packing of a run) with the triaxial "
-      "settings of a case, with no output, and print one JSON line: particles, contacts, steps, threads, "
+      "Step a packing (qsdem packing format, e.g. DIR/compacted.packing of a run) in a fixed cell with the "
+      "triaxial friction and damping of a case, with no output, and print one JSON line: particles, contacts, steps, threads, "
       "wall seconds, particle-steps per second, peak memory.");
   bench->add_option("packing", packing, "Packing file")->required()->check(CLI::ExistingFile);
   bench->add_option("--case,-c", case_path, "Case file giving material, friction and time step")->required();

@@ -132,7 +132,10 @@ std::string format_run_table(const nlohmann::json& s) {
 nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps) {
   State st = read_packing(packing, params.material.density);
   check_supported(st);
-  const Model model = triaxial_model(params, st);
+  // The triaxial phase's friction and damping in a fixed cell: the same physics a peer code runs
+  // on the same packing in a fixed periodic box.
+  Model model = triaxial_model(params, st);
+  for (auto& c : model.control) c = {};
   assign_damping(model, st.particles);
   evaluate_forces(model, st);
   st.timers = {};
@@ -144,6 +147,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
   return {{"particles", st.particles.size()},
           {"contacts", m.contacts},
           {"pairs", st.pairs.size()},
+          {"ekin_J", m.ekin_trans + m.ekin_rot},
           {"steps", steps},
           {"threads", omp_get_max_threads()},
           {"wall_s", wall},
