@@ -93,6 +93,8 @@ std::string describe(const toml::node& n) {
     os << "(a table)";
   else if (n.is_array())
     os << "(an array)";
+  else if (n.is_floating_point())
+    os << fmt::format("{}", *n.value<double>());  // shortest round trip: 0.7, not 0.69999999999999996
   else
     n.visit([&](auto&& v) { os << v; });
   return os.str();
@@ -135,7 +137,18 @@ class Reader {
 
   const toml::node* get(const std::string& path, bool required) {
     const toml::node* n = find(path);
-    if (!n && required) fail(path, nullptr, "is required but missing");
+    if (!n && required) {
+      // Name what the table does hold: a missing key is most often a misspelt one.
+      std::string why = "is required but missing";
+      const auto dot = path.rfind('.');
+      const toml::node* parent = dot == std::string::npos ? &root_ : find(path.substr(0, dot));
+      if (const auto* tbl = parent ? parent->as_table() : nullptr; tbl && !tbl->empty()) {
+        std::string keys;
+        for (const auto& [k, v] : *tbl) keys += (keys.empty() ? "" : ", ") + std::string(k.str());
+        why += fmt::format(" ({} has: {})", where(parent), keys);
+      }
+      fail(path, nullptr, why);
+    }
     if (n) used_.insert(path);
     return n;
   }

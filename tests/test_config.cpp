@@ -1,0 +1,285 @@
+// The case file (docs/config.md, src/qsdem/config.cpp): shipped examples, --set overrides, the
+// error messages of bad input (SPEC 1: values carry units, nothing is silently SI or mm), and the
+// rescaling of the size table (SPEC 9: the mass fractions of the grading are kept).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <initializer_list>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "qsdem/config.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/particles.hpp"
+
+using namespace qsdem;
+
+namespace {
+
+const std::filesystem::path examples = std::filesystem::path(QSDEM_SOURCE_DIR) / "examples";
+
+// A complete small case; the error tests replace one line (1-based) to know where it is.
+const std::vector<std::string> base_lines{
+    "name = \"t\"",                   // 1
+    "[material]",                     // 2
+    "density = \"2650 kg/m^3\"",      // 3
+    "young_modulus = \"78 GPa\"",     // 4
+    "poisson_ratio = 0.3",            // 5
+    "[sample]",                       // 6
+    "seed = 3",                       // 7
+    "[[sample.particles]]",           // 8
+    "shape = \"sphere\"",             // 9
+    "diameter = \"2 mm\"",            // 10
+    "count = 100",                    // 11
+    "[damping]",                      // 12
+    "model = \"nd\"",                 // 13
+    "ratio = \"0.5 %\"",              // 14
+    "[compaction]",                   // 15
+    "friction = 0.2",                 // 16
+    "stress = \"390 kPa\"",           // 17
+    "[triaxial]",                     // 18
+    "friction = 0.5",                 // 19
+    "confining_stress = \"390 kPa\"", // 20
+    "strain_rate = 1e-5",             // 21
+};
+
+std::string base_case(int line = 0, const std::string& replacement = "") {
+  std::string out;
+  for (std::size_t k = 0; k < base_lines.size(); ++k)
+    out += (static_cast<int>(k) + 1 == line ? replacement : base_lines[k]) + "\n";
+  return out;
+}
+
+// The message of the InputError that parsing throws ("" if none).
+std::string error_of(const std::string& toml, const std::vector<std::string>& overrides = {}) {
+  try {
+    parse_case(toml, "case.toml", overrides);
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// HasSubstr-style check of every fragment.
+void expect_mentions(const std::string& message, std::initializer_list<std::string> fragments) {
+  EXPECT_FALSE(message.empty()) << "expected an InputError";
+  for (const auto& f : fragments)
+    EXPECT_NE(message.find(f), std::string::npos) << "message lacks \"" << f << "\":\n  " << message;
+}
+
+// Equal-volume sphere diameter of a prolate spheroid (a, b, b): d = 2 (a b^2)^(1/3) (SPEC 2).
+double equal_volume_diameter(double a, double b) { return 2 * std::cbrt(a * b * b); }
+
+}  // namespace
+
+// SPEC 9: every shipped example parses; Sample A and B have the paper's material, loading and the
+// equal-volume spheres of Tables 1-2 (diameters written to 0.01 mm).
+TEST(Config, ShippedExamplesParseWithSiValues) {
+  int n = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(examples)) {
+    if (entry.path().extension() != ".toml") continue;
+    ++n;
+    EXPECT_NO_THROW(load_case(entry.path().string())) << entry.path();
+  }
+  EXPECT_GE(n, 3);
+
+  struct Row {
+    double a_mm, b_mm;
+    long count;
+  };
+  const std::vector<Row> sample_a{{1.2, 1.0, 7284}, {3.9, 3.0, 498}, {7.0, 5.0, 150}, {10.5, 7.0, 68}};
+  const std::vector<Row> sample_b{{6.6, 5.5, 1448}, {7.8, 6.0, 2056}, {9.1, 6.5, 2252}, {10.5, 7.0, 2244}};
+  for (const auto& [file, rows, total] :
+       {std::tuple{"spheres-A.toml", sample_a, 0L}, std::tuple{"spheres-B.toml", sample_b, 0L},
+        std::tuple{"spheres-A-small.toml", sample_a, 1000L}}) {
+    SCOPED_TRACE(file);
+    const Params p = load_case((examples / file).string());
+    EXPECT_DOUBLE_EQ(p.material.density, 2650);
+    EXPECT_DOUBLE_EQ(p.material.young_modulus, 7.8e10);  // "78 GPa"
+    EXPECT_DOUBLE_EQ(p.material.poisson_ratio, 0.3);
+    EXPECT_DOUBLE_EQ(p.step_ratio, 0.32);
+    EXPECT_EQ(p.sample.total_particles, total);
+    EXPECT_LE(p.sample.initial_solid_fraction, 0.2);  // SPEC 8: loose, solid fraction <= 0.2
+    ASSERT_EQ(p.sample.table.size(), rows.size());
+    for (std::size_t k = 0; k < rows.size(); ++k) {
+      const SizeClass& c = p.sample.table[k];
+      EXPECT_EQ(c.shape, ShapeKind::sphere);
+      EXPECT_EQ(c.count, rows[k].count);
+      EXPECT_DOUBLE_EQ(c.semi_axes.x(), c.semi_axes.z());
+      // Rounded to 0.01 mm in the file: within half a digit of the equal-volume diameter.
+      EXPECT_NEAR(2 * c.semi_axes.x(), 1e-3 * equal_volume_diameter(rows[k].a_mm, rows[k].b_mm), 0.005e-3) << k;
+    }
+    EXPECT_EQ(p.damping.model, DampingModel::nd);
+    EXPECT_DOUBLE_EQ(p.damping.ratio, 0.005);               // "0.5 %"
+    EXPECT_DOUBLE_EQ(p.compaction.friction, 0.2);           // mu_0
+    EXPECT_DOUBLE_EQ(p.compaction.stress, 390000);          // "390 kPa"
+    EXPECT_DOUBLE_EQ(p.triaxial.friction, 0.5);
+    EXPECT_DOUBLE_EQ(p.triaxial.confining_stress, 390000);
+    EXPECT_DOUBLE_EQ(p.triaxial.strain_rate, 1e-5);
+    EXPECT_DOUBLE_EQ(p.triaxial.final_axial_strain, 0.10);  // "10 %"
+    EXPECT_EQ(p.triaxial.sample_points, 250);
+  }
+  // The spot value of the brief: 2.13 mm is 0.00213 m.
+  const Params a = load_case((examples / "spheres-A.toml").string());
+  EXPECT_DOUBLE_EQ(2 * a.sample.table[0].semi_axes.x(), 0.00213);
+  // SPEC 9: R_min of Sample A is 1.0627 mm (the file rounds the diameter to 2.13 mm).
+  EXPECT_NEAR(a.sample.table[0].semi_axes.x(), 1.0627e-3, 0.003e-3);
+}
+
+// --set overrides (docs/config.md): the value is TOML, or a bare string as the shell passes it.
+TEST(Config, OverridesReplaceValues) {
+  const std::string text = base_case();
+  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"damping.ratio=\"0.3 %\""}).damping.ratio, 0.003);
+  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"damping.ratio=0.3 %"}).damping.ratio, 0.003);
+  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"damping.ratio=0.003"}).damping.ratio, 0.003);
+  const Params od = parse_case(text, "case.toml", {"damping.model=od"});
+  EXPECT_EQ(od.damping.model, DampingModel::od);
+  EXPECT_EQ(od.as_written["damping"]["model"], "od");  // summary.json shows what was run
+  EXPECT_EQ(to_json(od)["damping"]["model"], "od");
+  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"triaxial.strain_rate=1e-6"}).triaxial.strain_rate, 1e-6);
+  EXPECT_EQ(parse_case(text, "case.toml", {"sample.particles.0.count=10"}).sample.table[0].count, 10);
+  // Several at once, the last one of a key wins.
+  const Params p = parse_case(text, "case.toml",
+                              {"sample.total_particles=2000", "damping.model=none", "damping.model=od"});
+  EXPECT_EQ(p.sample.total_particles, 2000);
+  EXPECT_EQ(p.damping.model, DampingModel::od);
+  // An override of a key the file does not set.
+  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"compaction.stress_tolerance=0.02"}).compaction.stress_tolerance,
+                   0.02);
+  // Overrides are validated like the file.
+  expect_mentions(error_of(text, {"damping.model=xd"}), {"damping.model", "xd", "\"od\""});
+  expect_mentions(error_of(text, {"damping.ratoi=0.1"}), {"unknown key", "damping.ratoi"});
+  expect_mentions(error_of(text, {"sample.particles.3.count=10"}), {"sample.particles.3.count", "out of range"});
+  expect_mentions(error_of(text, {"damping.ratio"}), {"key=value"});
+}
+
+// Bad input: InputError naming the file, the line, the key, the value and what is allowed.
+TEST(Config, UnknownKeysAreErrors) {
+  expect_mentions(error_of(base_case(16, "frction = 0.2")), {"case.toml:16", "unknown key", "compaction.frction"});
+  // A misspelt optional key inside [[sample.particles]].
+  expect_mentions(error_of(base_case(9, "shap = \"sphere\"")), {"case.toml:9", "unknown key", "sample.particles.0.shap"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\nstrain = 1")), {"case.toml:22", "triaxial.strain"});
+  expect_mentions(error_of(base_case() + "[servo]\ngain = 0.1\n"), {"case.toml:23", "servo.gain"});
+}
+
+// A misspelt REQUIRED key: the key is reported missing, and the user's spelling must be named
+// too, otherwise the message sends them looking for a key they believe they wrote.
+TEST(Config, MisspeltRequiredKeyIsNamed) {
+  const std::string msg = error_of(base_case(10, "diamter = \"2 mm\""));
+  expect_mentions(msg, {"case.toml", "sample.particles.0.diameter", "required"});
+  expect_mentions(msg, {"diamter"});
+}
+
+TEST(Config, WrongTypesAreErrors) {
+  expect_mentions(error_of(base_case(5, "poisson_ratio = \"0.3\"")),
+                  {"case.toml:5", "material.poisson_ratio", "\"0.3\"", "expected a number"});
+  expect_mentions(error_of(base_case(11, "count = 1.5")), {"case.toml:11", "sample.particles.0.count", "1.5", "integer"});
+  // A dimensional value as a bare number: never silently SI (SPEC 1).
+  expect_mentions(error_of(base_case(4, "young_modulus = 78e9")),
+                  {"case.toml:4", "material.young_modulus", "unit", "GPa"});
+  expect_mentions(error_of(base_case(13, "model = 2")), {"case.toml:13", "damping.model", "string"});
+}
+
+TEST(Config, MissingRequiredKeysAreErrors) {
+  expect_mentions(error_of(base_case(3, "")), {"case.toml", "material.density", "required"});
+  expect_mentions(error_of(base_case(5, "")), {"case.toml", "material.poisson_ratio", "required"});
+  expect_mentions(error_of(base_case(11, "")), {"case.toml", "sample.particles.0.count", "required"});
+  // No size table at all.
+  std::string no_table;
+  for (int k = 1; k <= 21; ++k)
+    if (k < 8 || k > 11) no_table += base_lines[static_cast<std::size_t>(k - 1)] + "\n";
+  expect_mentions(error_of(no_table), {"case.toml", "sample.particles", "required"});
+}
+
+TEST(Config, OutOfRangeValuesAreErrors) {
+  // Sizes and moduli must be > 0.
+  expect_mentions(error_of(base_case(10, "diameter = \"0 mm\"")), {"case.toml:10", "sample.particles.0.diameter", "0 mm", "> 0"});
+  expect_mentions(error_of(base_case(10, "diameter = \"-2 mm\"")), {"case.toml:10", "-2 mm", "> 0"});
+  expect_mentions(error_of(base_case(4, "young_modulus = \"0 GPa\"")), {"case.toml:4", "material.young_modulus", "> 0"});
+  expect_mentions(error_of(base_case(3, "density = \"-1 kg/m^3\"")), {"case.toml:3", "material.density", "> 0"});
+  // Poisson's ratio of an isotropic solid lies in (-1, 0.5).
+  for (const char* v : {"0.5", "0.75", "-1", "-1.5"})
+    expect_mentions(error_of(base_case(5, std::string("poisson_ratio = ") + v)),
+                    {"case.toml:5", "material.poisson_ratio", v, "(-1, 0.5)"});
+  EXPECT_EQ(error_of(base_case(5, "poisson_ratio = 0.49")), "");  // the open bound is allowed up to it
+  EXPECT_EQ(error_of(base_case(5, "poisson_ratio = -0.5")), "");
+  // Friction and damping ratios must be >= 0.
+  expect_mentions(error_of(base_case(19, "friction = -0.1")), {"case.toml:19", "triaxial.friction", "-0.1", ">= 0"});
+  expect_mentions(error_of(base_case(16, "friction = -0.2")), {"case.toml:16", "compaction.friction", ">= 0"});
+  expect_mentions(error_of(base_case(14, "ratio = \"-0.1 %\"")), {"case.toml:14", "damping.ratio", "-0.1 %", ">= 0"});
+  expect_mentions(error_of(base_case(14, "ratio = -0.001")), {"case.toml:14", "damping.ratio", ">= 0"});
+  EXPECT_EQ(error_of(base_case(14, "ratio = 0")), "");  // damping ratio 0 is in the paper's sweep
+  // eps' > 0.
+  expect_mentions(error_of(base_case(21, "strain_rate = 0")), {"case.toml:21", "triaxial.strain_rate", "(0, 0.01)"});
+  expect_mentions(error_of(base_case(21, "strain_rate = -1e-5")), {"case.toml:21", "triaxial.strain_rate", "(0, 0.01)"});
+}
+
+// The value in a message is the value as the user wrote it: 0.7, not its binary neighbour
+// 0.69999999999999996 (which reads like a different number).
+TEST(Config, ErrorMessageQuotesValueAsWritten) {
+  expect_mentions(error_of(base_case(5, "poisson_ratio = 0.7")), {"'material.poisson_ratio' = 0.7:"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 0.3")), {"'triaxial.strain_rate' = 0.3:"});
+}
+
+TEST(Config, UnitsAreRequiredAndChecked) {
+  expect_mentions(error_of(base_case(17, "stress = \"390\"")),
+                  {"case.toml:17", "compaction.stress", "\"390\"", "no unit", "kPa"});
+  expect_mentions(error_of(base_case(17, "stress = \"390 kpa\"")),
+                  {"case.toml:17", "compaction.stress", "kpa", "unknown", "kPa", "MPa"});
+  expect_mentions(error_of(base_case(10, "diameter = \"2 furlongs\"")), {"case.toml:10", "furlongs", "mm"});
+  // A length where a stress is expected.
+  expect_mentions(error_of(base_case(20, "confining_stress = \"390 mm\"")), {"case.toml:20", "triaxial.confining_stress", "Pa"});
+}
+
+TEST(Config, UnknownDampingModelIsAnError) {
+  expect_mentions(error_of(base_case(13, "model = \"xd\"")),
+                  {"case.toml:13", "damping.model", "\"xd\"", "\"none\"", "\"od\"", "\"nd\""});
+}
+
+TEST(Config, TomlSyntaxErrorNamesTheLine) {
+  expect_mentions(error_of(base_case(12, "[damping")), {"case.toml:12", "TOML syntax error"});
+  expect_mentions(error_of(base_case(16, "friction = ")), {"case.toml:16", "TOML syntax error"});
+}
+
+TEST(Config, MissingFileIsAnInputError) {
+  try {
+    load_case("/nonexistent/dir/case.toml");
+    FAIL() << "expected an InputError";
+  } catch (const InputError& e) {
+    expect_mentions(e.what(), {"/nonexistent/dir/case.toml"});
+  }
+}
+
+// SPEC 9 / docs: total_particles rescales every count to round(count N / sum count), which keeps
+// the count ratios and so the mass fractions of Sample A (10/20/30/40 %).
+TEST(Config, ResolveTableKeepsSampleAGrading) {
+  const Params p = load_case((examples / "spheres-A.toml").string());
+  Params::Sample s = p.sample;
+  s.total_particles = 1000;
+  const auto table = resolve_table(s);
+  ASSERT_EQ(table.size(), 4u);
+  // 7284/8: 910.5 -> 911 (half away from zero), 498/8 = 62.25, 150/8 = 18.75, 68/8 = 8.5 -> 9.
+  EXPECT_EQ(table[0].count, 911);
+  EXPECT_EQ(table[1].count, 62);
+  EXPECT_EQ(table[2].count, 19);
+  EXPECT_EQ(table[3].count, 9);
+  for (std::size_t k = 0; k < 4; ++k) EXPECT_EQ(table[k].semi_axes, p.sample.table[k].semi_axes);
+
+  double total = 0;
+  std::vector<double> mass;
+  for (const auto& c : table) {
+    mass.push_back(static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes));
+    total += mass.back();
+  }
+  // Tolerance 2.5 percentage points: rounding moves a count by at most half a particle, and half
+  // of one of the 9 coarsest spheres is 2.3 % of the total mass (the written table itself is
+  // within 0.1 point of 10/20/30/40; here: 9.8, 19.4, 29.6, 41.2 %).
+  const std::vector<double> target{0.10, 0.20, 0.30, 0.40};
+  for (std::size_t k = 0; k < 4; ++k) EXPECT_NEAR(mass[k] / total, target[k], 0.025) << k;
+
+  // The written table itself is used when total_particles is 0.
+  s.total_particles = 0;
+  EXPECT_EQ(resolve_table(s)[0].count, 7284);
+}

@@ -1,0 +1,303 @@
+// A whole run (SPEC 8, 10): determinism (seed, thread count), the result files and the CLI.
+#include <gtest/gtest.h>
+#include <omp.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "qsdem/config.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/measures.hpp"
+#include "qsdem/model.hpp"
+#include "qsdem/run.hpp"
+#include "qsdem/step.hpp"
+
+using namespace qsdem;
+namespace fs = std::filesystem;
+
+namespace {
+
+// 120 spheres of 2.0 and 2.4 mm, eps' = 1.25e-4 to 1 % axial strain: exactly 250 steps of
+// c_t eps' = 4e-5, sampled every 25 steps (10 rows). About 15000 compaction steps, ~1 s.
+const char* tiny_case = R"(
+name = "run-tiny"
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+seed = 1
+initial_solid_fraction = 0.2
+[[sample.particles]]
+diameter = "2.4 mm"
+count = 60
+[[sample.particles]]
+diameter = "2.0 mm"
+count = 60
+[damping]
+model = "nd"
+ratio = "0.5 %"
+[compaction]
+max_strain_rate = 1e-3
+[triaxial]
+strain_rate = 1.25e-4
+final_axial_strain = "1 %"
+sample_points = 10
+)";
+
+const std::string spec10_header =
+    "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,ekin_trans_J,"
+    "ekin_rot_J";
+
+class Threads {  // sets the OpenMP thread count for a scope
+ public:
+  explicit Threads(int n) : saved_(omp_get_max_threads()) { omp_set_num_threads(n); }
+  ~Threads() { omp_set_num_threads(saved_); }
+  Threads(const Threads&) = delete;
+  Threads& operator=(const Threads&) = delete;
+
+ private:
+  int saved_;
+};
+
+fs::path fresh_dir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() / ("qsdem_run_" + name + "_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir;
+}
+
+std::string slurp(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+// Runs the tiny case (with extra overrides) on `threads` threads into a fresh directory.
+fs::path run_tiny(const std::string& name, int threads, const std::vector<std::string>& overrides = {}) {
+  Threads t(threads);
+  const fs::path dir = fresh_dir(name);
+  run_case(parse_case(tiny_case, "run-tiny.toml", overrides), {dir, true});
+  return dir;
+}
+
+std::vector<std::string> split(const std::string& s, char sep) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  for (std::string f; std::getline(ss, f, sep);) out.push_back(f);
+  return out;
+}
+
+// Runs a shell command; returns its exit code, with stdout and stderr in files of `dir`.
+int shell(const std::string& cmd, const fs::path& dir, std::string& out, std::string& err) {
+  const fs::path o = dir / "stdout.txt", e = dir / "stderr.txt";
+  const int status = std::system((cmd + " > '" + o.string() + "' 2> '" + e.string() + "'").c_str());
+  out = slurp(o);
+  err = slurp(e);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+const std::string binary = QSDEM_BINARY;
+
+}  // namespace
+
+// The same case and seed give byte-identical results (generation, compaction and shear are all
+// deterministic); another seed gives another sample and so another series.
+TEST(Run, SameSeedIsByteIdenticalOtherSeedDiffers) {
+  const fs::path a = run_tiny("a", 1), b = run_tiny("b", 1), c = run_tiny("c", 1, {"sample.seed=2"});
+  const std::string sa = slurp(a / "series.csv"), sb = slurp(b / "series.csv"), sc = slurp(c / "series.csv");
+  ASSERT_FALSE(sa.empty());
+  EXPECT_EQ(sa, sb);
+  EXPECT_NE(sa, sc);
+  EXPECT_EQ(slurp(a / "compaction.csv"), slurp(b / "compaction.csv"));
+  EXPECT_EQ(slurp(a / "final.packing"), slurp(b / "final.packing"));
+  for (const auto& d : {a, b, c}) fs::remove_all(d);
+}
+
+// The engine sums in fixed blocks in a fixed order, so the thread count must not change a bit of
+// the results.
+TEST(Run, ThreadCountDoesNotChangeSeries) {
+  const fs::path one = run_tiny("t1", 1), two = run_tiny("t2", 2);
+  const std::string s1 = slurp(one / "series.csv");
+  ASSERT_FALSE(s1.empty());
+  EXPECT_EQ(s1, slurp(two / "series.csv"));
+  EXPECT_EQ(slurp(one / "compaction.csv"), slurp(two / "compaction.csv"));
+  fs::remove_all(one);
+  fs::remove_all(two);
+}
+
+// The tiny run is below parallel_threshold (every loop runs serially) and has a single block in
+// every blocked sum, so the test above cannot see an order-dependent sum. Here a packing of 5000
+// spheres with several thousand contacts (all loops parallel, several blocks of the force and
+// measure sums, several thread chunks of the broad phase) is stepped 30 times on 1 and on 2
+// threads: state, stress and measures must agree bit for bit.
+TEST(Run, ThreadCountDoesNotChangeLargePacking) {
+  const Params params = parse_case(tiny_case, "run-tiny.toml",
+                                   {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
+  State start = generate_loose_sample(params);
+  // Shrink the loose cell affinely from solid fraction 0.2 to 0.35: pairs closer than 17 % of
+  // their distance now overlap.
+  set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);
+  Model model = base_model(params, start.particles);
+  model.friction = 0.5;
+  model.damping = DampingModel::nd;
+  model.damping_ratio = 0.005;
+  assign_damping(model, start.particles);
+
+  auto run = [&](int threads) {
+    Threads t(threads);
+    State st = start;
+    for (int k = 0; k < 30; ++k) step(model, st);
+    return std::make_pair(st, measure(st));
+  };
+  const auto [s1, m1] = run(1);
+  const auto [s2, m2] = run(2);
+  ASSERT_GT(s1.pairs.size(), parallel_threshold) << "the force loop must run in parallel";
+  ASSERT_GT(s1.particles.size(), parallel_threshold) << "the per-particle loops must run in parallel";
+  ASSERT_GT(m1.contacts, 2 * 1024) << "several force blocks with contacts";
+  ASSERT_GT(s1.particles.size(), 2 * 2048u) << "several measure blocks";
+  EXPECT_EQ(s1.pairs.size(), s2.pairs.size());
+  EXPECT_TRUE(s1.stress == s2.stress);
+  EXPECT_TRUE(s1.affine_stiffness == s2.affine_stiffness);
+  std::size_t differ = 0;
+  for (std::size_t i = 0; i < s1.particles.size(); ++i)
+    if (s1.particles.s[i] != s2.particles.s[i] || s1.particles.v[i] != s2.particles.v[i] ||
+        s1.particles.angmom[i] != s2.particles.angmom[i])
+      ++differ;
+  EXPECT_EQ(differ, 0u);
+  EXPECT_EQ(m1.ufr, m2.ufr);
+  EXPECT_EQ(m1.iuf, m2.iuf);
+  EXPECT_EQ(m1.imom, m2.imom);
+  EXPECT_EQ(m1.ekin_trans, m2.ekin_trans);
+  EXPECT_EQ(m1.ekin_rot, m2.ekin_rot);
+  EXPECT_EQ(m1.solid_volume, m2.solid_volume);
+}
+
+// SPEC 10 files, and their consistency with SPEC 1, 7 and 8.
+TEST(Run, SeriesAndSummaryFollowSpec10) {
+  const fs::path dir = run_tiny("files", 1);
+  const std::string text = slurp(dir / "series.csv");
+  const auto lines = split(text, '\n');
+  ASSERT_GE(lines.size(), 1u);
+  // Exactly the SPEC 10 names, in order; more columns may follow.
+  const std::string& header = lines[0];
+  ASSERT_EQ(header.substr(0, spec10_header.size()), spec10_header);
+  EXPECT_TRUE(header.size() == spec10_header.size() || header[spec10_header.size()] == ',');
+  const auto names = split(header, ',');
+  auto col = [&](const std::string& name) {
+    return static_cast<std::size_t>(std::find(names.begin(), names.end(), name) - names.begin());
+  };
+  std::vector<std::vector<double>> rows;
+  for (std::size_t k = 1; k < lines.size(); ++k) {
+    if (lines[k].empty()) continue;
+    std::vector<double> r;
+    for (const auto& f : split(lines[k], ',')) r.push_back(std::stod(f));
+    ASSERT_EQ(r.size(), names.size()) << "row " << k;
+    rows.push_back(r);
+  }
+  ASSERT_EQ(rows.size(), 10u);  // triaxial.sample_points
+
+  const nlohmann::json s = nlohmann::json::parse(slurp(dir / "summary.json"));
+  for (const char* key : {"config", "mean_ufr", "mean_iuf", "mean_imom", "peak_phi_deg", "final_ev", "steps",
+                          "wall_s", "particle_steps_per_s", "version"})
+    EXPECT_TRUE(s.contains(key)) << key;
+  EXPECT_EQ(s["version"], QSDEM_VERSION);
+  // The resolved configuration shows the values that were run.
+  EXPECT_NE(s["config"].dump().find("0.000125"), std::string::npos) << "eps' in the configuration";
+
+  // Hand values: R_min = 1.0 mm, t_c = 2 R_min sqrt(rho/E) (SPEC 5), dt = 0.32 t_c;
+  // sample k at step 25 k, axial strain 25 k c_t eps' = 1e-3 k (SPEC 8).
+  const double dt = 0.32 * 2 * 1e-3 * std::sqrt(2650 / 78e9);
+  // Void ratio e0 at the triaxial reference volume V0, from the first row (SPEC 1: V = V_s (1 + e)).
+  const double e0 = (1 + rows[0][col("void_ratio")]) / (1 + rows[0][col("ev")]) - 1;
+  // The summary's compaction void ratio is from the compaction's last check, one step before the
+  // state the triaxial test starts from (see report): equal to within one step's volume change.
+  EXPECT_NEAR(s["void_ratio_after_compaction"].get<double>(), e0, 1e-5);
+  double ufr = 0, iuf = 0, imom = 0, peak = 0;
+  for (std::size_t k = 0; k < rows.size(); ++k) {
+    const auto& r = rows[k];
+    SCOPED_TRACE("row " + std::to_string(k + 1));
+    EXPECT_EQ(r[col("step")], 25.0 * static_cast<double>(k + 1));
+    EXPECT_NEAR(r[col("time_s")], r[col("step")] * dt, 1e-9 * r[col("time_s")]);  // 10 digits printed
+    EXPECT_NEAR(r[col("e1")], 1e-3 * static_cast<double>(k + 1), 1e-12);
+    // SPEC 1: ev = V/V0 - 1 and V = V_s (1 + e): ev = (1 + e)/(1 + e0) - 1 (8 digits of e printed),
+    // with one e0 for all rows.
+    EXPECT_NEAR(r[col("ev")], (1 + r[col("void_ratio")]) / (1 + e0) - 1, 1e-7);
+    // p = tr(sigma)/3, Ekin = translational + rotational; 10 and 8 printed digits.
+    EXPECT_NEAR(r[col("p_Pa")], (r[col("s11_Pa")] + r[col("s22_Pa")] + r[col("s33_Pa")]) / 3, 1e-8 * r[col("p_Pa")]);
+    EXPECT_NEAR(r[col("ekin_J")], r[col("ekin_trans_J")] + r[col("ekin_rot_J")], 1e-7 * r[col("ekin_J")]);
+    // Cn = 2 n_c / n_p with n_p = 120: Cn * 60 is a whole number of contacts.
+    EXPECT_NEAR(r[col("cn")] * 60, std::round(r[col("cn")] * 60), 1e-4);
+    // Compression positive (SPEC 1): the axially loaded sample has s33 > 0 and phi > 0.
+    EXPECT_GT(r[col("s33_Pa")], 0);
+    EXPECT_GT(r[col("phi_deg")], 0);
+    ufr += r[col("ufr")] / 10;
+    iuf += r[col("iuf")] / 10;
+    imom += r[col("imom")] / 10;
+    peak = std::max(peak, r[col("phi_deg")]);
+  }
+  // SPEC 8: indices averaged over all sample points; 8 digits printed per value.
+  EXPECT_NEAR(s["mean_ufr"].get<double>(), ufr, 1e-7 * ufr);
+  EXPECT_NEAR(s["mean_iuf"].get<double>(), iuf, 1e-7 * iuf);
+  EXPECT_NEAR(s["mean_imom"].get<double>(), imom, 1e-7 * imom);
+  EXPECT_NEAR(s["peak_phi_deg"].get<double>(), peak, 1e-7 * peak);
+  EXPECT_NEAR(s["final_ev"].get<double>(), rows.back()[col("ev")], 1e-9);
+  const double steps = s["steps"].get<double>();
+  EXPECT_GT(steps, 250);  // compaction + 250 triaxial steps at least
+  EXPECT_NEAR(s["particle_steps_per_s"].get<double>(), 120 * steps / s["wall_s"].get<double>(),
+              1e-9 * s["particle_steps_per_s"].get<double>());
+  fs::remove_all(dir);
+}
+
+// The CLI: help texts name every option; a bad case exits with code 2 naming the key; a good one
+// writes what run_case writes.
+TEST(Run, CommandLine) {
+  const fs::path dir = fresh_dir("cli");
+  std::string out, err;
+  ASSERT_EQ(shell("'" + binary + "' --help", dir, out, err), 0) << err;
+  for (const char* word : {"run", "bench", "--help", "--version"}) EXPECT_NE(out.find(word), std::string::npos) << word;
+  ASSERT_EQ(shell("'" + binary + "' run --help", dir, out, err), 0) << err;
+  for (const char* word : {"case", "-o,--out", "-s,--set", "-t,--threads", "-q,--quiet", "--help"})
+    EXPECT_NE(out.find(word), std::string::npos) << word;
+  EXPECT_EQ(shell("'" + binary + "' --version", dir, out, err), 0);
+  EXPECT_NE(out.find(QSDEM_VERSION), std::string::npos);
+
+  // Bad input: exit code 2 and a message naming the key (and the line).
+  {
+    std::ofstream bad(dir / "bad.toml");
+    bad << std::string(tiny_case) << "[servo]\nproportional_gian = 0.1\n";
+  }
+  EXPECT_EQ(shell("'" + binary + "' run '" + (dir / "bad.toml").string() + "' -q -o '" + (dir / "o").string() + "'",
+                  dir, out, err),
+            2);
+  EXPECT_NE(err.find("servo.proportional_gian"), std::string::npos) << err;
+  EXPECT_NE(err.find("bad.toml:"), std::string::npos) << err;
+  EXPECT_EQ(shell("'" + binary + "' run -q -o '" + (dir / "o").string() + "' --set damping.model=xd", dir, out, err), 2);
+  EXPECT_NE(err.find("damping.model"), std::string::npos) << err;
+  EXPECT_EQ(shell("'" + binary + "' run '" + (dir / "missing.toml").string() + "' -q", dir, out, err), 2);
+  EXPECT_NE(err.find("missing.toml"), std::string::npos) << err;
+
+  // A good case: exit 0, and the CLI's series.csv is the library's, byte for byte.
+  {
+    std::ofstream good(dir / "tiny.toml");
+    good << tiny_case;
+  }
+  EXPECT_EQ(shell("'" + binary + "' run '" + (dir / "tiny.toml").string() + "' -q -t 1 -o '" +
+                      (dir / "cli-out").string() + "'",
+                  dir, out, err),
+            0)
+      << err;
+  const fs::path lib = run_tiny("cli-lib", 1);
+  EXPECT_EQ(slurp(dir / "cli-out" / "series.csv"), slurp(lib / "series.csv"));
+  fs::remove_all(lib);
+  fs::remove_all(dir);
+}

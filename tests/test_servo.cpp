@@ -1,0 +1,265 @@
+// Cell control (SPEC 3) and the two loading phases that use it (SPEC 8): constant engineering
+// strain rate, the stress servo's law, isotropic compaction to the target stress, and a short
+// drained triaxial test whose lateral stresses stay at the confining stress.
+#include <gtest/gtest.h>
+#include <omp.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "qsdem/config.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/measures.hpp"
+#include "qsdem/model.hpp"
+#include "qsdem/output.hpp"
+#include "qsdem/progress.hpp"
+#include "qsdem/protocol.hpp"
+#include "qsdem/servo.hpp"
+#include "qsdem/step.hpp"
+
+using namespace qsdem;
+
+namespace {
+
+constexpr double mm = 1e-3;
+
+Model sphere_model(double r_min) {
+  Model m;
+  m.r_min = r_min;
+  m.critical_time = critical_time(m.material, r_min);
+  m.dt = 0.32 * m.critical_time;
+  m.skin = 0.2 * r_min;
+  return m;
+}
+
+// 200 spheres of 2.0 and 2.4 mm (size ratio 1.2), the paper's material and loading, made fast:
+// the densest loose start SPEC 8 allows (0.2), a compaction rate cap of 1e-3 per t_c, and
+// eps' = 1.25e-5 to 1 % axial strain (exactly 2500 steps of 4e-6), 25 sample points.
+const char* small_case = R"(
+name = "servo-small"
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+seed = 11
+initial_solid_fraction = 0.2
+[[sample.particles]]
+diameter = "2.4 mm"
+count = 100
+[[sample.particles]]
+diameter = "2.0 mm"
+count = 100
+[damping]
+model = "nd"
+ratio = "0.5 %"
+[compaction]
+friction = 0.2
+stress = "390 kPa"
+max_strain_rate = 1e-3
+[triaxial]
+friction = 0.5
+confining_stress = "390 kPa"
+strain_rate = 1.25e-5
+final_axial_strain = "1 %"
+sample_points = 25
+)";
+
+// These small systems run on one thread: with 200 particles a step is a few microseconds, and on a
+// loaded 2-core machine every OpenMP barrier can cost a scheduler time slice (before the loops got
+// their parallel_threshold, the protocol tests took ~3 s on one thread and ~40 s on two under
+// load). Results do not depend on the thread count (test_run checks that).
+class OneThread {
+ public:
+  OneThread() : saved_(omp_get_max_threads()) { omp_set_num_threads(1); }
+  ~OneThread() { omp_set_num_threads(saved_); }
+  OneThread(const OneThread&) = delete;
+  OneThread& operator=(const OneThread&) = delete;
+
+ private:
+  int saved_;
+};
+
+std::filesystem::path fresh_dir(const std::string& name) {
+  const auto dir = std::filesystem::temp_directory_path() / ("qsdem_" + name + "_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  return dir;
+}
+
+// series.csv as numbers, by column name.
+struct Table {
+  std::vector<std::string> header;
+  std::vector<std::vector<double>> rows;
+  std::size_t col(const std::string& name) const {
+    for (std::size_t k = 0; k < header.size(); ++k)
+      if (header[k] == name) return k;
+    ADD_FAILURE() << "no column " << name;
+    return 0;
+  }
+};
+
+Table read_csv(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  Table t;
+  std::string line;
+  auto split = [](const std::string& s) {
+    std::vector<std::string> out;
+    std::stringstream ss(s);
+    for (std::string f; std::getline(ss, f, ',');) out.push_back(f);
+    return out;
+  };
+  if (std::getline(in, line)) t.header = split(line);
+  while (std::getline(in, line)) {
+    std::vector<double> row;
+    for (const auto& f : split(line)) row.push_back(std::stod(f));
+    t.rows.push_back(row);
+  }
+  return t;
+}
+
+}  // namespace
+
+// SPEC 3 / SPEC 8: a strain-controlled axis moves at a constant ENGINEERING rate, so after N steps
+// H = H0 (1 - r N dt) exactly (the step count 0.1/(c_t eps') of SPEC 8 assumes it). With
+// r N dt = 5 % a constant true rate would give H0 exp(-r N dt), 1.2e-3 H0 away; round-off over
+// 2000 steps is ~1e-13. Uncontrolled axes do not move at all.
+TEST(Servo, StrainRateAxisHasConstantEngineeringRate) {
+  OneThread one;
+  State st;
+  const Vec3 box(10 * mm, 11 * mm, 12 * mm);
+  st.cell = make_cell(box.asDiagonal());
+  st.particles.add(0, ShapeKind::sphere, Vec3::Constant(1 * mm), 2650, Vec3(0.5, 0.5, 0.5), Quat::Identity());
+  Model model = sphere_model(1 * mm);
+  const long n = 2000;
+  const double rate = 0.05 / (static_cast<double>(n) * model.dt);
+  model.control[2] = {AxisControl::Kind::strain_rate, rate, box.z()};
+  for (long k = 0; k < n; ++k) step(model, st);
+  const double expected = box.z() * (1 - rate * static_cast<double>(n) * model.dt);
+  EXPECT_NEAR(st.cell.h(2, 2), expected, 1e-12 * box.z());
+  EXPECT_GT(std::abs(expected - box.z() * std::exp(-0.05)), 1e-3 * box.z());  // the test can tell them apart
+  EXPECT_EQ(st.cell.h(0, 0), box.x());
+  EXPECT_EQ(st.cell.h(1, 1), box.y());
+  EXPECT_EQ(st.cell.h(0, 1), 0.0);
+  EXPECT_NEAR(st.cell.volume, box.x() * box.y() * expected, 1e-12 * box.prod());
+  // Compression positive: shortening at a positive engineering rate means L_33 < 0.
+  EXPECT_LT(st.cell.L(2, 2), 0.0);
+}
+
+// SPEC 3's stress servo, as documented in servo.hpp: with relative error e = (target - sigma)/target
+// and affine stiffness C, L = -(beta e + gamma S) target / (C dt), clamped to the maximum rate;
+// compression positive, so too little stress closes the axis (L < 0), too much opens it.
+TEST(Servo, StressAxisLawSignAndClamp) {
+  Model model = sphere_model(1 * mm);
+  model.servo = {0.1, 0.002, 1e6};  // beta, gamma, cap (1/s): far above the rates below
+  for (auto& c : model.control) c = {AxisControl::Kind::stress, 390e3, 0.0};
+  State st;
+  st.stress = Vec3(370.5e3, 390e3, 429e3).asDiagonal();  // errors +5 %, 0, -10 %
+  st.affine_stiffness = Vec3::Constant(4e8);             // Pa per unit strain
+  servo_update(model, st);
+  const double unit = 390e3 / (4e8 * model.dt);
+  // Round-off only (a handful of operations): 1e-12 relative.
+  EXPECT_NEAR(st.cell.L(0, 0), -(0.1 * 0.05 + 0.002 * 0.05) * unit, 1e-12 * unit);
+  EXPECT_EQ(st.cell.L(1, 1), 0.0);
+  EXPECT_NEAR(st.cell.L(2, 2), (0.1 * 0.1 + 0.002 * 0.1) * unit, 1e-12 * unit);
+  EXPECT_NEAR(st.servo_integral[0], 0.05, 1e-15);  // the integral accumulates the error
+  // A second step integrates: S = 2 e.
+  servo_update(model, st);
+  EXPECT_NEAR(st.cell.L(0, 0), -(0.1 * 0.05 + 0.002 * 0.10) * unit, 1e-12 * unit);
+
+  // A large error is clamped to the maximum rate and does not wind up the integral.
+  model.servo.max_strain_rate = 1.0;
+  State big;
+  big.stress = Vec3(0.0, 390e3, 10 * 390e3).asDiagonal();
+  big.affine_stiffness = Vec3::Constant(1e3);  // soft: the unclamped rate would be huge
+  servo_update(model, big);
+  EXPECT_DOUBLE_EQ(big.cell.L(0, 0), -1.0);
+  EXPECT_DOUBLE_EQ(big.cell.L(2, 2), 1.0);
+  EXPECT_EQ(big.servo_integral[0], 0.0);
+  // No contacts (C = 0): close a loose sample at the cap.
+  State loose;
+  servo_update(model, loose);
+  for (int k = 0; k < 3; ++k) EXPECT_DOUBLE_EQ(loose.cell.L(k, k), -1.0);
+}
+
+namespace {
+
+// The loose sample compacted once for the two protocol tests below.
+class ServoProtocol : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    OneThread one;
+    params_ = new Params(parse_case(small_case, "servo-small.toml"));
+    state_ = new State(generate_loose_sample(*params_));
+    Progress quiet(Progress::Mode::quiet);
+    compaction_ = new CompactionResult(compact(*params_, *state_, quiet, nullptr));
+  }
+  static void TearDownTestSuite() {
+    delete compaction_;
+    delete state_;
+    delete params_;
+  }
+  static Params* params_;
+  static State* state_;
+  static CompactionResult* compaction_;
+};
+Params* ServoProtocol::params_ = nullptr;
+State* ServoProtocol::state_ = nullptr;
+CompactionResult* ServoProtocol::compaction_ = nullptr;
+
+}  // namespace
+
+// SPEC 8: isotropic compaction stops with every normal stress within compaction.stress_tolerance
+// (1 %) of 390 kPa and UFR below compaction.ufr_tolerance. (The shear stresses are not controlled:
+// SPEC 3's L is diagonal. See the report: they can reach 16 % of p in this 200-sphere sample.)
+TEST_F(ServoProtocol, IsotropicCompactionReachesTargetOnAllAxes) {
+  const Measures m = measure(*state_);
+  const double target = params_->compaction.stress;
+  for (int k = 0; k < 3; ++k)
+    EXPECT_LT(std::abs(m.stress(k, k) / target - 1), params_->compaction.stress_tolerance) << "axis " << k;
+  EXPECT_LT(m.ufr, params_->compaction.ufr_tolerance);
+  EXPECT_GT(m.contacts, 0);
+  EXPECT_GT(m.coordination, 3.0);  // a mechanically stable packing of frictional spheres
+  EXPECT_GT(compaction_->steps, 0);
+  // Compacted from solid fraction 0.2 (void ratio 4) to a packing of touching spheres.
+  EXPECT_LT(m.void_ratio, 1.0);
+}
+
+// SPEC 3 / 8, drained triaxial: axis 3 at constant strain rate, axes 1 and 2 stress-controlled at
+// the confining stress. Over every row the lateral stresses stay within 2 % of 390 kPa (twice the
+// compaction tolerance: the servo removes 10 % of the affine-estimated error per step while the
+// axial strain grows by 4e-6 per step, so only the start of loading leaves a visible lag; 1.0 %
+// at the first row here). The axial stress rises above the confining stress (deviatoric loading).
+// (At eps' = 1e-4, far from quasi-static, UFR ~ 0.3, the lateral error reaches 25 %: see report.)
+TEST_F(ServoProtocol, DrainedTriaxialHoldsLateralStress) {
+  OneThread one;
+  State st = *state_;  // copy: the fixture's compacted sample stays as it was
+  const auto dir = fresh_dir("servo_triaxial");
+  SeriesWriter series(dir / "series.csv");
+  Progress quiet(Progress::Mode::quiet);
+  const TriaxialResult r = shear(*params_, st, series, quiet);
+  series.commit();
+  const Table t = read_csv(dir / "series.csv");
+  ASSERT_EQ(t.rows.size(), static_cast<std::size_t>(params_->triaxial.sample_points));
+  const double sc = params_->triaxial.confining_stress;
+  const std::size_t c11 = t.col("s11_Pa"), c22 = t.col("s22_Pa"), c33 = t.col("s33_Pa"), cq = t.col("q_Pa"),
+                    ce1 = t.col("e1");
+  double worst = 0;
+  for (const auto& row : t.rows) {
+    worst = std::max({worst, std::abs(row[c11] / sc - 1), std::abs(row[c22] / sc - 1)});
+    EXPECT_GT(row[c33], sc) << "e1 = " << row[ce1];
+  }
+  EXPECT_LT(worst, 0.02);
+  EXPECT_NEAR(r.max_lateral_stress_error, worst, 1e-6);  // the summary reports what the rows show
+  // Deviatoric loading: at 1 % axial strain a dense sample carries q well above 10 % of sigma_c.
+  EXPECT_GT(t.rows.back()[c33], 1.1 * sc);
+  EXPECT_GT(t.rows.back()[cq], t.rows.front()[cq]);
+  // SPEC 8: the last row is at the final axial strain (250 steps of c_t eps'; round-off only).
+  EXPECT_NEAR(t.rows.back()[ce1], params_->triaxial.final_axial_strain, 1e-9);
+  if (!HasFailure()) std::filesystem::remove_all(dir);
+}
