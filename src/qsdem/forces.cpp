@@ -2,6 +2,8 @@
 
 #include <fmt/format.h>
 
+#include <cmath>
+
 #include "qsdem/contact_law.hpp"
 
 namespace qsdem {
@@ -27,13 +29,16 @@ void compute_contact_forces(const Model& model, State& state) {
     for (std::size_t k = b * block_size; k < end; ++k) {
       const std::uint32_t i = pairs.i[k], j = pairs.j[k];
       const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
-      // Spheres: exact geometry. Ellipsoid pairs get their narrow phase in the ellipsoid issue.
-      const ContactGeometry g = sphere_sphere(l, p.bound_radius[i], p.bound_radius[j]);
-      pairs.overlap[k] = g.overlap;
-      if (g.overlap <= 0) {
-        pairs.shear[k].setZero();  // contact lost: the tangential spring is released
-        continue;                  // force and torques are read only where overlap > 0
+      const double ri = p.bound_radius[i], rj = p.bound_radius[j];
+      const double d2 = l.squaredNorm();
+      if (d2 >= (ri + rj) * (ri + rj)) {  // apart: most listed pairs, so keep this path short
+        pairs.overlap[k] = ri + rj - std::sqrt(d2);
+        if (!pairs.shear[k].isZero()) pairs.shear[k].setZero();  // contact lost: spring released
+        continue;  // force and torques are read only where overlap > 0
       }
+      // Spheres: exact geometry. Ellipsoid pairs get their narrow phase in the ellipsoid issue.
+      const ContactGeometry g = sphere_sphere(l, ri, rj);
+      pairs.overlap[k] = g.overlap;
       // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
       const Vec3 vrel = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + cell.L * l;
       const ContactForce cf = law.evaluate(g, vrel, dt, pairs.shear[k]);

@@ -148,6 +148,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"contacts", m.contacts},
           {"pairs", st.pairs.size()},
           {"ekin_J", m.ekin_trans + m.ekin_rot},
+          {"ekin_trans_J", m.ekin_trans},
           {"steps", steps},
           {"threads", omp_get_max_threads()},
           {"wall_s", wall},
