@@ -434,7 +434,7 @@ TEST(CellDeform, StepMovesParticlesWithAffineField) {
     AxisControl& ac = model.control[static_cast<std::size_t>(k)];
     ac.kind = AxisControl::Kind::strain_rate;
     ac.value = rates[k];
-    ac.reference_length = h0.col(k).norm();  // e = 0 now, so L_kk = -rate (SPEC 3, servo.hpp)
+    ac.reference_length = h0(k, k);  // H0 = h_kk at e = 0 now, so L_kk = -rate (SPEC 3, servo.hpp)
   }
   State st;
   st.cell = make_cell(h0);

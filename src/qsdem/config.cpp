@@ -195,6 +195,13 @@ class Reader {
     return v;
   }
 
+  bool boolean(const std::string& path, bool def) {
+    const toml::node* n = get(path, false);
+    if (!n) return def;
+    if (!n->is_boolean()) fail(path, n, "expected true or false");
+    return *n->value<bool>();
+  }
+
   std::string text(const std::string& path, std::optional<std::string> def,
                    const std::vector<std::string>& choices) {
     const toml::node* n = get(path, !def.has_value());
@@ -361,6 +368,7 @@ Params parse_case(const std::string& toml_text, const std::string& source,
   c.damping_ratio = r.quantity("compaction.damping_ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
   c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
   c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
+  c.zero_shear_stress = r.boolean("compaction.zero_shear_stress", true);
 
   auto& t = p.triaxial;
   t.friction = r.number("triaxial.friction", 0.5, non_negative, "must be >= 0");
@@ -408,7 +416,8 @@ nlohmann::json to_json(const Params& p) {
       {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
                       {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},
                       {"damping_model", to_string(c.damping_model)}, {"damping_ratio", c.damping_ratio},
-                      {"max_steps", c.max_steps}, {"check_interval", c.check_interval}}},
+                      {"max_steps", c.max_steps}, {"check_interval", c.check_interval},
+                      {"zero_shear_stress", c.zero_shear_stress}}},
       {"triaxial", {{"friction", t.friction}, {"confining_stress_Pa", t.confining_stress},
                     {"strain_rate", t.strain_rate}, {"final_axial_strain", t.final_axial_strain},
                     {"sample_points", t.sample_points}, {"lateral_rate_factor", t.lateral_rate_factor}}},

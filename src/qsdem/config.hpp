@@ -59,6 +59,7 @@ struct Params {
     double damping_ratio = 0.005;
     long max_steps = 2'000'000;
     long check_interval = 200;
+    bool zero_shear_stress = true;      // servo the shear stresses to zero too (servo.hpp)
   } compaction;
 
   struct Triaxial {

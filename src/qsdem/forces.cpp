@@ -49,19 +49,26 @@ void compute_contact_forces(const Model& model, State& state) {
       const Vec3 n2 = g.normal.cwiseProduct(g.normal);
       acc.stiffness_sum += (cf.normal_stiffness * n2 + cf.tangential_stiffness * (Vec3::Ones() - n2))
                                .cwiseProduct(l.cwiseProduct(l));
+      // Affine pure shear D_ab = D_ba (servo.hpp): 2 k_n n_a^2 n_b^2 + k_t ((n_a^2 + n_b^2)/2 - 2 n_a^2 n_b^2).
+      const Vec3 nn(n2.x() * n2.y(), n2.x() * n2.z(), n2.y() * n2.z());
+      const Vec3 half(0.5 * (n2.x() + n2.y()), 0.5 * (n2.x() + n2.z()), 0.5 * (n2.y() + n2.z()));
+      acc.shear_stiffness_sum +=
+          l.squaredNorm() * (2 * cf.normal_stiffness * nn + cf.tangential_stiffness * (half - 2 * nn));
     }
     state.blocks[b] = acc;
   }
 
   Mat3 sum = Mat3::Zero();
-  Vec3 stiff = Vec3::Zero();
+  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
   for (const ForceBlock& b : state.blocks) {
     sum += b.stress_sum;
     stiff += b.stiffness_sum;
+    shear_stiff += b.shear_stiffness_sum;
   }
   const double v = cell.volume;
   state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive
   state.affine_stiffness = stiff / v;
+  state.shear_stiffness = shear_stiff / v;
   state.stress_volume = v;
   state.stress_h = cell.h;
 }

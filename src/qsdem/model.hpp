@@ -25,13 +25,14 @@ struct Material {
 struct AxisControl {
   enum class Kind { fixed, strain_rate, stress } kind = Kind::fixed;
   double value = 0;  // strain_rate: engineering rate de/dt (1/s); stress: target (Pa)
-  double reference_length = 0;  // strain_rate: H0, the cell's length along the axis at e = 0 (m)
+  double reference_length = 0;  // strain_rate: H0 = h_kk at e = 0 (m), see servo.hpp
 };
 
 struct Servo {
   double proportional_gain = 0.1;  // beta: fraction of the stress error removed per step
   double integral_gain = 0.002;    // gamma: per-step weight of the accumulated error
   double max_strain_rate = 0;      // |L_kk| cap on stress-controlled axes (1/s)
+  bool zero_shear_stress = false;  // also drive the shear stresses to zero (servo.hpp)
 };
 
 struct Model {

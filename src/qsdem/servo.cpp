@@ -13,7 +13,7 @@ void servo_update(const Model& model, State& state) {
       case AxisControl::Kind::fixed:
         break;
       case AxisControl::Kind::strain_rate:
-        L(k, k) = -c.value * c.reference_length / state.cell.h.col(k).norm();
+        L(k, k) = -c.value * c.reference_length / state.cell.h(k, k);
         break;
       case AxisControl::Kind::stress: {
         const double target = c.value;
@@ -33,6 +33,24 @@ void servo_update(const Model& model, State& state) {
         L(k, k) = rate;
         break;
       }
+    }
+  }
+  // Shear stresses are relaxed only once the packing carries the target stress (every normal
+  // stress within 10 %): before that they are collisional noise, and chasing them only tilts the cell.
+  bool jammed = true;
+  for (int k = 0; k < 3; ++k) {
+    const AxisControl& c = model.control[static_cast<std::size_t>(k)];
+    if (c.kind == AxisControl::Kind::stress && std::abs(state.stress(k, k) / c.value - 1) > 0.1) jammed = false;
+  }
+  if (model.servo.zero_shear_stress && jammed) {
+    constexpr int pair[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (int s = 0; s < 3; ++s) {
+      const int a = pair[s][0], b = pair[s][1];
+      const double g = state.shear_stiffness[s];
+      if (g <= 0) continue;
+      const double cap = model.servo.max_strain_rate;
+      const double rate = std::clamp(model.servo.proportional_gain * state.stress(a, b) / (g * model.dt), -cap, cap);
+      L(a, b) = L(b, a) = rate;
     }
   }
   state.cell.L = L;

@@ -14,6 +14,7 @@ namespace qsdem {
 struct ForceBlock {
   Mat3 stress_sum = Mat3::Zero();      // sum f (x) l over contacts (N m)
   Vec3 stiffness_sum = Vec3::Zero();   // sum (k_n n_k^2 + k_t (1 - n_k^2)) l_k^2 (N m)
+  Vec3 shear_stiffness_sum = Vec3::Zero();  // the same for the shears 12, 13, 23 (servo.hpp)
 };
 
 struct State {
@@ -28,6 +29,7 @@ struct State {
   // From the last force evaluation (time t).
   Mat3 stress = Mat3::Zero();           // Love-Weber, compression positive (Pa), SPEC 7
   Vec3 affine_stiffness = Vec3::Zero(); // d sigma_kk / d eps_kk of an affine strain (Pa)
+  Vec3 shear_stiffness = Vec3::Zero();  // -d sigma_ab / d D_ab dt for the shears 12, 13, 23 (Pa)
   double stress_volume = 1;             // V at which stress was evaluated (m^3)
   Mat3 stress_h = Mat3::Identity();     // cell matrix at which stress was evaluated (m)
 
