@@ -13,7 +13,8 @@
 
 namespace {
 
-// exit codes: 0 ok, 1 usage, 2 bad input, 3 run failed
+// exit codes: 0 ok, 1 usage, 2 bad input, 3 run failed (blow-up, no equilibrium, I/O),
+// 128 + signal when stopped by SIGINT/SIGTERM after a checkpoint
 int report(const char* kind, const std::exception& e, int code) {
   std::fprintf(stderr, "qsdem: %s: %s\n", kind, e.what());
   return code;
@@ -52,6 +53,8 @@ int main(int argc, char** argv) {
                   "--set sample.total_particles=2000 --set damping.model=od (repeatable)");
   run->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
   run->add_flag("--quiet,-q", quiet, "No progress line");
+  bool force = false;
+  run->add_flag("--force,-f", force, "Overwrite a directory that holds a finished or unfinished run");
 
   auto* prepare = app.add_subcommand(
       "prepare",
@@ -62,6 +65,17 @@ int main(int argc, char** argv) {
   prepare->add_option("--set,-s", overrides, "Override a case key (as for run)");
   prepare->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
   prepare->add_flag("--quiet,-q", quiet, "No progress line");
+  prepare->add_flag("--force,-f", force, "Overwrite a directory that holds a finished or unfinished run");
+
+  std::string resume_dir;
+  auto* resume = app.add_subcommand(
+      "resume",
+      "Continue an interrupted run (killed, stopped by SIGINT/SIGTERM, crashed) from the newest good checkpoint "
+      "in its directory (DIR/checkpoint.qsck, or DIR/checkpoint.qsck.prev when the newest is damaged). The "
+      "resumed series.csv is identical to that of an uninterrupted run.");
+  resume->add_option("dir", resume_dir, "Directory of the run")->required();
+  resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  resume->add_flag("--quiet,-q", quiet, "No progress line");
 
   std::string packing;
   long steps = 1000;
@@ -87,14 +101,21 @@ int main(int argc, char** argv) {
       if (!quiet)
         std::fprintf(stderr, "qsdem %s: case %s -> %s (%d threads)\n", QSDEM_VERSION, params.source.c_str(),
                      out_dir.c_str(), omp_get_max_threads());
-      const auto summary = qsdem::run_case(params, {out_dir, quiet, bool(*prepare)});
+      const auto summary = qsdem::run_case(params, {out_dir, quiet, bool(*prepare), force});
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << out_dir
                 << (*prepare ? "/ (compacted.packing, summary.json)\n" : "/ (series.csv, summary.json)\n");
+    } else if (*resume) {
+      const auto summary = qsdem::resume_run(resume_dir, {resume_dir, quiet, false, false});
+      std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
+                << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*bench) {
       const qsdem::Params params = qsdem::load_case(case_path, overrides);
       std::cout << qsdem::bench_packing(params, packing, steps).dump() << std::endl;
     }
+  } catch (const qsdem::Interrupted& e) {
+    std::fprintf(stderr, "\nqsdem: %s\n", e.what());
+    return 128 + e.signal;
   } catch (const qsdem::InputError& e) {
     return report("input error", e, 2);
   } catch (const qsdem::RunError& e) {

@@ -240,8 +240,9 @@ class Reader {
   }
 
   static bool known_section(const std::string& path) {
-    static const std::set<std::string> sections{"material", "sample", "sample.particles", "time", "damping",
-                                                "compaction", "triaxial", "servo", "neighbor"};
+    static const std::set<std::string> sections{"material", "sample",     "sample.particles", "time",
+                                                "damping",  "compaction", "triaxial",         "servo",
+                                                "neighbor", "checkpoint", "limits",           "output"};
     const bool table_entry = path.rfind("sample.particles.", 0) == 0 &&
                              path.find('.', std::string("sample.particles.").size()) == std::string::npos;
     return sections.count(path) > 0 || table_entry;
@@ -349,11 +350,18 @@ Params parse_case(const std::string& toml_text, const std::string& source,
   p.sample.initial_solid_fraction = r.number("sample.initial_solid_fraction", 0.15,
                                              [](double v) { return v > 0 && v <= 0.2; }, "must be in (0, 0.2] (SPEC 8: a loose sample)");
   p.sample.total_particles = r.integer("sample.total_particles", 0, 0, 100'000'000);
-  const auto* table = r.array_of_tables("sample.particles");
-  for (std::size_t k = 0; k < table->size(); ++k)
-    p.sample.table.push_back(read_size_class(r, "sample.particles." + std::to_string(k)));
+  p.sample.from = r.text("sample.from", std::string(), {});
+  // A given sample replaces the generated one: then the size table is not needed (nor read).
+  if (p.sample.from.empty() || r.find("sample.particles")) {
+    const auto* table = r.array_of_tables("sample.particles");
+    for (std::size_t k = 0; k < table->size(); ++k)
+      p.sample.table.push_back(read_size_class(r, "sample.particles." + std::to_string(k)));
+  }
 
-  p.step_ratio = r.number("time.step_ratio", 0.32, [](double v) { return v > 0 && v <= 1; }, "must be in (0, 1]");
+  // Stability: dt must stay below about 20 % of the Rayleigh time 2.73 t_c (LIGGGHTS' rule), c_t <= 0.5.
+  p.step_ratio = r.number("time.step_ratio", 0.32, [](double v) { return v > 0 && v <= 0.5; },
+                          "must be in (0, 0.5]: above 0.5 the time step exceeds the stability bound (20 % of the "
+                          "Rayleigh time)");
 
   p.damping.model = damping_model(r, "damping.model", "nd");
   p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
@@ -391,8 +399,18 @@ Params parse_case(const std::string& toml_text, const std::string& source,
 
   p.neighbor.skin_ratio = r.number("neighbor.skin_ratio", 0.2, [](double v) { return v > 0 && v <= 2; }, "must be in (0, 2]");
 
+  p.checkpoint.every_sample_points =
+      static_cast<int>(r.integer("checkpoint.every_sample_points", 25, 0, 1'000'000));
+  p.checkpoint.every_minutes = r.number("checkpoint.every_minutes", 10.0, [](double v) { return v >= 0; }, "must be >= 0");
+  p.limits.max_overlap = r.quantity("limits.max_overlap", Dimension::ratio, 0.05, [](double v) { return v > 0 && v < 1; },
+                                    "must be in (0, 100 %)");
+  p.limits.max_kinetic_ratio = r.number("limits.max_kinetic_ratio", 1.0, positive, "must be > 0");
+
   r.reject_unknown();
   p.as_written = to_json(root);
+  std::ostringstream text;
+  text << root;
+  p.case_text = text.str();
   return p;
 }
 
@@ -410,7 +428,7 @@ nlohmann::json to_json(const Params& p) {
       {"material", {{"density_kg_m3", p.material.density}, {"young_modulus_Pa", p.material.young_modulus},
                     {"poisson_ratio", p.material.poisson_ratio}}},
       {"sample", {{"seed", p.sample.seed}, {"initial_solid_fraction", p.sample.initial_solid_fraction},
-                  {"total_particles", p.sample.total_particles}, {"particles", table}}},
+                  {"total_particles", p.sample.total_particles}, {"particles", table}, {"from", p.sample.from}}},
       {"time", {{"step_ratio", p.step_ratio}}},
       {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio}}},
       {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
@@ -423,6 +441,9 @@ nlohmann::json to_json(const Params& p) {
                     {"sample_points", t.sample_points}, {"lateral_rate_factor", t.lateral_rate_factor}}},
       {"servo", {{"proportional_gain", p.servo.proportional_gain}, {"integral_gain", p.servo.integral_gain}}},
       {"neighbor", {{"skin_ratio", p.neighbor.skin_ratio}}},
+      {"checkpoint", {{"every_sample_points", p.checkpoint.every_sample_points},
+                      {"every_minutes", p.checkpoint.every_minutes}}},
+      {"limits", {{"max_overlap", p.limits.max_overlap}, {"max_kinetic_ratio", p.limits.max_kinetic_ratio}}},
   };
 }
 

@@ -40,6 +40,7 @@ struct Params {
     double initial_solid_fraction = 0.15;
     long total_particles = 0;  // 0: the table's counts as written
     std::vector<SizeClass> table;
+    std::string from;          // a prepared sample (directory of `qsdem prepare`) or a packing file
   } sample;
 
   double step_ratio = 0.32;  // c_t (SPEC 5)
@@ -80,7 +81,18 @@ struct Params {
     double skin_ratio = 0.2;  // Verlet skin as a fraction of the smallest equal-volume radius
   } neighbor;
 
+  struct Checkpoint {
+    int every_sample_points = 25;  // also one at the end of compaction and on SIGINT/SIGTERM
+    double every_minutes = 10;     // wall clock
+  } checkpoint;
+
+  struct Limits {
+    double max_overlap = 0.05;       // delta / min(R_i, R_j) that stops the run as a blow-up
+    double max_kinetic_ratio = 1.0;  // Ekin / (p V) that stops the triaxial test as a blow-up
+  } limits;
+
   nlohmann::json as_written;  // the TOML as read, after --set overrides
+  std::string case_text;      // the same as TOML text (checkpoints keep it for resume)
 };
 
 // Every parameter, defaults included, in SI units (for summary.json).

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include "qsdem/contact_law.hpp"
@@ -39,6 +40,11 @@ void compute_contact_forces(const Model& model, State& state) {
       // Spheres: exact geometry. Ellipsoid pairs get their narrow phase in the ellipsoid issue.
       const ContactGeometry g = sphere_sphere(l, ri, rj);
       pairs.overlap[k] = g.overlap;
+      const double ratio = g.overlap / std::min(p.equiv_radius[i], p.equiv_radius[j]);
+      if (ratio > acc.max_overlap) {
+        acc.max_overlap = ratio;
+        acc.max_overlap_pair = k;
+      }
       // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
       const Vec3 vrel = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + cell.L * l;
       const ContactForce cf = law.evaluate(g, vrel, dt, pairs.shear[k]);
@@ -60,10 +66,15 @@ void compute_contact_forces(const Model& model, State& state) {
 
   Mat3 sum = Mat3::Zero();
   Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
+  state.max_overlap = 0;
   for (const ForceBlock& b : state.blocks) {
     sum += b.stress_sum;
     stiff += b.stiffness_sum;
     shear_stiff += b.shear_stiffness_sum;
+    if (b.max_overlap > state.max_overlap) {
+      state.max_overlap = b.max_overlap;
+      state.max_overlap_pair = b.max_overlap_pair;
+    }
   }
   const double v = cell.volume;
   state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive

@@ -76,6 +76,23 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
   return 2 * std::sqrt(d2max) + strain * (2 * ns.max_bound_radius + ns.skin) > ns.skin;
 }
 
+void build_incidence(PairList& pairs, std::size_t n) {
+  // In pair order: the gather then sums in a fixed order for any thread count.
+  const std::size_t np = pairs.size();
+  pairs.first.assign(n + 1, 0);
+  for (std::size_t k = 0; k < np; ++k) {
+    ++pairs.first[pairs.i[k] + 1];
+    ++pairs.first[pairs.j[k] + 1];
+  }
+  std::partial_sum(pairs.first.begin(), pairs.first.end(), pairs.first.begin());
+  pairs.incident.resize(2 * np);
+  std::vector<std::uint32_t> fill(pairs.first.begin(), pairs.first.end() - 1);
+  for (std::size_t k = 0; k < np; ++k) {
+    pairs.incident[fill[pairs.i[k]]++] = static_cast<std::uint32_t>(k << 1);
+    pairs.incident[fill[pairs.j[k]]++] = static_cast<std::uint32_t>((k << 1) | 1u);
+  }
+}
+
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
   check_cell_size(p, cell, skin);
   const std::size_t n = p.size();
@@ -191,19 +208,7 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
     }
   }
 
-  // Incidence lists, in pair order: the gather sums in a fixed order for any thread count.
-  next.first.assign(n + 1, 0);
-  for (std::size_t k = 0; k < np; ++k) {
-    ++next.first[next.i[k] + 1];
-    ++next.first[next.j[k] + 1];
-  }
-  std::partial_sum(next.first.begin(), next.first.end(), next.first.begin());
-  next.incident.resize(2 * np);
-  std::vector<std::uint32_t> fill(next.first.begin(), next.first.end() - 1);
-  for (std::size_t k = 0; k < np; ++k) {
-    next.incident[fill[next.i[k]]++] = static_cast<std::uint32_t>(k << 1);
-    next.incident[fill[next.j[k]]++] = static_cast<std::uint32_t>((k << 1) | 1u);
-  }
+  build_incidence(next, n);
   pairs = std::move(next);
 
   ns.s_at_build = p.s;

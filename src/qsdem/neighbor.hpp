@@ -48,6 +48,9 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
 // Rebuilds `pairs` (keeping the history of pairs present before) and the incidence lists.
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns);
 
+// Rebuilds the incidence lists (first, incident) from the pair keys.
+void build_incidence(PairList& pairs, std::size_t n_particles);
+
 // Refuses a cell in which a particle could touch its own image (SPEC 3).
 void check_cell_size(const Particles& p, const Cell& cell, double skin);
 

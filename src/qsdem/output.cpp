@@ -3,6 +3,8 @@
 #include <fmt/format.h>
 #include <unistd.h>
 
+#include <fstream>
+
 #include "qsdem/types.hpp"
 
 namespace qsdem {
@@ -15,12 +17,29 @@ std::string series_row(long step, double time, double e1, double ev, const Measu
                      m.ekin_trans + m.ekin_rot, m.ekin_trans, m.ekin_rot);
 }
 
-SeriesWriter::SeriesWriter(std::filesystem::path path) : path_(std::move(path)) {
+SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows) : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
+  if (keep_rows < 0) {
+    file_ = std::fopen(partial_.c_str(), "w");
+    if (!file_) throw RunError(fmt::format("cannot write '{}'", partial_.string()));
+    write(series_header);
+    return;
+  }
+  std::ifstream in(partial_);
+  std::string kept, line;
+  long lines = 0;
+  while (lines < keep_rows + 1 && std::getline(in, line)) {
+    kept += line + '\n';
+    ++lines;
+  }
+  if (lines < keep_rows + 1)
+    throw InputError(fmt::format("cannot resume: '{}' holds {} rows, the checkpoint expects {}", partial_.string(),
+                                 std::max(0L, lines - 1), keep_rows));
+  in.close();
   file_ = std::fopen(partial_.c_str(), "w");
-  if (!file_) throw RunError(fmt::format("cannot write '{}'", partial_.string()));
-  write(series_header);
+  if (!file_ || std::fputs(kept.c_str(), file_) < 0 || std::fflush(file_) != 0)
+    throw RunError(fmt::format("cannot rewrite '{}'", partial_.string()));
 }
 
 SeriesWriter::~SeriesWriter() {

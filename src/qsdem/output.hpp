@@ -18,9 +18,11 @@ inline constexpr const char* series_header =
 std::string series_row(long step, double time, double e1, double ev, const Measures& m);
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
+// With keep_rows >= 0 it continues an existing `path.partial` after its first keep_rows rows
+// (a resumed run: rows written after the checkpoint are dropped and written again).
 class SeriesWriter {
  public:
-  explicit SeriesWriter(std::filesystem::path path);
+  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;

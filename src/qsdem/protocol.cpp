@@ -18,11 +18,40 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 void check_finite(const Measures& m, const State& st, const char* phase) {
   if (std::isfinite(m.stress.sum()) && std::isfinite(m.ekin_trans + m.ekin_rot)) return;
   for (std::size_t i = 0; i < st.particles.size(); ++i)
-    if (!st.particles.v[i].allFinite() || !st.particles.s[i].allFinite())
-      throw RunError(fmt::format("{}: state is not finite at step {} (particle id {}): the time step is too "
-                                 "large for the contact stiffness, lower time.step_ratio",
+    if (!st.particles.v[i].allFinite() || !st.particles.s[i].allFinite() || !st.particles.angmom[i].allFinite())
+      throw RunError(fmt::format("{}: blow-up at step {}: the state of particle id {} is not finite (NaN or infinity). "
+                                 "The time step may be too large for the contact stiffness: lower time.step_ratio",
                                  phase, st.step, st.particles.id[i]));
-  throw RunError(fmt::format("{}: stress is not finite at step {}", phase, st.step));
+  throw RunError(fmt::format("{}: blow-up at step {}: the stress is not finite (NaN or infinity)", phase, st.step));
+}
+
+// Cheap per-step watch: a non-finite stress or an overlap beyond limits.max_overlap.
+void check_step(const State& st, const Params& params, const char* phase) {
+  const double trace = st.stress.trace();
+  if (!std::isfinite(trace)) {
+    Measures m;
+    m.stress = st.stress;
+    check_finite(m, st, phase);
+  }
+  if (st.max_overlap > params.limits.max_overlap) {
+    const std::size_t k = st.max_overlap_pair;
+    throw RunError(fmt::format(
+        "{}: blow-up at step {}: particles id {} and id {} overlap by {:.3g} % of the smaller radius (limit "
+        "limits.max_overlap = {:.3g} %). The time step may be too large (time.step_ratio) or the loading too fast "
+        "(triaxial.strain_rate, compaction.max_strain_rate)",
+        phase, st.step, st.particles.id[st.pairs.i[k]], st.particles.id[st.pairs.j[k]], 100 * st.max_overlap,
+        100 * params.limits.max_overlap));
+  }
+}
+
+// Kinetic energy beyond limits.max_kinetic_ratio * p V: the sample is flying apart, not sheared.
+void check_kinetic(const Measures& m, const Params& params, const State& st) {
+  const double ratio = (m.ekin_trans + m.ekin_rot) / (std::max(m.mean_stress, 0.0) * m.volume);
+  if (ratio > params.limits.max_kinetic_ratio)
+    throw RunError(fmt::format(
+        "triaxial: blow-up at step {}: kinetic energy {:.3g} J is {:.3g} times p V (limit limits.max_kinetic_ratio = "
+        "{:.3g}): the loading is far too fast for the damping; lower triaxial.strain_rate or time.step_ratio",
+        st.step, m.ekin_trans + m.ekin_rot, ratio, params.limits.max_kinetic_ratio));
 }
 
 }  // namespace
@@ -45,7 +74,7 @@ Model compaction_model(const Params& params, const State& state) {
   return m;
 }
 
-Model triaxial_model(const Params& params, const State& state) {
+Model triaxial_model(const Params& params, const State& state, double axial_reference_length) {
   Model m = base_model(params, state.particles);
   m.friction = params.triaxial.friction;
   m.damping = params.damping.model;
@@ -53,9 +82,13 @@ Model triaxial_model(const Params& params, const State& state) {
   const double rate = params.triaxial.strain_rate / m.critical_time;  // eps' = rate t_c (SPEC 8)
   m.control[0] = {AxisControl::Kind::stress, params.triaxial.confining_stress, 0.0};
   m.control[1] = {AxisControl::Kind::stress, params.triaxial.confining_stress, 0.0};
-  m.control[2] = {AxisControl::Kind::strain_rate, rate, state.cell.h(2, 2)};
+  m.control[2] = {AxisControl::Kind::strain_rate, rate, axial_reference_length};
   m.servo.max_strain_rate = params.triaxial.lateral_rate_factor * rate;
   return m;
+}
+
+Model triaxial_model(const Params& params, const State& state) {
+  return triaxial_model(params, state, state.cell.h(2, 2));
 }
 
 long triaxial_steps(const Params& params) {
@@ -63,21 +96,34 @@ long triaxial_steps(const Params& params) {
                                   (params.step_ratio * params.triaxial.strain_rate)));
 }
 
-CompactionResult compact(const Params& params, State& st, Progress& progress, SeriesWriter* log) {
+// Starts a phase once (not again on resume): reference cell and servo memory.
+static void start_phase(RunProgress& run, State& st) {
+  if (run.phase_started) return;
+  run.phase_started = true;
+  run.phase_steps = 0;
+  run.rows = 0;
+  run.v0 = st.cell.volume;
+  run.h0 = st.cell.h;
+  st.servo_integral.setZero();
+}
+
+CompactionResult compact(const Params& params, State& st, RunProgress& run, Progress& progress, SeriesWriter* log,
+                         const StepHook& hook) {
   const auto t0 = std::chrono::steady_clock::now();
   const Model model = compaction_model(params, st);
+  start_phase(run, st);
   assign_damping(model, st.particles);
-  st.servo_integral.setZero();
   const auto& c = params.compaction;
-  const double v0 = st.cell.volume;
-  const Mat3 h0 = st.cell.h;
   progress.begin("compaction", 0);
-  CompactionResult r;
-  for (long n = 1; n <= c.max_steps; ++n) {
-    {
-      step(model, st);
+  const double wall_before = run.compaction.wall_s;
+  while (run.phase_steps < c.max_steps) {
+    step(model, st);
+    check_step(st, params, "compaction");
+    const long n = ++run.phase_steps;
+    if (n % c.check_interval != 0) {
+      if (hook) hook(false);
+      continue;
     }
-    if (n % c.check_interval != 0) continue;
     Measures m;
     {
       ScopedStage t(st.timers, Stage::measures);
@@ -93,19 +139,23 @@ CompactionResult compact(const Params& params, State& st, Progress& progress, Se
           worst = std::max(worst, std::abs(m.stress(a, b) - (a == b ? c.stress : 0.0)) / c.stress);
     if (log) {
       ScopedStage t(st.timers, Stage::output);
-      const double e1 = 1 - st.stress_h(2, 2) / h0(2, 2);
-      log->write(series_row(st.step - 1, st.time - model.dt, e1, m.volume / v0 - 1, m));
+      const double e1 = 1 - st.stress_h(2, 2) / run.h0(2, 2);
+      log->write(series_row(st.step - 1, st.time - model.dt, e1, m.volume / run.v0 - 1, m));
+      ++run.rows;
     }
     progress.update(0, fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}",
                                    n, m.mean_stress / 1e3, 100 * worst, m.ufr, m.void_ratio));
-    if (m.contacts > 0 && worst < c.stress_tolerance && m.ufr < c.ufr_tolerance) {
-      r.steps = n;
-      r.final = m;
-      r.wall_s = seconds_since(t0);
+    const bool done = m.contacts > 0 && worst < c.stress_tolerance && m.ufr < c.ufr_tolerance;
+    if (done) {
+      run.compaction.steps = n;
+      run.compaction.final = m;
+      run.compaction.wall_s = wall_before + seconds_since(t0);
       progress.end(fmt::format("compaction done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}",
-                               n, m.mean_stress / 1e3, m.void_ratio, m.ufr, format_duration(r.wall_s)));
-      return r;
+                               n, m.mean_stress / 1e3, m.void_ratio, m.ufr, format_duration(run.compaction.wall_s)));
+      return run.compaction;
     }
+    run.compaction.wall_s = wall_before + seconds_since(t0);
+    if (hook) hook(true);
   }
   const Measures m = measure(st);
   throw RunError(fmt::format(
@@ -115,73 +165,99 @@ CompactionResult compact(const Params& params, State& st, Progress& progress, Se
       c.max_steps, m.mean_stress / 1e3, c.stress / 1e3, m.ufr, c.ufr_tolerance));
 }
 
-TriaxialResult shear(const Params& params, State& st, SeriesWriter& series, Progress& progress) {
+TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWriter& series, Progress& progress,
+                     const StepHook& hook) {
   const auto t0 = std::chrono::steady_clock::now();
-  const Model model = triaxial_model(params, st);
-  assign_damping(model, st.particles);
-  st.servo_integral.setZero();
   const auto& t = params.triaxial;
   const long total = triaxial_steps(params);
-  const double v0 = st.cell.volume;
-  const double h0 = st.cell.h(2, 2);
-  const long step0 = st.step;
   if (t.sample_points > total)
     throw InputError(fmt::format("triaxial.sample_points = {} is more than the {} steps of the test: lower it or "
                                  "lower triaxial.strain_rate",
                                  t.sample_points, total));
-  TriaxialResult r;
+  const double h_start = run.phase_started ? run.h0(2, 2) : st.cell.h(2, 2);
+  const Model model = triaxial_model(params, st, h_start);
+  start_phase(run, st);
+  assign_damping(model, st.particles);
+  const double v0 = run.v0, h0 = run.h0(2, 2);
+  TriaxialSums& r = run.sums;
   progress.begin("triaxial", static_cast<double>(total));
-  int k = 1;
-  long next = std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
-  double sum_err = 0;
+  auto sample_step = [&](long k) {
+    return std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
+  };
   // Force evaluation n (0..total) happens at axial strain n c_t eps'; sample k is taken at n_k.
-  for (long n = 0; n <= total; ++n) {
+  while (run.phase_steps <= total) {
+    const long n = run.phase_steps;
     step(model, st);
-    if (n != next) continue;
+    check_step(st, params, "triaxial");
+    ++run.phase_steps;
+    if (n != sample_step(run.rows + 1)) {
+      if (hook) hook(false);
+      continue;
+    }
     Measures m;
     {
       ScopedStage ts(st.timers, Stage::measures);
       m = measure(st);
     }
     check_finite(m, st, "triaxial");
+    check_kinetic(m, params, st);
     const double e1 = 1 - st.stress_h(2, 2) / h0;
     const double ev = m.volume / v0 - 1;
     {
       ScopedStage ts(st.timers, Stage::output);
       series.write(series_row(n, static_cast<double>(n) * model.dt, e1, ev, m));
+      ++run.rows;
     }
     ++r.rows;
-    r.mean_ufr += m.ufr;
-    r.mean_iuf += m.iuf;
-    r.mean_imom += m.imom;
+    r.ufr += m.ufr;
+    r.iuf += m.iuf;
+    r.imom += m.imom;
     if (m.friction_angle_deg > r.peak_phi_deg) {
       r.peak_phi_deg = m.friction_angle_deg;
       r.peak_phi_e1 = e1;
     }
     for (int a = 0; a < 2; ++a) {
       const double err = std::abs(m.stress(a, a) / t.confining_stress - 1);
-      r.max_lateral_stress_error = std::max(r.max_lateral_stress_error, err);
-      sum_err += err;
+      r.max_lateral_error = std::max(r.max_lateral_error, err);
+      r.lateral_error += err;
     }
     r.final_ev = ev;
     r.final_e1 = e1;
     progress.update(static_cast<double>(n),
                     fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}", 100 * e1,
                                 m.friction_angle_deg, m.ufr, m.imom));
-    ++k;
-    next = std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
+    if (run.rows == t.sample_points) break;
+    if (hook) hook(true);
   }
-  r.steps = st.step - step0;
-  r.mean_ufr /= r.rows;
-  r.mean_iuf /= r.rows;
-  r.mean_imom /= r.rows;
-  r.mean_lateral_stress_error = sum_err / (2.0 * r.rows);
-  r.wall_s = seconds_since(t0);
+  TriaxialResult out;
+  out.steps = run.phase_steps;
+  out.rows = r.rows;
+  out.mean_ufr = r.ufr / r.rows;
+  out.mean_iuf = r.iuf / r.rows;
+  out.mean_imom = r.imom / r.rows;
+  out.peak_phi_deg = r.peak_phi_deg;
+  out.peak_phi_e1 = r.peak_phi_e1;
+  out.final_ev = r.final_ev;
+  out.final_e1 = r.final_e1;
+  out.max_lateral_stress_error = r.max_lateral_error;
+  out.mean_lateral_stress_error = r.lateral_error / (2.0 * r.rows);
+  out.wall_s = seconds_since(t0);
   progress.end(fmt::format("triaxial done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean "
                            "IMom {:.3g}, {}",
-                           r.steps, r.peak_phi_deg, 100 * r.peak_phi_e1, r.mean_ufr, r.mean_imom,
-                           format_duration(r.wall_s)));
-  return r;
+                           out.steps, out.peak_phi_deg, 100 * out.peak_phi_e1, out.mean_ufr, out.mean_imom,
+                           format_duration(out.wall_s)));
+  return out;
+}
+
+CompactionResult compact(const Params& params, State& st, Progress& progress, SeriesWriter* log) {
+  RunProgress run;
+  return compact(params, st, run, progress, log, {});
+}
+
+TriaxialResult shear(const Params& params, State& st, SeriesWriter& series, Progress& progress) {
+  RunProgress run;
+  run.phase = RunProgress::Phase::triaxial;
+  return shear(params, st, run, series, progress, {});
 }
 
 }  // namespace qsdem

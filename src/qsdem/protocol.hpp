@@ -1,6 +1,8 @@
 // Protocols (SPEC 8): loose sample -> isotropic compaction -> drained triaxial compression.
+// The phase loops are resumable: everything they need to continue exactly where they stopped is in
+// RunProgress, which checkpoints save with the State.
 #pragma once
-#include <filesystem>
+#include <cstdint>
 #include <functional>
 
 #include "qsdem/config.hpp"
@@ -30,19 +32,50 @@ struct TriaxialResult {
   double mean_lateral_stress_error = 0;
 };
 
-// The phase models of SPEC 8.
+// Running sums over the rows of series.csv.
+struct TriaxialSums {
+  int rows = 0;
+  double ufr = 0, iuf = 0, imom = 0, lateral_error = 0, max_lateral_error = 0;
+  double peak_phi_deg = 0, peak_phi_e1 = 0, final_ev = 0, final_e1 = 0;
+};
+
+// Where a run is.
+struct RunProgress {
+  enum class Phase : std::int32_t { compaction = 0, triaxial = 1, done = 2 };
+  Phase phase = Phase::compaction;
+  bool phase_started = false;  // v0, h0 and the damping of the phase are set
+  long phase_steps = 0;        // steps taken in the current phase
+  long rows = 0;               // rows written to the current phase's CSV file
+  double v0 = 0;               // cell volume at the start of the phase (m^3)
+  Mat3 h0 = Mat3::Identity();  // cell matrix at the start of the phase (m)
+  CompactionResult compaction; // set when compaction ends
+  TriaxialSums sums;
+  double wall_s = 0;           // wall time of the run's earlier sessions (s)
+};
+
+// Called after every step; `sample_point` is true when a CSV row was just written. It may save a
+// checkpoint or stop the run (by throwing).
+using StepHook = std::function<void(bool sample_point)>;
+
+// The phase models of SPEC 8. The triaxial model's axial reference length H0 = h33 at e1 = 0.
 Model compaction_model(const Params& params, const State& state);
-Model triaxial_model(const Params& params, const State& state);
+Model triaxial_model(const Params& params, const State& state, double axial_reference_length);
+Model triaxial_model(const Params& params, const State& state);  // H0 = the current h33
 
 // Number of steps to the final axial strain: final / (c_t eps') (SPEC 8).
 long triaxial_steps(const Params& params);
 
 // Isotropic compaction with friction mu_0 to the target stress until the stress is within
-// tolerance on every axis and UFR is below its tolerance. Appends its history to `log`
-// (compaction.csv) when given.
-CompactionResult compact(const Params& params, State& state, Progress& progress, SeriesWriter* log);
+// tolerance and UFR below its tolerance. Continues from `run` (phase_steps, rows); writes its
+// history to `log` (compaction.csv) when given.
+CompactionResult compact(const Params& params, State& state, RunProgress& run, Progress& progress, SeriesWriter* log,
+                         const StepHook& hook);
+// Drained triaxial compression to the final axial strain, sample points written to `series`.
+TriaxialResult shear(const Params& params, State& state, RunProgress& run, SeriesWriter& series, Progress& progress,
+                     const StepHook& hook);
 
-// Drained triaxial compression to the final axial strain with sample points written to `series`.
+// A fresh phase without hooks (tests, tools).
+CompactionResult compact(const Params& params, State& state, Progress& progress, SeriesWriter* log);
 TriaxialResult shear(const Params& params, State& state, SeriesWriter& series, Progress& progress);
 
 // Refuses what this build cannot run yet (ellipsoid contacts).

@@ -5,7 +5,10 @@
 #include <sys/resource.h>
 
 #include <chrono>
+#include <csignal>
+#include <cstdio>
 
+#include "qsdem/checkpoint.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/packing_io.hpp"
@@ -36,53 +39,139 @@ nlohmann::json measures_json(const Measures& m) {
           {"cn", m.coordination},   {"contacts", m.contacts},  {"ekin_J", m.ekin_trans + m.ekin_rot}};
 }
 
-}  // namespace
+volatile std::sig_atomic_t stop_signal = 0;
 
-nlohmann::json run_case(const Params& params, const RunOptions& options) {
-  const auto t0 = std::chrono::steady_clock::now();
-  std::filesystem::create_directories(options.out);
-  Progress progress(Progress::detect(options.quiet));
+extern "C" void on_stop_signal(int sig) { stop_signal = sig; }
 
-  State st = generate_loose_sample(params);
-  check_supported(st);
-  const Model m0 = compaction_model(params, st);
-
-  SeriesWriter compaction_log(options.out / "compaction.csv");
-  const CompactionResult comp = compact(params, st, progress, &compaction_log);
-  compaction_log.commit();
-  write_packing(options.out / "compacted.packing", st.particles, st.cell);
-
-  TriaxialResult tri;
-  if (!options.prepare_only) {
-    SeriesWriter series(options.out / "series.csv");
-    tri = shear(params, st, series, progress);
-    series.commit();
-    write_packing(options.out / "final.packing", st.particles, st.cell);
+// SIGINT and SIGTERM ask the step loop to checkpoint and stop; the old handlers come back after.
+class SignalGuard {
+ public:
+  SignalGuard() {
+    stop_signal = 0;
+    struct sigaction sa {};
+    sa.sa_handler = on_stop_signal;
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGINT, &sa, &old_int_);
+    sigaction(SIGTERM, &sa, &old_term_);
   }
+  ~SignalGuard() {
+    sigaction(SIGINT, &old_int_, nullptr);
+    sigaction(SIGTERM, &old_term_, nullptr);
+  }
+  SignalGuard(const SignalGuard&) = delete;
+  SignalGuard& operator=(const SignalGuard&) = delete;
 
-  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const double particle_steps = static_cast<double>(st.step) * static_cast<double>(st.particles.size());
+ private:
+  struct sigaction old_int_ {}, old_term_ {};
+};
 
+nlohmann::json size_table_json(const Params& params) {
   nlohmann::json counts = nlohmann::json::array();
+  const auto table = resolve_table(params.sample);
   double solid = 0;
-  for (const auto& c : resolve_table(params.sample)) solid += static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes);
-  for (const auto& c : resolve_table(params.sample))
+  for (const auto& c : table) solid += static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes);
+  for (const auto& c : table)
     counts.push_back({{"shape", to_string(c.shape)},
                       {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
                       {"count", c.count},
                       {"mass_fraction", static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes) / solid}});
+  return counts;
+}
 
+// Refuses to overwrite results unless forced; with force, removes what a new run would leave stale.
+void prepare_directory(const std::filesystem::path& dir, bool force) {
+  namespace fs = std::filesystem;
+  fs::create_directories(dir);
+  const bool finished = fs::exists(dir / "summary.json");
+  const bool unfinished = fs::exists(dir / checkpoint_file);
+  if (!force && finished)
+    throw InputError(fmt::format("'{}' holds a finished run (summary.json): choose another --out or add --force",
+                                 dir.string()));
+  if (!force && unfinished)
+    throw InputError(fmt::format("'{}' holds an unfinished run: continue it with `qsdem resume {}`, or add --force to "
+                                 "start over",
+                                 dir.string(), dir.string()));
+  for (const char* f : {"summary.json", "series.csv", "series.csv.partial", "compaction.csv", "compaction.csv.partial",
+                        "compacted.packing", "final.packing", checkpoint_file, "checkpoint.qsck.prev",
+                        prepared_sample_file})
+    fs::remove(dir / f);
+}
+
+// Everything after the sample exists: the phases from wherever `run` stands, checkpoints, results.
+nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
+                       const std::string& note) {
+  namespace fs = std::filesystem;
+  const auto t0 = std::chrono::steady_clock::now();
+  const fs::path dir = options.out;
+  Progress progress(Progress::detect(options.quiet));
+  const SignalGuard signals;
+  const double wall_before = run.wall_s;
+  auto session_s = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
+  auto last_save = std::chrono::steady_clock::now();
+  auto save = [&](const fs::path& file) {
+    run.wall_s = wall_before + session_s();
+    ScopedStage t(st.timers, Stage::output);
+    save_checkpoint(file, params.case_text, params.source, st, run);
+    last_save = std::chrono::steady_clock::now();
+  };
+  // After every step: stop on a signal, checkpoint every N sample points or M minutes.
+  const StepHook hook = [&](bool sample_point) {
+    if (stop_signal != 0) {
+      const int sig = stop_signal;
+      save(dir / checkpoint_file);
+      throw Interrupted(fmt::format("stopped by {} at step {}; checkpoint written: continue with `qsdem resume {}`",
+                                    sig == SIGINT ? "SIGINT" : "SIGTERM", st.step, dir.string()),
+                        sig);
+    }
+    const auto& c = params.checkpoint;
+    const bool by_points = sample_point && c.every_sample_points > 0 && run.rows % c.every_sample_points == 0;
+    const bool by_time =
+        c.every_minutes > 0 &&
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - last_save).count() > 60 * c.every_minutes;
+    if (by_points || by_time) save(dir / checkpoint_file);
+  };
+
+  const Model m0 = compaction_model(params, st);
+  if (run.phase == RunProgress::Phase::compaction) {
+    SeriesWriter log(dir / "compaction.csv", run.phase_started ? run.rows : -1);
+    compact(params, st, run, progress, &log, hook);
+    log.commit();
+    write_packing(dir / "compacted.packing", st.particles, st.cell);
+    run.phase = RunProgress::Phase::triaxial;
+    run.phase_started = false;
+    run.phase_steps = 0;
+    run.rows = 0;
+    if (options.prepare_only) {
+      save(dir / prepared_sample_file);
+    } else {
+      save(dir / checkpoint_file);
+    }
+  }
+  TriaxialResult tri;
+  if (!options.prepare_only && run.phase == RunProgress::Phase::triaxial) {
+    SeriesWriter series(dir / "series.csv", run.phase_started ? run.rows : -1);
+    tri = shear(params, st, run, series, progress, hook);
+    series.commit();
+    write_packing(dir / "final.packing", st.particles, st.cell);
+    run.phase = RunProgress::Phase::done;
+  }
+
+  const double wall = wall_before + session_s();
+  const double particle_steps = static_cast<double>(st.step) * static_cast<double>(st.particles.size());
+  const CompactionResult& comp = run.compaction;
   nlohmann::json s;
   s["version"] = QSDEM_VERSION;
   s["case"] = params.name;
   s["config"] = {{"resolved_si", to_json(params)}, {"as_written", params.as_written}};
   s["derived"] = {{"particles", st.particles.size()},
-                  {"size_table", counts},
+                  {"size_table", params.sample.from.empty() ? size_table_json(params) : nlohmann::json()},
+                  {"sample_from", params.sample.from},
                   {"r_min_m", m0.r_min},
                   {"critical_time_s", m0.critical_time},
                   {"dt_s", m0.dt},
                   {"threads", omp_get_max_threads()},
                   {"triaxial_strain_rate_per_s", params.triaxial.strain_rate / m0.critical_time}};
+  if (!note.empty()) s["note"] = note;
   s["compaction"] = {{"steps", comp.steps}, {"wall_s", comp.wall_s}, {"final", measures_json(comp.final)}};
   s["void_ratio_after_compaction"] = comp.final.void_ratio;
   if (!options.prepare_only) {
@@ -101,13 +190,69 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
   }
   s["steps"] = st.step;
   s["wall_s"] = wall;
-  s["particle_steps_per_s"] = particle_steps / wall;
+  s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
   s["neighbor_builds"] = st.neighbor.builds;
   s["peak_rss_kib"] = peak_rss_kib();
   s["stages"] = stage_json(st.timers, st.step);
   s["stage_table"] = format_stage_table(st.timers, st.step);
-  write_file_atomic(options.out / "summary.json", s.dump(2) + "\n");
+  write_file_atomic(dir / "summary.json", s.dump(2) + "\n");
+  // A finished run needs no checkpoint; a prepared sample keeps sample.qsck.
+  fs::remove(dir / checkpoint_file);
+  fs::remove(dir / "checkpoint.qsck.prev");
   return s;
+}
+
+// The sample named by sample.from: a prepared sample (directory of `qsdem prepare`, which skips
+// compaction) or a packing file (which is compacted).
+State load_sample(const Params& params, RunProgress& run) {
+  namespace fs = std::filesystem;
+  const fs::path from = params.sample.from;
+  if (fs::is_directory(from)) {
+    const Checkpoint c = load_checkpoint(from / prepared_sample_file);
+    const Params prepared = parse_case(c.case_text, c.case_source);
+    const auto& a = prepared.material;
+    const auto& b = params.material;
+    if (a.density != b.density || a.young_modulus != b.young_modulus || a.poisson_ratio != b.poisson_ratio ||
+        prepared.step_ratio != params.step_ratio)
+      throw InputError(fmt::format(
+          "sample.from = '{}': that sample was prepared with density {} kg/m^3, E {} Pa, nu {}, time.step_ratio {}; "
+          "this case has {}, {}, {}, {}: they must be equal",
+          from.string(), a.density, a.young_modulus, a.poisson_ratio, prepared.step_ratio, b.density, b.young_modulus,
+          b.poisson_ratio, params.step_ratio));
+    if (c.run.phase != RunProgress::Phase::triaxial || c.run.phase_started)
+      throw InputError(fmt::format("sample.from = '{}': {} is not a sample at the end of compaction", from.string(),
+                                   prepared_sample_file));
+    run = c.run;
+    run.wall_s = 0;
+    return c.state;
+  }
+  if (!fs::is_regular_file(from))
+    throw InputError(fmt::format("sample.from = '{}': no such prepared sample directory or packing file",
+                                 from.string()));
+  return read_packing(from, params.material.density);
+}
+
+}  // namespace
+
+nlohmann::json run_case(const Params& params, const RunOptions& options) {
+  prepare_directory(options.out, options.force);
+  write_file_atomic(options.out / "case.toml", params.case_text);
+  RunProgress run;
+  State st = params.sample.from.empty() ? generate_loose_sample(params) : load_sample(params, run);
+  check_supported(st);
+  return execute(params, st, run, options, "");
+}
+
+nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& options) {
+  if (std::filesystem::exists(dir / "summary.json") && !std::filesystem::exists(dir / checkpoint_file))
+    throw InputError(fmt::format("'{}' holds a finished run: nothing to resume", dir.string()));
+  std::string note;
+  Checkpoint c = load_latest_checkpoint(dir / checkpoint_file, &note);
+  if (!note.empty()) std::fprintf(stderr, "qsdem: %s\n", note.c_str());
+  const Params params = parse_case(c.case_text, c.case_source);
+  RunOptions o = options;
+  o.out = dir;
+  return execute(params, c.state, c.run, o, note);
 }
 
 std::string format_run_table(const nlohmann::json& s) {

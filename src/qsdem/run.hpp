@@ -1,6 +1,9 @@
-// A whole run, as the CLI calls it: generate, compact, shear, write the results.
+// A whole run, as the CLI calls it: generate (or load) a sample, compact, shear, write the
+// results; checkpoints on the way, and resume from them.
 #pragma once
+#include <csignal>
 #include <filesystem>
+#include <stdexcept>
 #include <string>
 
 #include <nlohmann/json.hpp>
@@ -12,19 +15,34 @@ namespace qsdem {
 struct RunOptions {
   std::filesystem::path out;
   bool quiet = false;
-  bool prepare_only = false;  // stop after compaction (`qsdem prepare`)
+  bool prepare_only = false;  // stop after compaction (`qsdem prepare`): DIR/sample.ckpt
+  bool force = false;         // overwrite a directory holding a finished or unfinished run
 };
 
+// A run stopped by SIGINT or SIGTERM after writing a checkpoint.
+struct Interrupted : std::runtime_error {
+  Interrupted(const std::string& what, int sig) : std::runtime_error(what), signal(sig) {}
+  int signal;
+};
+
+// File names inside a run directory.
+inline constexpr const char* checkpoint_file = "checkpoint.qsck";
+inline constexpr const char* prepared_sample_file = "sample.qsck";
+
 // Runs the case and writes DIR/series.csv, DIR/compaction.csv, DIR/compacted.packing,
-// DIR/final.packing and DIR/summary.json (with prepare_only: compaction.csv,
-// compacted.packing and summary.json). Returns the summary.
+// DIR/final.packing, DIR/case.toml and DIR/summary.json (with prepare_only: compaction.csv,
+// compacted.packing, sample.qsck and summary.json). Checkpoints go to DIR/checkpoint.qsck.
+// Returns the summary.
 nlohmann::json run_case(const Params& params, const RunOptions& options);
+
+// Continues the run in `dir` from its newest good checkpoint.
+nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& options);
 
 // The short table the CLI prints at the end of a run.
 std::string format_run_table(const nlohmann::json& summary);
 
-// Steps a packing for `steps` steps at the triaxial settings of `params` (no output) and
-// returns the machine-readable speed record of `qsdem bench`.
+// Steps a packing for `steps` steps in a fixed cell with the triaxial friction and damping of
+// `params` (no output) and returns the machine-readable speed record of `qsdem bench`.
 nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps);
 
 }  // namespace qsdem

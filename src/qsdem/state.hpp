@@ -15,6 +15,8 @@ struct ForceBlock {
   Mat3 stress_sum = Mat3::Zero();      // sum f (x) l over contacts (N m)
   Vec3 stiffness_sum = Vec3::Zero();   // sum (k_n n_k^2 + k_t (1 - n_k^2)) l_k^2 (N m)
   Vec3 shear_stiffness_sum = Vec3::Zero();  // the same for the shears 12, 13, 23 (servo.hpp)
+  double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
+  std::size_t max_overlap_pair = 0;
 };
 
 struct State {
@@ -32,6 +34,8 @@ struct State {
   Vec3 shear_stiffness = Vec3::Zero();  // -d sigma_ab / d D_ab dt for the shears 12, 13, 23 (Pa)
   double stress_volume = 1;             // V at which stress was evaluated (m^3)
   Mat3 stress_h = Mat3::Identity();     // cell matrix at which stress was evaluated (m)
+  double max_overlap = 0;               // largest delta / min(R_i, R_j) over the contacts
+  std::size_t max_overlap_pair = 0;     // the pair where it is
 
   StageTimers timers;
   std::vector<ForceBlock> blocks;       // scratch for the force stage

@@ -1,0 +1,285 @@
+#include "qsdem/checkpoint.hpp"
+
+#include <fcntl.h>
+#include <fmt/format.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <fstream>
+#include <iterator>
+#include <type_traits>
+
+namespace qsdem {
+namespace {
+
+constexpr char magic[8] = {'Q', 'S', 'D', 'E', 'M', 'C', 'K', 'P'};
+constexpr std::size_t header_size = 8 + 4 + 4 + 8 + 8;
+
+// Appends plain values and arrays of them to a byte buffer.
+class Writer {
+ public:
+  template <class T>
+  void pod(const T& v) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    const auto* b = reinterpret_cast<const char*>(&v);
+    out.insert(out.end(), b, b + sizeof(T));
+  }
+  template <class Scalar, int R, int C>
+  void pod(const Eigen::Matrix<Scalar, R, C>& m) {
+    for (int k = 0; k < m.size(); ++k) pod(m.data()[k]);
+  }
+  void pod(const Quat& q) { pod(q.coeffs()); }
+  template <class T>
+  void vec(const std::vector<T>& v) {
+    pod(static_cast<std::uint64_t>(v.size()));
+    for (const T& x : v) pod(x);
+  }
+  void str(const std::string& s) {
+    pod(static_cast<std::uint64_t>(s.size()));
+    out.insert(out.end(), s.begin(), s.end());
+  }
+  std::vector<char> out;
+};
+
+// Reads what Writer wrote; any overrun is a damaged file.
+class Reader {
+ public:
+  Reader(const char* data, std::size_t size, std::string file) : p_(data), end_(data + size), file_(std::move(file)) {}
+  template <class T>
+  void pod(T& v) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    need(sizeof(T));
+    std::memcpy(&v, p_, sizeof(T));
+    p_ += sizeof(T);
+  }
+  template <class Scalar, int R, int C>
+  void pod(Eigen::Matrix<Scalar, R, C>& m) {
+    for (int k = 0; k < m.size(); ++k) pod(m.data()[k]);
+  }
+  void pod(Quat& q) { pod(q.coeffs()); }
+  template <class T>
+  void vec(std::vector<T>& v) {
+    std::uint64_t n = 0;
+    pod(n);
+    if (n > static_cast<std::uint64_t>(end_ - p_)) damaged("an array is longer than the file");
+    v.resize(n);
+    for (T& x : v) pod(x);
+  }
+  void str(std::string& s) {
+    std::uint64_t n = 0;
+    pod(n);
+    need(n);
+    s.assign(p_, n);
+    p_ += n;
+  }
+  bool at_end() const { return p_ == end_; }
+  [[noreturn]] void damaged(const std::string& why) const {
+    throw InputError(fmt::format("checkpoint '{}' is damaged: {}", file_, why));
+  }
+
+ private:
+  void need(std::size_t n) const {
+    if (static_cast<std::size_t>(end_ - p_) < n) damaged("it ends early");
+  }
+  const char* p_;
+  const char* end_;
+  std::string file_;
+};
+
+// One function per type, used in both directions so that the two can never disagree.
+template <class IO, class P>
+void io_particles(IO& io, P& p) {
+  io.vec(p.id);
+  io.vec(p.shape);
+  io.vec(p.semi_axes);
+  io.vec(p.bound_radius);
+  io.vec(p.equiv_radius);
+  io.vec(p.mass);
+  io.vec(p.inertia);
+  io.vec(p.damping);
+  io.vec(p.s);
+  io.vec(p.q);
+  io.vec(p.v);
+  io.vec(p.angmom);
+  io.vec(p.omega);
+  io.vec(p.force);
+  io.vec(p.torque);
+}
+
+template <class IO, class R>
+void io_run(IO& io, R& r) {
+  io.pod(r.phase);
+  io.pod(r.phase_started);
+  io.pod(r.phase_steps);
+  io.pod(r.rows);
+  io.pod(r.v0);
+  io.pod(r.h0);
+  io.pod(r.compaction.steps);
+  io.pod(r.compaction.wall_s);
+  auto& m = r.compaction.final;
+  io.pod(m.stress);
+  io.pod(m.principal);
+  io.pod(m.mean_stress);
+  io.pod(m.deviator);
+  io.pod(m.octahedral);
+  io.pod(m.friction_angle_deg);
+  io.pod(m.ufr);
+  io.pod(m.iuf);
+  io.pod(m.imom);
+  io.pod(m.contacts);
+  io.pod(m.coordination);
+  io.pod(m.ekin_trans);
+  io.pod(m.ekin_rot);
+  io.pod(m.volume);
+  io.pod(m.solid_volume);
+  io.pod(m.void_ratio);
+  io.pod(r.sums);
+  io.pod(r.wall_s);
+}
+
+template <class IO, class S>
+void io_state(IO& io, S& st) {
+  io_particles(io, st.particles);
+  io.pod(st.cell.h);
+  io.pod(st.cell.L);
+  io.vec(st.pairs.i);
+  io.vec(st.pairs.j);
+  io.vec(st.pairs.image);
+  io.vec(st.pairs.shear);
+  io.vec(st.pairs.pw_lambda);
+  io.vec(st.neighbor.s_at_build);
+  io.pod(st.neighbor.h_at_build);
+  io.pod(st.neighbor.skin);
+  io.pod(st.neighbor.max_bound_radius);
+  io.pod(st.neighbor.builds);
+  io.pod(st.neighbor.distance_checks);
+  io.pod(st.neighbor.valid);
+  io.pod(st.servo_integral);
+  io.pod(st.step);
+  io.pod(st.time);
+  io.pod(st.stress);
+  io.pod(st.affine_stiffness);
+  io.pod(st.shear_stiffness);
+  io.pod(st.stress_volume);
+  io.pod(st.stress_h);
+  io.pod(st.timers.seconds);
+}
+
+void fsync_dir(const std::filesystem::path& dir) {
+  const int fd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY);
+  if (fd >= 0) {
+    ::fsync(fd);
+    ::close(fd);
+  }
+}
+
+}  // namespace
+
+std::uint64_t fnv1a64(const void* data, std::size_t size) {
+  std::uint64_t h = 14695981039346656037ull;
+  const auto* b = static_cast<const unsigned char*>(data);
+  for (std::size_t k = 0; k < size; ++k) {
+    h ^= b[k];
+    h *= 1099511628211ull;
+  }
+  return h;
+}
+
+void save_checkpoint(const std::filesystem::path& path, const std::string& case_text, const std::string& case_source,
+                     const State& state, const RunProgress& run) {
+  Writer w;
+  w.str(case_text);
+  w.str(case_source);
+  io_run(w, run);
+  io_state(w, state);
+  const std::uint64_t size = w.out.size();
+  const std::uint64_t sum = fnv1a64(w.out.data(), w.out.size());
+
+  std::filesystem::path tmp = path;
+  tmp += ".tmp";
+  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  if (fd < 0) throw RunError(fmt::format("cannot write checkpoint '{}': {}", tmp.string(), std::strerror(errno)));
+  std::vector<char> head(header_size);
+  const std::uint32_t version = checkpoint_format_version, reserved = 0;
+  std::memcpy(head.data(), magic, 8);
+  std::memcpy(head.data() + 8, &version, 4);
+  std::memcpy(head.data() + 12, &reserved, 4);
+  std::memcpy(head.data() + 16, &size, 8);
+  std::memcpy(head.data() + 24, &sum, 8);
+  auto write_all = [&](const char* p, std::size_t n) {
+    while (n > 0) {
+      const ssize_t k = ::write(fd, p, n);
+      if (k <= 0) return false;
+      p += k;
+      n -= static_cast<std::size_t>(k);
+    }
+    return true;
+  };
+  const bool ok = write_all(head.data(), head.size()) && write_all(w.out.data(), w.out.size()) && ::fsync(fd) == 0;
+  const int saved_errno = errno;
+  ::close(fd);
+  if (!ok) {
+    std::filesystem::remove(tmp);
+    throw RunError(fmt::format("writing checkpoint '{}' failed ({}); the previous checkpoint is kept", tmp.string(),
+                               std::strerror(saved_errno)));
+  }
+  std::filesystem::path prev = path;
+  prev += ".prev";
+  std::error_code ec;
+  if (std::filesystem::exists(path)) std::filesystem::rename(path, prev, ec);
+  std::filesystem::rename(tmp, path);
+  fsync_dir(path.parent_path());
+}
+
+Checkpoint load_checkpoint(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(fmt::format("no checkpoint '{}'", path.string()));
+  const std::vector<char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string name = path.string();
+  if (bytes.size() < header_size || std::memcmp(bytes.data(), magic, 8) != 0)
+    throw InputError(fmt::format("'{}' is not a qsdem checkpoint (or is truncated before its header)", name));
+  std::uint32_t version = 0;
+  std::uint64_t size = 0, sum = 0;
+  std::memcpy(&version, bytes.data() + 8, 4);
+  std::memcpy(&size, bytes.data() + 16, 8);
+  std::memcpy(&sum, bytes.data() + 24, 8);
+  if (version != checkpoint_format_version)
+    throw InputError(fmt::format("checkpoint '{}' has format version {}; this qsdem reads version {}", name, version,
+                                 checkpoint_format_version));
+  if (bytes.size() - header_size != size)
+    throw InputError(fmt::format("checkpoint '{}' is damaged: truncated ({} of {} bytes)", name,
+                                 bytes.size() - header_size, size));
+  const char* payload = bytes.data() + header_size;
+  if (fnv1a64(payload, size) != sum)
+    throw InputError(fmt::format("checkpoint '{}' is damaged: checksum mismatch", name));
+  Reader r(payload, size, name);
+  Checkpoint c;
+  r.str(c.case_text);
+  r.str(c.case_source);
+  io_run(r, c.run);
+  io_state(r, c.state);
+  if (!r.at_end()) r.damaged("unexpected bytes after the state");
+  set_matrix(c.state.cell, c.state.cell.h);
+  const std::size_t np = c.state.pairs.size();
+  c.state.pairs.force.assign(np, Vec3::Zero());
+  c.state.pairs.torque_i.assign(np, Vec3::Zero());
+  c.state.pairs.torque_j.assign(np, Vec3::Zero());
+  c.state.pairs.overlap.assign(np, 0.0);
+  build_incidence(c.state.pairs, c.state.particles.size());
+  return c;
+}
+
+Checkpoint load_latest_checkpoint(const std::filesystem::path& path, std::string* note) {
+  try {
+    return load_checkpoint(path);
+  } catch (const InputError& newest) {
+    std::filesystem::path prev = path;
+    prev += ".prev";
+    if (!std::filesystem::exists(prev)) throw;
+    Checkpoint c = load_checkpoint(prev);  // throws if this one is bad too
+    if (note) *note = fmt::format("{}; using the previous checkpoint '{}'", newest.what(), prev.string());
+    return c;
+  }
+}
+
+}  // namespace qsdem

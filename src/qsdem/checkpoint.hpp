@@ -1,0 +1,36 @@
+// Checkpoints: the whole State and RunProgress of a run, plus the case, in one binary file
+// written atomically (temporary file, fsync, rename; the previous checkpoint is kept as
+// `<name>.prev`) with a format version and an FNV-1a 64-bit checksum verified on load.
+#pragma once
+#include <cstdint>
+#include <filesystem>
+#include <string>
+
+#include "qsdem/protocol.hpp"
+#include "qsdem/state.hpp"
+
+namespace qsdem {
+
+inline constexpr std::uint32_t checkpoint_format_version = 1;
+
+struct Checkpoint {
+  std::string case_text;    // the case as TOML, after --set overrides
+  std::string case_source;  // where it came from (file name)
+  RunProgress run;
+  State state;
+};
+
+void save_checkpoint(const std::filesystem::path& path, const std::string& case_text, const std::string& case_source,
+                     const State& state, const RunProgress& run);
+
+// Reads and verifies one checkpoint file; throws InputError saying what is wrong with it
+// (missing, truncated, not a checkpoint, other format version, checksum mismatch).
+Checkpoint load_checkpoint(const std::filesystem::path& path);
+
+// The newest good checkpoint of `path` or, if that one is damaged, of `path.prev`; `note` says
+// which one was used and why. Throws InputError when neither is usable.
+Checkpoint load_latest_checkpoint(const std::filesystem::path& path, std::string* note);
+
+std::uint64_t fnv1a64(const void* data, std::size_t size);
+
+}  // namespace qsdem

@@ -1,0 +1,327 @@
+// Runs that survive (checkpoints, resume, prepared samples, blow-ups, output safety), tested with
+// real processes and real signals on the qsdem binary where the behaviour is the process's.
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <spawn.h>
+#include <fcntl.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "qsdem/checkpoint.hpp"
+#include "qsdem/config.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/protocol.hpp"
+#include "qsdem/run.hpp"
+
+using namespace qsdem;
+namespace fs = std::filesystem;
+
+extern char** environ;
+
+namespace {
+
+// 200 spheres, eps' = 1e-4 to 2 % strain: 625 triaxial steps, 40 rows, a checkpoint every 4 rows.
+const char* small_case = R"(
+name = "checkpoint-small"
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+seed = 3
+[[sample.particles]]
+diameter = "2 mm"
+count = 150
+[[sample.particles]]
+diameter = "2.4 mm"
+count = 50
+[triaxial]
+strain_rate = 1e-4
+final_axial_strain = "2 %"
+sample_points = 40
+[checkpoint]
+every_sample_points = 4
+)";
+
+fs::path scratch(const std::string& name) {
+  const fs::path d = fs::temp_directory_path() / ("qsdem-ckpt-" + std::to_string(::getpid())) / name;
+  fs::remove_all(d);
+  fs::create_directories(d.parent_path());
+  return d;
+}
+
+fs::path case_file() {
+  const fs::path f = fs::temp_directory_path() / ("qsdem-ckpt-" + std::to_string(::getpid())) / "case.toml";
+  fs::create_directories(f.parent_path());
+  std::ofstream(f) << small_case;
+  return f;
+}
+
+std::string read(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+long lines(const fs::path& p) {
+  std::ifstream in(p);
+  long n = 0;
+  for (std::string l; std::getline(in, l);) ++n;
+  return n;
+}
+
+// Starts the qsdem binary with arguments; stdout and stderr go to files in `log`.
+pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
+  std::vector<std::string> all{QSDEM_BINARY};
+  all.insert(all.end(), args.begin(), args.end());
+  std::vector<char*> argv;
+  for (auto& a : all) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t fa;
+  posix_spawn_file_actions_init(&fa);
+  posix_spawn_file_actions_addopen(&fa, 1, (log.string() + ".out").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  posix_spawn_file_actions_addopen(&fa, 2, (log.string() + ".err").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  pid_t pid = 0;
+  const int rc = posix_spawn(&pid, all[0].c_str(), &fa, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&fa);
+  EXPECT_EQ(rc, 0);
+  return pid;
+}
+
+int wait_exit(pid_t pid) {
+  int status = 0;
+  waitpid(pid, &status, 0);
+  if (WIFEXITED(status)) return WEXITSTATUS(status);
+  if (WIFSIGNALED(status)) return 128 + WTERMSIG(status);
+  return -1;
+}
+
+int run_cli(const std::vector<std::string>& args, const fs::path& log) { return wait_exit(spawn(args, log)); }
+
+// Waits until the run's series.csv.partial holds at least `rows` rows (or the process ended).
+bool wait_rows(const fs::path& dir, long rows, pid_t pid) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (fs::exists(dir / "series.csv.partial") && lines(dir / "series.csv.partial") >= rows + 1) return true;
+    int status = 0;
+    if (waitpid(pid, &status, WNOHANG) == pid) return false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  return false;
+}
+
+// The uninterrupted reference run, made once.
+const fs::path& reference() {
+  static const fs::path dir = [] {
+    const fs::path d = scratch("reference");
+    EXPECT_EQ(run_cli({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string()), 0)
+        << read(d.string() + ".err");
+    return d;
+  }();
+  return dir;
+}
+
+void kill_and_resume(int sig) {
+  const fs::path ref = reference();
+  const fs::path d = scratch(std::string("killed-") + std::to_string(sig));
+  const pid_t pid = spawn({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  ASSERT_TRUE(wait_rows(d, 14, pid)) << "the run ended before it could be killed";
+  ::kill(pid, sig);
+  const int code = wait_exit(pid);
+  if (sig == SIGKILL) {
+    EXPECT_EQ(code, 128 + SIGKILL);
+    // Killed between checkpoints: rows written after the last checkpoint are dropped on resume.
+    const Checkpoint c = load_checkpoint(d / checkpoint_file);
+    std::printf("[ info ] SIGKILL with %ld rows on disk, checkpoint at %ld rows\n",
+                lines(d / "series.csv.partial") - 1, c.run.rows);
+    EXPECT_LE(c.run.rows, lines(d / "series.csv.partial") - 1);
+  } else {
+    EXPECT_EQ(code, 128 + sig) << read(d.string() + ".err");  // 143 for SIGTERM, 130 for SIGINT
+    EXPECT_NE(read(d.string() + ".err").find("qsdem resume"), std::string::npos) << "says how to continue";
+  }
+  EXPECT_FALSE(fs::exists(d / "summary.json")) << "no result that could be mistaken for a finished run";
+  EXPECT_FALSE(fs::exists(d / "series.csv"));
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0)
+      << read(d.string() + "-resume.err");
+  EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv")) << "resumed series.csv equals the uninterrupted one";
+  EXPECT_EQ(read(d / "compaction.csv"), read(ref / "compaction.csv"));
+  EXPECT_FALSE(fs::exists(d / checkpoint_file)) << "a finished run drops its checkpoint";
+}
+
+}  // namespace
+
+TEST(CheckpointProcess, SigtermResumesToTheSameSeries) { kill_and_resume(SIGTERM); }
+TEST(CheckpointProcess, SigkillBetweenCheckpointsResumesToTheSameSeries) { kill_and_resume(SIGKILL); }
+
+// SIGINT during compaction: compaction.csv continues from the checkpoint too.
+TEST(CheckpointProcess, SigintDuringCompactionResumes) {
+  const fs::path ref = reference();
+  const fs::path d = scratch("sigint");
+  const pid_t pid = spawn({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (!(fs::exists(d / "compaction.csv.partial") && lines(d / "compaction.csv.partial") > 5) &&
+         std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  ::kill(pid, SIGINT);
+  ASSERT_EQ(wait_exit(pid), 130);
+  ASSERT_TRUE(fs::exists(d / checkpoint_file));
+  EXPECT_EQ(load_checkpoint(d / checkpoint_file).run.phase, RunProgress::Phase::compaction);
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0);
+  EXPECT_EQ(read(d / "compaction.csv"), read(ref / "compaction.csv"));
+  EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
+}
+
+// A flipped byte is detected by the checksum and the previous checkpoint is used; a truncated
+// file is refused with a clear message when there is no previous one.
+TEST(CheckpointFile, FlippedByteAndTruncationAreDetected) {
+  const fs::path ref = reference();
+  const fs::path d = scratch("flipped");
+  const pid_t pid = spawn({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  ASSERT_TRUE(wait_rows(d, 14, pid));
+  ::kill(pid, SIGTERM);
+  ASSERT_EQ(wait_exit(pid), 143);
+  ASSERT_TRUE(fs::exists(d / "checkpoint.qsck.prev"));
+  {
+    std::string bytes = read(d / checkpoint_file);
+    bytes[bytes.size() / 2] = static_cast<char>(bytes[bytes.size() / 2] ^ 0x10);
+    std::ofstream(d / checkpoint_file, std::ios::binary) << bytes;
+  }
+  try {
+    load_checkpoint(d / checkpoint_file);
+    ADD_FAILURE() << "a flipped byte was not detected";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("checksum"), std::string::npos) << e.what();
+  }
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0);
+  EXPECT_NE(read(d.string() + "-resume.err").find("using the previous checkpoint"), std::string::npos);
+  EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
+
+  // Truncated, no previous one.
+  const fs::path t = scratch("truncated");
+  fs::create_directories(t);
+  std::ofstream(t / checkpoint_file, std::ios::binary) << std::string("QSDEMCKP") + std::string(10, '\0');
+  EXPECT_EQ(run_cli({"resume", t.string(), "--quiet"}, t.string()), 2);
+  EXPECT_NE(read(t.string() + ".err").find("truncated"), std::string::npos) << read(t.string() + ".err");
+}
+
+// Round trip of the state through a checkpoint is exact.
+TEST(CheckpointFile, RoundTripIsExact) {
+  const Params params = parse_case(small_case, "small.toml");
+  State st = generate_loose_sample(params);
+  RunProgress run;
+  Progress quiet(Progress::Mode::quiet);
+  SeriesWriter* none = nullptr;
+  Params short_params = params;
+  short_params.compaction.max_steps = 3000;
+  try {
+    compact(short_params, st, run, quiet, none, {});
+  } catch (const RunError&) {
+    // stopped by the step budget: a mid-compaction state with contacts and history
+  }
+  const fs::path f = scratch("roundtrip.qsck");
+  save_checkpoint(f, params.case_text, params.source, st, run);
+  const Checkpoint c = load_checkpoint(f);
+  EXPECT_EQ(c.case_text, params.case_text);
+  EXPECT_EQ(c.run.phase_steps, run.phase_steps);
+  EXPECT_EQ(c.state.step, st.step);
+  EXPECT_EQ(c.state.particles.s, st.particles.s);
+  EXPECT_EQ(c.state.particles.v, st.particles.v);
+  EXPECT_EQ(c.state.particles.angmom, st.particles.angmom);
+  EXPECT_EQ(c.state.pairs.shear, st.pairs.shear);
+  EXPECT_EQ(c.state.pairs.image, st.pairs.image);
+  EXPECT_EQ(c.state.cell.h, st.cell.h);
+  EXPECT_EQ(c.state.cell.L, st.cell.L);
+  EXPECT_EQ(c.state.pairs.incident, st.pairs.incident);
+  ASSERT_GT(st.pairs.size(), 0u);
+}
+
+// A prepared sample is sheared without compacting again, and gives the full run's series exactly.
+TEST(PreparedSample, ShearingAPreparedSampleEqualsTheFullRun) {
+  const fs::path ref = reference();
+  const fs::path p = scratch("prepared");
+  ASSERT_EQ(run_cli({"prepare", case_file().string(), "--out", p.string(), "--threads", "1", "--quiet"}, p.string()), 0);
+  EXPECT_TRUE(fs::exists(p / prepared_sample_file));
+  EXPECT_FALSE(fs::exists(p / "series.csv"));
+  const fs::path r = scratch("from-prepared");
+  ASSERT_EQ(run_cli({"run", case_file().string(), "--out", r.string(), "--threads", "1", "--quiet", "--set",
+                     "sample.from=" + p.string()},
+                    r.string()),
+            0)
+      << read(r.string() + ".err");
+  EXPECT_EQ(read(r / "series.csv"), read(ref / "series.csv"));
+  EXPECT_FALSE(fs::exists(r / "compaction.csv")) << "no compaction was run";
+  // The same sample at another damping ratio: a different series from the same start.
+  const fs::path o = scratch("from-prepared-od");
+  ASSERT_EQ(run_cli({"run", case_file().string(), "--out", o.string(), "--threads", "1", "--quiet", "--set",
+                     "sample.from=" + p.string(), "--set", "damping.model=od"},
+                    o.string()),
+            0);
+  EXPECT_NE(read(o / "series.csv"), read(ref / "series.csv"));
+  // A different material is refused.
+  const fs::path bad = scratch("from-prepared-bad");
+  EXPECT_EQ(run_cli({"run", case_file().string(), "--out", bad.string(), "--quiet", "--set",
+                     "sample.from=" + p.string(), "--set", "material.young_modulus=\"70 GPa\""},
+                    bad.string()),
+            2);
+  EXPECT_NE(read(bad.string() + ".err").find("prepared with"), std::string::npos);
+}
+
+// A finished run is not overwritten without --force; an unfinished one points to resume.
+TEST(OutputSafety, RefusesToOverwriteARunUnlessForced) {
+  const fs::path ref = reference();
+  const fs::path d = scratch("safety");
+  fs::copy(ref, d, fs::copy_options::recursive);
+  const std::string before = read(d / "series.csv");
+  EXPECT_EQ(run_cli({"run", case_file().string(), "--out", d.string(), "--quiet"}, d.string()), 2);
+  EXPECT_NE(read(d.string() + ".err").find("finished run"), std::string::npos);
+  EXPECT_EQ(read(d / "series.csv"), before);
+  EXPECT_EQ(run_cli({"run", case_file().string(), "--out", d.string(), "--quiet", "--force", "--threads", "1"},
+                    d.string()),
+            0);
+  std::ofstream(d / checkpoint_file) << "x";
+  fs::remove(d / "summary.json");
+  EXPECT_EQ(run_cli({"run", case_file().string(), "--out", d.string(), "--quiet"}, d.string()), 2);
+  EXPECT_NE(read(d.string() + ".err").find("qsdem resume"), std::string::npos);
+}
+
+// An injected NaN stops the run with a diagnostic naming the step, the particle and the cause.
+TEST(BlowUp, InjectedNanStopsWithDiagnostic) {
+  const Params params = parse_case(small_case, "small.toml");
+  State st = generate_loose_sample(params);
+  st.particles.v[17] = Vec3(std::nan(""), 0, 0);
+  Progress quiet(Progress::Mode::quiet);
+  try {
+    compact(params, st, quiet, nullptr);
+    ADD_FAILURE() << "a NaN did not stop the run";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("blow-up"), std::string::npos) << what;
+    EXPECT_NE(what.find("particle id " + std::to_string(st.particles.id[17])), std::string::npos) << what;
+    EXPECT_NE(what.find("step"), std::string::npos) << what;
+    EXPECT_NE(what.find("time.step_ratio"), std::string::npos) << "suggests a remedy: " << what;
+  }
+}
+
+// An overlap beyond limits.max_overlap stops the process with exit code 3 and names the pair;
+// the last good checkpoint is kept.
+TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
+  const fs::path d = scratch("overlap");
+  EXPECT_EQ(run_cli({"run", case_file().string(), "--out", d.string(), "--quiet", "--set", "limits.max_overlap=1e-5"},
+                    d.string()),
+            3);
+  const std::string err = read(d.string() + ".err");
+  EXPECT_NE(err.find("blow-up"), std::string::npos) << err;
+  EXPECT_NE(err.find("overlap"), std::string::npos) << err;
+  EXPECT_NE(err.find("particles id"), std::string::npos) << err;
+  EXPECT_FALSE(fs::exists(d / "summary.json"));
+}
