@@ -33,13 +33,17 @@ void write_packing(const std::filesystem::path& path, const Particles& p, const 
 State read_packing(const std::filesystem::path& path, double density) {
   std::ifstream in(path);
   if (!in) throw InputError(fmt::format("cannot open packing '{}'", path.string()));
+  return parse_packing(in, path.string(), density);
+}
+
+State parse_packing(std::istream& in, const std::string& name, double density) {
   State st;
   std::string line;
   long lineno = 0;
   long expected = -1;
   bool have_format = false, have_cell = false;
   auto fail = [&](const std::string& why) {
-    throw InputError(fmt::format("{}:{}: {}", path.string(), lineno, why));
+    throw InputError(fmt::format("{}:{}: {}", name, lineno, why));
   };
   while (std::getline(in, line)) {
     ++lineno;

@@ -20,5 +20,7 @@ void write_packing(const std::filesystem::path& path, const Particles& p, const 
 
 // Reads a packing into particles at rest (mass properties from `density`) and its cell.
 State read_packing(const std::filesystem::path& path, double density);
+// The same from text; `name` is used in error messages.
+State parse_packing(std::istream& in, const std::string& name, double density);
 
 }  // namespace qsdem
