@@ -45,11 +45,12 @@ void Progress::update(double done, const std::string& fields) {
       if (pct <= last_plain_percent_) return;
       last_plain_percent_ = pct;
     }
-    line = fmt::format("{} {:5.1f}% | {} elapsed | ETA {} | {}", phase_, 100 * frac, format_duration(elapsed),
-                       format_duration(eta), fields);
+    line = fmt::format("{} {:5.1f}% | {:.0f} steps/s | {} elapsed | ETA {} | {}", phase_, 100 * frac,
+                       elapsed > 0 ? done / elapsed : 0.0, format_duration(elapsed), format_duration(eta), fields);
   } else {
     if (mode_ == Mode::plain && std::chrono::duration<double>(now - last_print_).count() < 30) return;
-    line = fmt::format("{} | {} elapsed | {}", phase_, format_duration(elapsed), fields);
+    line = fmt::format("{} | {:.0f} steps/s | {} elapsed | {}", phase_, elapsed > 0 ? done / elapsed : 0.0,
+                       format_duration(elapsed), fields);
   }
   if (mode_ == Mode::terminal) {
     if (std::chrono::duration<double>(now - last_print_).count() < 0.2) return;

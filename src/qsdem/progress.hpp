@@ -12,9 +12,9 @@ class Progress {
   explicit Progress(Mode mode) : mode_(mode) {}
   static Mode detect(bool quiet);  // terminal if stderr is a tty
 
-  // Starts a phase. total <= 0: no known end (no percent, no ETA).
+  // Starts a phase of `total` steps. total <= 0: no known end (no percent, no ETA).
   void begin(const std::string& phase, double total);
-  // done: work units so far; fields: what to show after percent and ETA.
+  // done: steps taken in the phase so far; fields: what to show after percent, rate and ETA.
   void update(double done, const std::string& fields);
   void end(const std::string& closing);
 

@@ -116,6 +116,7 @@ CompactionResult compact(const Params& params, State& st, RunProgress& run, Prog
   const auto& c = params.compaction;
   progress.begin("compaction", 0);
   const double wall_before = run.compaction.wall_s;
+  const long run_steps_at_start = run.phase_steps;
   while (run.phase_steps < c.max_steps) {
     step(model, st);
     check_step(st, params, "compaction");
@@ -143,7 +144,7 @@ CompactionResult compact(const Params& params, State& st, RunProgress& run, Prog
       log->write(series_row(st.step - 1, st.time - model.dt, e1, m.volume / run.v0 - 1, m));
       ++run.rows;
     }
-    progress.update(0, fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}",
+    progress.update(static_cast<double>(n - run_steps_at_start), fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}",
                                    n, m.mean_stress / 1e3, 100 * worst, m.ufr, m.void_ratio));
     const bool done = m.contacts > 0 && worst < c.stress_tolerance && m.ufr < c.ufr_tolerance;
     if (done) {
@@ -180,7 +181,8 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
   assign_damping(model, st.particles);
   const double v0 = run.v0, h0 = run.h0(2, 2);
   TriaxialSums& r = run.sums;
-  progress.begin("triaxial", static_cast<double>(total));
+  const long steps_at_start = run.phase_steps;
+  progress.begin("triaxial", static_cast<double>(total - steps_at_start));
   auto sample_step = [&](long k) {
     return std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
   };
@@ -223,7 +225,7 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
     }
     r.final_ev = ev;
     r.final_e1 = e1;
-    progress.update(static_cast<double>(n),
+    progress.update(static_cast<double>(n - steps_at_start),
                     fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}", 100 * e1,
                                 m.friction_angle_deg, m.ufr, m.imom));
     if (run.rows == t.sample_points) break;
