@@ -15,8 +15,16 @@ inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, do
 // Velocities and angular momenta to t + dt/2 (SPEC 5); angular velocity from the body inertia.
 void integrate_velocities(const Model& model, Particles& p);
 
+// Free rotation of a rigid body over dt at constant world angular momentum L (the drift half of
+// the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and
+// symplectic, gyroscopic motion included (omega follows the body as it turns). Exact for bodies
+// with two equal principal moments (spheroids); NO_SQUISH splitting otherwise (integrator.cpp).
+Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt);
+
 // Positions and orientations to t + dt in the already deformed cell: s += dt h^-1 v (the affine
-// part moves with h, SPEC 3); q <- exp(dt omega / 2) q.
+// part moves with h, SPEC 3); ellipsoids turn by free_rotation at the angular momentum
+// L(t+dt/2) and leave omega = R I^-1 R^T L at the new orientation (what the next contact forces
+// read). Spheres: orientation and omega = L / I untouched.
 void advance_positions(const Model& model, const Cell& cell, Particles& p);
 
 }  // namespace qsdem

@@ -51,9 +51,9 @@ State parse_packing(std::istream& in, const std::string& name, double density) {
     if (first == std::string::npos || line[first] == '#') continue;
     std::istringstream ls(line);
     if (!have_format) {
-      std::string w, name;
+      std::string w, format_name;
       int version = 0;
-      if (!(ls >> w >> name >> version) || w != "format" || name != "qsdem-packing")
+      if (!(ls >> w >> format_name >> version) || w != "format" || format_name != "qsdem-packing")
         fail("expected 'format qsdem-packing 1' as the first line");
       if (version != 1) fail(fmt::format("format version {} is not supported (this qsdem reads 1)", version));
       have_format = true;
