@@ -121,6 +121,30 @@ TEST(Config, ShippedExamplesParseWithSiValues) {
     EXPECT_DOUBLE_EQ(p.triaxial.final_axial_strain, 0.10);  // "10 %"
     EXPECT_EQ(p.triaxial.sample_points, 250);
   }
+  // The paper's own samples: exactly Tables 1-3 (spheroids a x b = c, counts), full and scaled.
+  for (const auto& [file, rows, total] :
+       {std::tuple{"paper-A.toml", sample_a, 0L}, std::tuple{"paper-B.toml", sample_b, 0L},
+        std::tuple{"paper-A-small.toml", sample_a, 2000L}, std::tuple{"paper-B-small.toml", sample_b, 1000L}}) {
+    SCOPED_TRACE(file);
+    const Params p = load_case((examples / file).string());
+    EXPECT_DOUBLE_EQ(p.material.density, 2650);
+    EXPECT_DOUBLE_EQ(p.material.young_modulus, 7.8e10);
+    EXPECT_DOUBLE_EQ(p.material.poisson_ratio, 0.3);
+    EXPECT_DOUBLE_EQ(p.step_ratio, 0.32);
+    EXPECT_EQ(p.sample.total_particles, total);
+    ASSERT_EQ(p.sample.table.size(), rows.size());
+    for (std::size_t k = 0; k < rows.size(); ++k) {
+      const SizeClass& c = p.sample.table[k];
+      EXPECT_EQ(c.shape, ShapeKind::ellipsoid);
+      EXPECT_EQ(c.count, rows[k].count);
+      EXPECT_DOUBLE_EQ(c.semi_axes.x(), 1e-3 * rows[k].a_mm);
+      EXPECT_DOUBLE_EQ(c.semi_axes.y(), 1e-3 * rows[k].b_mm);
+      EXPECT_DOUBLE_EQ(c.semi_axes.z(), 1e-3 * rows[k].b_mm);
+    }
+    EXPECT_DOUBLE_EQ(p.compaction.friction, 0.2);
+    EXPECT_DOUBLE_EQ(p.triaxial.friction, 0.5);
+    EXPECT_DOUBLE_EQ(p.triaxial.confining_stress, 390000);
+  }
   // The spot value of the brief: 2.13 mm is 0.00213 m.
   const Params a = load_case((examples / "spheres-A.toml").string());
   EXPECT_DOUBLE_EQ(2 * a.sample.table[0].semi_axes.x(), 0.00213);

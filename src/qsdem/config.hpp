@@ -86,6 +86,10 @@ struct Params {
     double every_minutes = 10;     // wall clock
   } checkpoint;
 
+  struct Output {
+    int vtk_every = 0;  // a VTK snapshot every N sample points (0: never), docs/visualisation.md
+  } output;
+
   struct Limits {
     double max_overlap = 0.05;       // delta / min(R_i, R_j) that stops the run as a blow-up
     double max_kinetic_ratio = 1.0;  // Ekin / (p V) that stops the triaxial test as a blow-up

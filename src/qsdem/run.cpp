@@ -4,6 +4,7 @@
 #include <omp.h>
 #include <sys/resource.h>
 
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <cstdio>
@@ -14,6 +15,7 @@
 #include "qsdem/packing_io.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/step.hpp"
+#include "qsdem/vtk.hpp"
 
 namespace qsdem {
 namespace {
@@ -95,6 +97,27 @@ void prepare_directory(const std::filesystem::path& dir, bool force) {
                         "compacted.packing", "final.packing", checkpoint_file, "checkpoint.qsck.prev",
                         prepared_sample_file})
     fs::remove(dir / f);
+  fs::remove_all(dir / "vtk");
+}
+
+// Snapshot k (0: the compacted sample, k: after row k of series.csv) and the .pvd of all snapshots
+// on disk, whose time is each snapshot's nominal axial strain (so a resumed run rebuilds it).
+void write_snapshot(const std::filesystem::path& dir, const Params& params, const State& st, long k) {
+  namespace fs = std::filesystem;
+  const fs::path vtk = dir / "vtk";
+  fs::create_directories(vtk);
+  write_vtu(vtk / fmt::format("snapshot-{:04}.vtu", k), st);
+  std::vector<std::pair<long, fs::path>> files;
+  for (const auto& e : fs::directory_iterator(vtk)) {
+    const std::string name = e.path().filename().string();
+    if (name.size() == 17 && name.rfind("snapshot-", 0) == 0 && e.path().extension() == ".vtu")
+      files.emplace_back(std::stol(name.substr(9, 4)), e.path().filename());
+  }
+  std::sort(files.begin(), files.end());
+  std::vector<PvdEntry> entries;
+  const double strain_per_row = params.triaxial.final_axial_strain / params.triaxial.sample_points;
+  for (const auto& [row, file] : files) entries.push_back({static_cast<double>(row) * strain_per_row, file});
+  write_pvd(vtk / "series.pvd", entries);
 }
 
 // Everything after the sample exists: the phases from wherever `run` stands, checkpoints, results.
@@ -129,6 +152,9 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
         c.every_minutes > 0 &&
         std::chrono::duration<double>(std::chrono::steady_clock::now() - last_save).count() > 60 * c.every_minutes;
     if (by_points || by_time) save(dir / checkpoint_file);
+    const int vtk = params.output.vtk_every;
+    if (sample_point && vtk > 0 && run.phase == RunProgress::Phase::triaxial && run.rows % vtk == 0)
+      write_snapshot(dir, params, st, run.rows);
   };
 
   const Model m0 = compaction_model(params, st);
@@ -137,6 +163,7 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     compact(params, st, run, progress, &log, hook);
     log.commit();
     write_packing(dir / "compacted.packing", st.particles, st.cell);
+    if (params.output.vtk_every > 0) write_snapshot(dir, params, st, 0);
     run.phase = RunProgress::Phase::triaxial;
     run.phase_started = false;
     run.phase_steps = 0;
@@ -153,6 +180,7 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     tri = shear(params, st, run, series, progress, hook);
     series.commit();
     write_packing(dir / "final.packing", st.particles, st.cell);
+    if (params.output.vtk_every > 0 && run.rows % params.output.vtk_every == 0) write_snapshot(dir, params, st, run.rows);
     run.phase = RunProgress::Phase::done;
   }
 
