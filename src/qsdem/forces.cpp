@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "qsdem/contact_law.hpp"
+#include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
 namespace {
@@ -30,15 +31,25 @@ void compute_contact_forces(const Model& model, State& state) {
     for (std::size_t k = b * block_size; k < end; ++k) {
       const std::uint32_t i = pairs.i[k], j = pairs.j[k];
       const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
-      const double ri = p.bound_radius[i], rj = p.bound_radius[j];
-      const double d2 = l.squaredNorm();
-      if (d2 >= (ri + rj) * (ri + rj)) {  // apart: most listed pairs, so keep this path short
-        pairs.overlap[k] = ri + rj - std::sqrt(d2);
+      // Narrow phase (SPEC 4): exact for spheres; Perram-Wertheim for any pair with an ellipsoid.
+      ContactGeometry g;
+      bool touching;
+      if (p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere) {
+        const double ri = p.bound_radius[i], rj = p.bound_radius[j];
+        const double d2 = l.squaredNorm();
+        touching = d2 < (ri + rj) * (ri + rj);  // most listed pairs are apart: keep that path short
+        if (touching)
+          g = sphere_sphere(l, ri, rj);
+        else
+          pairs.overlap[k] = ri + rj - std::sqrt(d2);
+      } else {
+        touching = ellipsoid_contact(l, p.semi_axes[i], p.q[i], p.semi_axes[j], p.q[j], pairs.pw_lambda[k], g);
+        if (!touching) pairs.overlap[k] = 0;  // apart (the contact function gives no gap)
+      }
+      if (!touching) {
         if (!pairs.shear[k].isZero()) pairs.shear[k].setZero();  // contact lost: spring released
         continue;  // force and torques are read only where overlap > 0
       }
-      // Spheres: exact geometry. Ellipsoid pairs get their narrow phase in the ellipsoid issue.
-      const ContactGeometry g = sphere_sphere(l, ri, rj);
       pairs.overlap[k] = g.overlap;
       const double ratio = g.overlap / std::min(p.equiv_radius[i], p.equiv_radius[j]);
       if (ratio > acc.max_overlap) {

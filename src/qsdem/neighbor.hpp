@@ -23,7 +23,8 @@ struct PairList {
   // overlap > 0 (non-contacts are not written, to save memory traffic).
   std::vector<Vec3> force;         // contact force on j (N); i receives -force
   std::vector<Vec3> torque_i, torque_j;
-  std::vector<double> overlap;     // delta (m); > 0 when the pair is a contact
+  std::vector<double> overlap;     // delta (m); > 0 when the pair is a contact (<= 0: apart; for
+                                   // pairs with an ellipsoid, 0 when apart)
   // Incidence lists for the deterministic per-particle gather (CSR by particle).
   std::vector<std::uint32_t> first;     // size n + 1
   std::vector<std::uint32_t> incident;  // (pair index << 1) | (particle is j)

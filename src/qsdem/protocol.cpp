@@ -56,13 +56,6 @@ void check_kinetic(const Measures& m, const Params& params, const State& st) {
 
 }  // namespace
 
-void check_supported(const State& state) {
-  for (ShapeKind k : state.particles.shape)
-    if (k != ShapeKind::sphere)
-      throw InputError("the sample holds ellipsoids (semi-axes not all equal), which this build cannot run yet: "
-                       "their narrow phase is the ellipsoid issue; use spheres");
-}
-
 Model compaction_model(const Params& params, const State& state) {
   Model m = base_model(params, state.particles);
   m.friction = params.compaction.friction;

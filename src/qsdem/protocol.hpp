@@ -78,7 +78,4 @@ TriaxialResult shear(const Params& params, State& state, RunProgress& run, Serie
 CompactionResult compact(const Params& params, State& state, Progress& progress, SeriesWriter* log);
 TriaxialResult shear(const Params& params, State& state, SeriesWriter& series, Progress& progress);
 
-// Refuses what this build cannot run yet (ellipsoid contacts).
-void check_supported(const State& state);
-
 }  // namespace qsdem

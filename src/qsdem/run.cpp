@@ -267,7 +267,6 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
   write_file_atomic(options.out / "case.toml", params.case_text);
   RunProgress run;
   State st = params.sample.from.empty() ? generate_loose_sample(params) : load_sample(params, run);
-  check_supported(st);
   return execute(params, st, run, options, "");
 }
 
@@ -304,7 +303,6 @@ std::string format_run_table(const nlohmann::json& s) {
 
 nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps) {
   State st = read_packing(packing, params.material.density);
-  check_supported(st);
   // The triaxial phase's friction and damping in a fixed cell: the same physics a peer code runs
   // on the same packing in a fixed periodic box.
   Model model = triaxial_model(params, st);
