@@ -369,7 +369,7 @@ Params parse_case(const std::string& toml_text, const std::string& source,
   auto& c = p.compaction;
   c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
   c.stress = r.quantity("compaction.stress", Dimension::stress, 390e3, positive, "must be > 0");
-  c.max_strain_rate = r.number("compaction.max_strain_rate", 1e-4, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
+  c.max_strain_rate = r.number("compaction.max_strain_rate", 2e-5, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
   c.stress_tolerance = r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
   c.ufr_tolerance = r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
   c.damping_model = damping_model(r, "compaction.damping_model", "nd");

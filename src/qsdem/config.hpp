@@ -53,7 +53,7 @@ struct Params {
   struct Compaction {
     double friction = 0.2;
     double stress = 390e3;              // Pa, all three axes
-    double max_strain_rate = 1e-4;      // dimensionless, per t_c
+    double max_strain_rate = 2e-5;      // dimensionless, per t_c
     double stress_tolerance = 0.01;     // relative
     double ufr_tolerance = 0.01;
     DampingModel damping_model = DampingModel::nd;
