@@ -89,6 +89,10 @@ int main(int argc, char** argv) {
   bench->add_option("--steps,-n", steps, "Steps to run")->check(CLI::PositiveNumber);
   bench->add_option("--set,-s", overrides, "Override a case key (as for run)");
   bench->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  bool as_spheres = false;
+  bench->add_flag("--as-spheres", as_spheres,
+                  "Replace every ellipsoid by its equal-volume sphere at the same centre first (the sphere "
+                  "path on the same packing)");
 
   CLI11_PARSE(app, argc, argv);
 
@@ -111,7 +115,7 @@ int main(int argc, char** argv) {
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*bench) {
       const qsdem::Params params = qsdem::load_case(case_path, overrides);
-      std::cout << qsdem::bench_packing(params, packing, steps).dump() << std::endl;
+      std::cout << qsdem::bench_packing(params, packing, steps, as_spheres).dump() << std::endl;
     }
   } catch (const qsdem::Interrupted& e) {
     std::fprintf(stderr, "\nqsdem: %s\n", e.what());

@@ -301,8 +301,20 @@ std::string format_run_table(const nlohmann::json& s) {
   return out;
 }
 
-nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps) {
+nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps,
+                             bool as_spheres) {
   State st = read_packing(packing, params.material.density);
+  if (as_spheres) {
+    State spheres;
+    spheres.cell = st.cell;
+    const Particles& p = st.particles;
+    for (std::size_t i = 0; i < p.size(); ++i)
+      spheres.particles.add(p.id[i], ShapeKind::sphere, Vec3::Constant(p.equiv_radius[i]), params.material.density,
+                            p.s[i], Quat::Identity());
+    st = std::move(spheres);
+  }
+  long ellipsoids = 0;
+  for (ShapeKind k : st.particles.shape) ellipsoids += k == ShapeKind::ellipsoid;
   // The triaxial phase's friction and damping in a fixed cell: the same physics a peer code runs
   // on the same packing in a fixed periodic box.
   Model model = triaxial_model(params, st);
@@ -316,6 +328,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
   const Measures m = measure(st);
   const double np = static_cast<double>(st.particles.size());
   return {{"particles", st.particles.size()},
+          {"ellipsoids", ellipsoids},
           {"contacts", m.contacts},
           {"pairs", st.pairs.size()},
           {"ekin_J", m.ekin_trans + m.ekin_rot},

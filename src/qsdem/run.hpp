@@ -42,7 +42,9 @@ nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& op
 std::string format_run_table(const nlohmann::json& summary);
 
 // Steps a packing for `steps` steps in a fixed cell with the triaxial friction and damping of
-// `params` (no output) and returns the machine-readable speed record of `qsdem bench`.
-nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps);
+// `params` (no output) and returns the machine-readable speed record of `qsdem bench`. With
+// `as_spheres`, every ellipsoid is first replaced by its equal-volume sphere (same centre).
+nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps,
+                             bool as_spheres = false);
 
 }  // namespace qsdem
