@@ -50,6 +50,7 @@ Model base_model(const Params& params, const Particles& particles) {
   m.servo.proportional_gain = params.servo.proportional_gain;
   m.servo.integral_gain = params.servo.integral_gain;
   m.skin = params.neighbor.skin_ratio * m.r_min;
+  m.sort_particles = true;
   return m;
 }
 

@@ -46,6 +46,8 @@ struct Model {
   std::array<AxisControl, 3> control{};
   Servo servo;
   double skin = 0;              // Verlet skin (m)
+  bool sort_particles = false;  // re-sort particles in space at every list rebuild (reorder.hpp);
+                                // the protocols turn it on, hand-built states keep their order
 };
 
 // t_c = 2 R_min sqrt(rho / E) (SPEC 5, paper section 4).

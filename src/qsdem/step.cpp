@@ -4,6 +4,7 @@
 
 #include "qsdem/forces.hpp"
 #include "qsdem/integrator.hpp"
+#include "qsdem/reorder.hpp"
 #include "qsdem/servo.hpp"
 
 namespace qsdem {
@@ -11,7 +12,10 @@ namespace qsdem {
 void evaluate_forces(const Model& model, State& s) {
   {
     ScopedStage t(s.timers, Stage::neighbor);
-    if (needs_rebuild(s.neighbor, s.particles, s.cell)) build_pairs(s.particles, s.cell, model.skin, s.pairs, s.neighbor);
+    if (needs_rebuild(s.neighbor, s.particles, s.cell)) {
+      if (model.sort_particles) sort_particles(s);  // neighbours in space, neighbours in memory
+      build_pairs(s.particles, s.cell, model.skin, s.pairs, s.neighbor);
+    }
   }
   {
     ScopedStage t(s.timers, Stage::contact_forces);

@@ -1,0 +1,106 @@
+#include "qsdem/reorder.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <tuple>
+
+namespace qsdem {
+namespace {
+
+// Spreads the 10 low bits of x to every third bit.
+std::uint32_t spread3(std::uint32_t x) {
+  x &= 0x3ffu;
+  x = (x | (x << 16)) & 0x030000ffu;
+  x = (x | (x << 8)) & 0x0300f00fu;
+  x = (x | (x << 4)) & 0x030c30c3u;
+  x = (x | (x << 2)) & 0x09249249u;
+  return x;
+}
+
+template <class T>
+void permute(std::vector<T>& v, const std::vector<std::uint32_t>& order) {
+  std::vector<T> out(v.size());
+  for (std::size_t k = 0; k < order.size(); ++k) out[k] = v[order[k]];
+  v.swap(out);
+}
+
+}  // namespace
+
+std::uint32_t morton_key(const Vec3& s) {
+  std::uint32_t key = 0;
+  for (int k = 0; k < 3; ++k) {
+    const double w = s[k] - std::floor(s[k]);
+    const auto cell = static_cast<std::uint32_t>(std::min(1023.0, w * 1024.0));
+    key |= spread3(cell) << k;
+  }
+  return key;
+}
+
+bool sort_particles(State& st) {
+  Particles& p = st.particles;
+  const std::size_t n = p.size();
+  std::vector<std::uint32_t> key(n), order(n);
+  for (std::size_t i = 0; i < n; ++i) key[i] = morton_key(p.s[i]);
+  std::iota(order.begin(), order.end(), 0u);
+  std::stable_sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) { return key[a] < key[b]; });
+  bool identity = true;
+  for (std::size_t k = 0; k < n && identity; ++k) identity = order[k] == k;
+  if (identity) return false;
+
+  permute(p.id, order);
+  permute(p.shape, order);
+  permute(p.semi_axes, order);
+  permute(p.bound_radius, order);
+  permute(p.equiv_radius, order);
+  permute(p.mass, order);
+  permute(p.inertia, order);
+  permute(p.damping, order);
+  permute(p.s, order);
+  permute(p.q, order);
+  permute(p.v, order);
+  permute(p.angmom, order);
+  permute(p.omega, order);
+  permute(p.force, order);
+  permute(p.torque, order);
+  if (st.neighbor.s_at_build.size() == n) permute(st.neighbor.s_at_build, order);
+
+  // Pair keys in the new indices, i < j. Swapping the ends of a pair reverses its image and its
+  // stored tangential force (the force on j becomes the force on the other end), and maps the PW
+  // parameter lambda (weight of j's shape) to 1 - lambda.
+  std::vector<std::uint32_t> inverse(n);
+  for (std::size_t k = 0; k < n; ++k) inverse[order[k]] = static_cast<std::uint32_t>(k);
+  PairList& pairs = st.pairs;
+  const std::size_t np = pairs.size();
+  for (std::size_t k = 0; k < np; ++k) {
+    std::uint32_t i = inverse[pairs.i[k]], j = inverse[pairs.j[k]];
+    if (i > j) {
+      std::swap(i, j);
+      pairs.image[k] = -pairs.image[k];
+      pairs.shear[k] = -pairs.shear[k];
+      const double lambda = pairs.pw_lambda[k];
+      if (lambda > 0 && lambda < 1) pairs.pw_lambda[k] = 1 - lambda;
+    }
+    pairs.i[k] = i;
+    pairs.j[k] = j;
+  }
+  std::vector<std::uint32_t> by_key(np);
+  std::iota(by_key.begin(), by_key.end(), 0u);
+  std::sort(by_key.begin(), by_key.end(), [&](std::uint32_t a, std::uint32_t b) {
+    const Vec3i &ka = pairs.image[a], &kb = pairs.image[b];
+    return std::tie(pairs.i[a], pairs.j[a], ka.x(), ka.y(), ka.z()) <
+           std::tie(pairs.i[b], pairs.j[b], kb.x(), kb.y(), kb.z());
+  });
+  permute(pairs.i, by_key);
+  permute(pairs.j, by_key);
+  permute(pairs.image, by_key);
+  permute(pairs.shear, by_key);
+  permute(pairs.pw_lambda, by_key);
+  permute(pairs.force, by_key);
+  permute(pairs.torque_i, by_key);
+  permute(pairs.torque_j, by_key);
+  permute(pairs.overlap, by_key);
+  return true;
+}
+
+}  // namespace qsdem
