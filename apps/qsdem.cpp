@@ -10,6 +10,8 @@
 #include "qsdem/config.hpp"
 #include "qsdem/default_case.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/study.hpp"
+#include "qsdem/study_analysis.hpp"
 
 namespace {
 
@@ -94,6 +96,26 @@ int main(int argc, char** argv) {
                   "Replace every ellipsoid by its equal-volume sphere at the same centre first (the sphere "
                   "path on the same packing)");
 
+  std::string study_file;
+  int parallel = 0;
+  auto* study = app.add_subcommand(
+      "study",
+      "Run a study (SPEC 9, docs/study.md): every sample of the study file prepared once, then sheared with every "
+      "damping model, damping ratio and strain rate of its [design], in parallel processes (and over the ranks of "
+      "`mpirun -np K`). Writes DIR/study.json, DIR/samples/, DIR/runs/, then the analysis (DIR/analysis/). Running it "
+      "again on the same DIR continues it: finished runs are kept, interrupted ones resume from their checkpoints.");
+  study->add_option("study", study_file, "Study file (TOML, see docs/study.md)")->required();
+  study->add_option("--out,-o", out_dir, "Study directory (created if needed)")->required();
+  study->add_option("--parallel,-j", parallel,
+                    "Child processes at once (per MPI rank); default: execution.parallel_runs of the study file")
+      ->check(CLI::PositiveNumber);
+  study->add_flag("--quiet,-q", quiet, "No progress display");
+
+  std::string analyze_dir;
+  auto* analyze = app.add_subcommand(
+      "analyze", "Analyse a study directory (written by `qsdem study`) again: DIR/analysis/ (docs/analysis.md).");
+  analyze->add_option("dir", analyze_dir, "Study directory")->required();
+
   CLI11_PARSE(app, argc, argv);
 
   try {
@@ -113,6 +135,11 @@ int main(int argc, char** argv) {
       const auto summary = qsdem::resume_run(resume_dir, {resume_dir, quiet, false, false});
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
+    } else if (*study) {
+      return qsdem::run_study(study_file, {out_dir, quiet, parallel});
+    } else if (*analyze) {
+      qsdem::analyze_study(analyze_dir);
+      std::cout << "Analysis written to " << analyze_dir << "/analysis/\n";
     } else if (*bench) {
       const qsdem::Params params = qsdem::load_case(case_path, overrides);
       std::cout << qsdem::bench_packing(params, packing, steps, as_spheres).dump() << std::endl;

@@ -1,11 +1,934 @@
 #include "qsdem/study.hpp"
 
-#include <stdexcept>
+#include <fcntl.h>
+#include <fmt/format.h>
+#include <mpi.h>
+#include <sched.h>
+#include <sys/file.h>
+#include <sys/prctl.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+#include <map>
+#include <optional>
+#include <set>
+#include <sstream>
+#include <thread>
+
+#define TOML_EXCEPTIONS 1
+#include <toml++/toml.h>
+
+#include "qsdem/config.hpp"
+#include "qsdem/output.hpp"
+#include "qsdem/run.hpp"
+#include "qsdem/study_analysis.hpp"
+#include "qsdem/types.hpp"
+#include "qsdem/units.hpp"
+
+extern char** environ;
 
 namespace qsdem {
+namespace {
 
-int run_study(const std::filesystem::path& study_file, const StudyOptions&) {
-  throw std::runtime_error("run_study: not implemented yet (" + study_file.string() + ")");
+namespace fs = std::filesystem;
+
+// ---------------------------------------------------------------------------------------------
+// The study file (docs/study.md). Errors name file:line, the key, the value and what is allowed,
+// in the format of config.cpp.
+
+std::string describe(const toml::node& n) {
+  if (n.is_string()) return '"' + *n.value<std::string>() + '"';
+  if (n.is_table()) return "(a table)";
+  if (n.is_array()) return "(an array)";
+  if (n.is_floating_point()) return fmt::format("{}", *n.value<double>());
+  std::ostringstream os;
+  n.visit([&](auto&& v) { os << v; });
+  return os.str();
+}
+
+class StudyReader {
+ public:
+  explicit StudyReader(std::string file) : file_(std::move(file)) {}
+
+  std::string where(const toml::node* n) const {
+    if (n && n->source().begin.line > 0) return fmt::format("{}:{}", file_, n->source().begin.line);
+    return file_;
+  }
+
+  [[noreturn]] void fail(const std::string& key, const toml::node* n, const std::string& why) const {
+    if (n) throw InputError(fmt::format("{}: key '{}' = {}: {}", where(n), key, describe(*n), why));
+    throw InputError(fmt::format("{}: key '{}': {}", file_, key, why));
+  }
+
+  // Every key of `t` must be one of `known` (a typo never passes silently).
+  void only(const toml::table& t, const std::string& prefix, std::initializer_list<const char*> known) const {
+    for (const auto& [k, v] : t) {
+      const std::string key(k.str());
+      if (std::find_if(known.begin(), known.end(), [&](const char* x) { return key == x; }) != known.end()) continue;
+      std::string list;
+      for (const char* x : known) list += (list.empty() ? "" : ", ") + std::string(x);
+      throw InputError(fmt::format("{}: unknown key '{}{}' (allowed here: {}; see docs/study.md)", where(&v), prefix,
+                                   key, list));
+    }
+  }
+
+  const toml::table* table(const toml::table& t, const std::string& key, const std::string& path) const {
+    const toml::node* n = t.get(key);
+    if (!n) return nullptr;
+    if (!n->is_table()) fail(path, n, "expected a table ([" + path + "])");
+    return n->as_table();
+  }
+
+  std::string text(const toml::table& t, const std::string& key, const std::string& path,
+                    std::optional<std::string> def) const {
+    const toml::node* n = t.get(key);
+    if (!n) {
+      if (def) return *def;
+      fail(path, nullptr, "is required but missing");
+    }
+    if (!n->is_string()) fail(path, n, "expected a string");
+    return *n->value<std::string>();
+  }
+
+  long integer(const toml::table& t, const std::string& key, const std::string& path, long def, long lo,
+               long hi) const {
+    const toml::node* n = t.get(key);
+    if (!n) return def;
+    if (!n->is_integer()) fail(path, n, "expected an integer");
+    const long v = static_cast<long>(*n->value<std::int64_t>());
+    if (v < lo || v > hi) fail(path, n, fmt::format("out of range: must be in [{}, {}]", lo, hi));
+    return v;
+  }
+
+  // A non-empty array (or, when optional and absent, nullptr).
+  const toml::array* array(const toml::table& t, const std::string& key, const std::string& path,
+                           bool required) const {
+    const toml::node* n = t.get(key);
+    if (!n) {
+      if (required) fail(path, nullptr, "is required but missing");
+      return nullptr;
+    }
+    const toml::array* a = n->as_array();
+    if (!a) fail(path, n, "expected an array, e.g. " + path.substr(path.rfind('.') + 1) + " = [...]");
+    if (a->empty() && required) fail(path, n, "expected at least one entry");
+    return a;
+  }
+
+  // --set overrides: strings "dotted.key=value"; keys the study itself sets are refused.
+  std::vector<std::string> sets(const toml::table& t, const std::string& path,
+                                const std::set<std::string>& reserved) const {
+    std::vector<std::string> out;
+    const toml::array* a = array(t, "set", path, false);
+    if (!a) return out;
+    for (std::size_t i = 0; i < a->size(); ++i) {
+      const toml::node* e = a->get(i);
+      const std::string key = fmt::format("{}.{}", path, i);
+      if (!e->is_string()) fail(key, e, "expected a string \"dotted.key=value\", e.g. \"triaxial.sample_points=100\"");
+      const std::string s = *e->value<std::string>();
+      const auto eq = s.find('=');
+      if (eq == std::string::npos || eq == 0)
+        fail(key, e, "expected \"dotted.key=value\", e.g. \"triaxial.sample_points=100\" (docs/config.md)");
+      if (reserved.count(s.substr(0, eq)))
+        fail(key, e, fmt::format("'{}' is set by the study itself ([design] or sample seeds); remove it here",
+                                 s.substr(0, eq)));
+      out.push_back(s);
+    }
+    return out;
+  }
+
+  const std::string& file() const { return file_; }
+
+ private:
+  std::string file_;
+};
+
+std::string slurp(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  if (!in) throw InputError(fmt::format("cannot open study file '{}'", p.string()));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+bool valid_name(const std::string& s) {
+  return !s.empty() && s[0] != '.' && s.find_first_not_of("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz"
+                                                          "0123456789._+-") == std::string::npos;
+}
+
+// Directory-name forms of a damping ratio (in %) and a strain rate: "{:g}" is deterministic.
+std::string xi_label(double xi) { return fmt::format("xi-{:g}%", xi * 100); }
+std::string rate_label(double rate) { return fmt::format("rate-{:g}", rate); }
+
+// A value for --set that reads back as exactly this double (shortest round trip).
+std::string exact(double v) { return fmt::format("{}", v); }
+
+}  // namespace
+
+Study load_study(const fs::path& file) {
+  Study s;
+  s.file = file;
+  s.text = slurp(file);
+  const std::string name = file.string();
+  const StudyReader r(name);
+  toml::table root;
+  try {
+    root = toml::parse(s.text, name);
+  } catch (const toml::parse_error& e) {
+    throw InputError(fmt::format("{}:{}: TOML syntax error: {}", name, e.source().begin.line, e.description()));
+  }
+  r.only(root, "", {"name", "sample", "design", "execution"});
+  s.name = r.text(root, "name", "name", file.stem().string());
+  if (s.name.empty()) r.fail("name", root.get("name"), "must not be empty");
+
+  // [design]
+  const toml::table* design = r.table(root, "design", "design");
+  if (!design) r.fail("design", nullptr, "is required but missing: a [design] table with models, damping_ratios, strain_rates");
+  r.only(*design, "design.", {"models", "damping_ratios", "strain_rates", "seeds", "set"});
+  std::vector<std::string> models;
+  const toml::array* a = r.array(*design, "models", "design.models", true);
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const toml::node* e = a->get(i);
+    const std::string key = fmt::format("design.models.{}", i);
+    const auto m = e->value<std::string>();
+    if (!e->is_string() || (*m != "none" && *m != "od" && *m != "nd"))
+      r.fail(key, e, "allowed values: \"none\", \"od\", \"nd\" (docs/config.md, [damping])");
+    if (std::find(models.begin(), models.end(), *m) != models.end()) r.fail(key, e, "listed twice");
+    models.push_back(*m);
+  }
+  std::vector<double> ratios;
+  a = r.array(*design, "damping_ratios", "design.damping_ratios", true);
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const toml::node* e = a->get(i);
+    const std::string key = fmt::format("design.damping_ratios.{}", i);
+    double xi = 0;
+    if (e->is_string()) {
+      try {
+        xi = parse_quantity(*e->value<std::string>(), Dimension::ratio);
+      } catch (const InputError& err) {
+        r.fail(key, e, err.what());
+      }
+    } else if (e->is_floating_point() || e->is_integer()) {
+      xi = *e->value<double>();
+    } else {
+      r.fail(key, e, "expected a ratio: \"0.5 %\" or a fraction such as 0.005");
+    }
+    if (!std::isfinite(xi) || xi < 0) r.fail(key, e, "out of range: must be >= 0");
+    for (double x : ratios)
+      if (xi_label(x) == xi_label(xi)) r.fail(key, e, fmt::format("same damping ratio as another entry ({})", xi_label(xi)));
+    ratios.push_back(xi);
+  }
+  std::vector<double> rates;
+  a = r.array(*design, "strain_rates", "design.strain_rates", true);
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const toml::node* e = a->get(i);
+    const std::string key = fmt::format("design.strain_rates.{}", i);
+    if (!(e->is_floating_point() || e->is_integer()))
+      r.fail(key, e, "expected a number (dimensionless eps' = (de1/dt) t_c), e.g. 1e-5");
+    const double rate = *e->value<double>();
+    if (!std::isfinite(rate) || rate <= 0 || rate >= 0.01) r.fail(key, e, "out of range: must be in (0, 0.01)");
+    for (double x : rates)
+      if (rate_label(x) == rate_label(rate)) r.fail(key, e, "listed twice");
+    rates.push_back(rate);
+  }
+  std::vector<std::uint64_t> seeds;
+  if ((a = r.array(*design, "seeds", "design.seeds", false))) {
+    if (a->empty()) r.fail("design.seeds", design->get("seeds"), "expected at least one seed (or leave the key out)");
+    for (std::size_t i = 0; i < a->size(); ++i) {
+      const toml::node* e = a->get(i);
+      const std::string key = fmt::format("design.seeds.{}", i);
+      if (!e->is_integer() || *e->value<std::int64_t>() < 0) r.fail(key, e, "expected an integer >= 0 (sample.seed)");
+      const auto seed = static_cast<std::uint64_t>(*e->value<std::int64_t>());
+      if (std::find(seeds.begin(), seeds.end(), seed) != seeds.end()) r.fail(key, e, "listed twice");
+      seeds.push_back(seed);
+    }
+  }
+  const std::set<std::string> run_keys{"sample.from", "damping.model", "damping.ratio", "triaxial.strain_rate"};
+  const std::vector<std::string> design_sets = r.sets(*design, "design.set", run_keys);
+
+  // [execution]
+  long threads = 1, parallel = 0;
+  if (const toml::table* ex = r.table(root, "execution", "execution")) {
+    r.only(*ex, "execution.", {"parallel_runs", "threads_per_run"});
+    threads = r.integer(*ex, "threads_per_run", "execution.threads_per_run", 1, 1, 1024);
+    parallel = r.integer(*ex, "parallel_runs", "execution.parallel_runs", 0, 1, 4096);
+  }
+  s.threads_per_run = static_cast<int>(threads);
+  if (parallel == 0) {  // the cores of this node, shared by the MPI ranks on it
+    cpu_set_t cpus;
+    const long cores = sched_getaffinity(0, sizeof cpus, &cpus) == 0 ? CPU_COUNT(&cpus)
+                                                                    : long(std::thread::hardware_concurrency());
+    const char* local = std::getenv("OMPI_COMM_WORLD_LOCAL_SIZE");
+    const long ranks = local ? std::max(1L, std::atol(local)) : 1;
+    parallel = std::max(1L, cores / (threads * ranks));
+  }
+  s.parallel_runs = static_cast<int>(parallel);
+
+  // [[sample]]
+  const toml::node* sn = root.get("sample");
+  if (!sn) r.fail("sample", nullptr, "is required but missing: one [[sample]] table per sample (name, case)");
+  const toml::array* sample_arr = sn->as_array();
+  if (!sample_arr || sample_arr->empty() || !sample_arr->is_array_of_tables())
+    r.fail("sample", sn, "expected [[sample]] tables (name = \"...\", case = \"...\")");
+  std::set<std::string> names;
+  for (std::size_t i = 0; i < sample_arr->size(); ++i) {
+    const toml::table& t = *sample_arr->get(i)->as_table();
+    const std::string p = fmt::format("sample.{}.", i);
+    r.only(t, p, {"name", "case", "set"});
+    const std::string sample_name = r.text(t, "name", p + "name", std::nullopt);
+    if (!valid_name(sample_name))
+      r.fail(p + "name", t.get("name"), "allowed: letters, digits, '.', '_', '+', '-' (it names directories)");
+    if (!names.insert(sample_name).second) r.fail(p + "name", t.get("name"), "two samples have this name");
+    const std::string case_text = r.text(t, "case", p + "case", std::nullopt);
+    fs::path case_file = case_text;
+    if (case_file.is_relative()) case_file = file.parent_path() / case_file;  // relative to the study file
+    case_file = fs::weakly_canonical(fs::absolute(case_file));
+    if (!fs::is_regular_file(case_file))
+      r.fail(p + "case", t.get("case"), fmt::format("no such case file ('{}'; a relative path is relative to the study file)",
+                                                    case_file.string()));
+    std::set<std::string> reserved = run_keys;
+    if (!seeds.empty()) reserved.insert("sample.seed");
+    const std::vector<std::string> own = r.sets(t, p + "set", reserved);
+
+    // Check the case with the sample's overrides now, not after hours of other runs.
+    const auto check = [&](const std::vector<std::string>& sets, const std::string& what) {
+      try {
+        return load_case(case_file.string(), sets);
+      } catch (const InputError& e) {
+        throw InputError(fmt::format("{}: sample '{}'{}: {}", name, sample_name, what, e.what()));
+      }
+    };
+    const Params base = check(own, "");
+    const std::vector<std::uint64_t> sample_seeds = seeds.empty() ? std::vector{base.sample.seed} : seeds;
+    for (const std::uint64_t seed : sample_seeds) {
+      StudySample smp;
+      smp.name = sample_name;
+      smp.seed = seed;
+      smp.dir = fmt::format("samples/{}-seed{}", sample_name, seed);
+      smp.case_file = case_file;
+      if (!seeds.empty()) smp.sets.push_back(fmt::format("sample.seed={}", seed));
+      smp.sets.insert(smp.sets.end(), own.begin(), own.end());
+      smp.run_sets = own;
+      check(smp.sets, fmt::format(" seed {}", seed));
+      s.samples.push_back(smp);
+    }
+  }
+
+  // The runs: samples x models x damping ratios x strain rates, in this order.
+  for (std::size_t k = 0; k < s.samples.size(); ++k) {
+    const StudySample& smp = s.samples[k];
+    for (const auto& model : models)
+      for (const double xi : ratios)
+        for (const double rate : rates) {
+          StudyRun run;
+          run.id = fmt::format("{}-seed{}/{}/{}/{}", smp.name, smp.seed, model, xi_label(xi), rate_label(rate));
+          run.sample = k;
+          run.model = model;
+          run.xi = xi;
+          run.rate = rate;
+          run.dir = "runs/" + run.id;
+          run.sets = smp.run_sets;
+          for (const std::string& set : {"damping.model=" + model, "damping.ratio=" + exact(xi),
+                                         "triaxial.strain_rate=" + exact(rate)})
+            run.sets.push_back(set);
+          run.sets.insert(run.sets.end(), design_sets.begin(), design_sets.end());
+          Params params;
+          try {
+            params = load_case(smp.case_file.string(), run.sets);
+          } catch (const InputError& e) {
+            throw InputError(fmt::format("{}: run '{}': {}", name, run.id, e.what()));
+          }
+          run.expected_steps = std::max(1.0, std::round(params.triaxial.final_axial_strain /
+                                                        (params.step_ratio * params.triaxial.strain_rate)));
+          s.runs.push_back(std::move(run));
+        }
+  }
+  return s;
+}
+
+nlohmann::ordered_json study_manifest(const Study& study) {
+  nlohmann::ordered_json m;
+  m["name"] = study.name;
+  m["study_file"] = "study.toml";
+  m["samples"] = nlohmann::ordered_json::array();
+  for (const auto& smp : study.samples)
+    m["samples"].push_back({{"name", smp.name}, {"seed", smp.seed}, {"dir", smp.dir}});
+  m["runs"] = nlohmann::ordered_json::array();
+  for (const auto& run : study.runs) {
+    const StudySample& smp = study.samples[run.sample];
+    m["runs"].push_back({{"id", run.id},
+                         {"sample", smp.name},
+                         {"seed", smp.seed},
+                         {"model", run.model},
+                         {"xi", run.xi},
+                         {"rate", run.rate},
+                         {"dir", run.dir}});
+  }
+  return m;
+}
+
+namespace {
+
+// ---------------------------------------------------------------------------------------------
+// Child processes: `qsdem prepare`, `qsdem run`, `qsdem resume`, one per sample or run.
+
+volatile std::sig_atomic_t stop_signal = 0;
+extern "C" void on_study_signal(int sig) { stop_signal = sig; }
+
+// SIGINT/SIGTERM set stop_signal while the study runs: children are told, then waited for.
+class StopSignals {
+ public:
+  StopSignals() {
+    stop_signal = 0;
+    struct sigaction sa {};
+    sa.sa_handler = on_study_signal;
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGINT, &sa, &old_int_);
+    sigaction(SIGTERM, &sa, &old_term_);
+  }
+  ~StopSignals() {
+    sigaction(SIGINT, &old_int_, nullptr);
+    sigaction(SIGTERM, &old_term_, nullptr);
+  }
+  StopSignals(const StopSignals&) = delete;
+  StopSignals& operator=(const StopSignals&) = delete;
+
+ private:
+  struct sigaction old_int_ {}, old_term_ {};
+};
+
+// How children are started: this binary, and the environment without the MPI launcher's
+// variables (a child is a plain process, not an MPI rank).
+struct Launcher {
+  std::string exe;
+  std::vector<std::string> env;
+};
+
+Launcher make_launcher() {
+  Launcher l;
+  std::error_code ec;
+  l.exe = fs::read_symlink("/proc/self/exe", ec).string();
+  if (ec) throw RunError("cannot find this program's path (/proc/self/exe): " + ec.message());
+  for (char** e = environ; *e; ++e) {
+    const std::string_view v(*e);
+    if (v.rfind("OMPI_", 0) == 0 || v.rfind("PMIX_", 0) == 0) continue;
+    l.env.emplace_back(v);
+  }
+  return l;
+}
+
+// Starts `exe args` with stdout and stderr appended to `log`, stdin from /dev/null, in its own
+// process group (a terminal's Ctrl-C reaches the study only, which forwards it once), and with
+// SIGTERM on the study's death (no orphan keeps writing into the study directory).
+pid_t spawn_child(const Launcher& l, const std::vector<std::string>& args, const fs::path& log) {
+  std::vector<std::string> all{l.exe};
+  all.insert(all.end(), args.begin(), args.end());
+  std::vector<char*> argv, envp;
+  for (auto& a : all) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  for (const auto& e : l.env) envp.push_back(const_cast<char*>(e.c_str()));
+  envp.push_back(nullptr);
+
+  const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
+  if (fd < 0) throw RunError(fmt::format("cannot open log '{}': {}", log.string(), std::strerror(errno)));
+  const int null_fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC);
+  std::string header = "=== qsdem";
+  for (const auto& a : args) header += " '" + a + "'";
+  header += "\n";
+  if (::write(fd, header.data(), header.size()) < 0) { /* the log header is a courtesy */ }
+
+  // Block the stop signals across fork: the child must not run the study's handler (a forwarded
+  // signal would be lost); it resets them to the default before exec.
+  sigset_t block, old;
+  sigemptyset(&block);
+  sigaddset(&block, SIGINT);
+  sigaddset(&block, SIGTERM);
+  sigprocmask(SIG_BLOCK, &block, &old);
+  const pid_t parent = ::getpid();
+  const pid_t pid = ::fork();
+  if (pid == 0) {  // only async-signal-safe calls until exec
+    ::signal(SIGINT, SIG_DFL);
+    ::signal(SIGTERM, SIG_DFL);
+    ::prctl(PR_SET_PDEATHSIG, SIGTERM);
+    if (::getppid() != parent) ::_exit(143);
+    ::setpgid(0, 0);
+    if (null_fd >= 0) ::dup2(null_fd, 0);
+    ::dup2(fd, 1);
+    ::dup2(fd, 2);
+    ::close_range(3, ~0U, 0);  // sockets of an MPI rank are not the child's business
+    sigprocmask(SIG_UNBLOCK, &block, nullptr);
+    ::execve(argv[0], argv.data(), envp.data());
+    ::_exit(127);
+  }
+  const int err = errno;
+  sigprocmask(SIG_SETMASK, &old, nullptr);
+  ::close(fd);
+  if (null_fd >= 0) ::close(null_fd);
+  if (pid < 0) throw RunError(fmt::format("cannot start a child process: {}", std::strerror(err)));
+  return pid;
+}
+
+// The last lines of a log, for the failure report.
+std::string log_tail(const fs::path& log, std::size_t lines) {
+  std::ifstream in(log);
+  std::vector<std::string> all;
+  for (std::string l; std::getline(in, l);)
+    if (!l.empty() && l.rfind("===", 0) != 0) all.push_back(l);
+  std::string out;
+  for (std::size_t k = all.size() > lines ? all.size() - lines : 0; k < all.size(); ++k)
+    out += (out.empty() ? "" : "\n") + all[k];
+  return out;
+}
+
+// One child's work: prepare a sample or shear it.
+struct Job {
+  enum class Kind { prepare, run } kind = Kind::run;
+  std::string id;       // the sample dir name or the run id
+  std::string rel_dir;  // relative to the study directory
+  fs::path dir;         // absolute
+  fs::path needs;       // runs: the prepared sample they shear
+  std::vector<std::string> fresh;  // arguments of a fresh start
+  int threads = 1;
+  double expected_steps = 0;  // runs: triaxial steps (ETA)
+  std::size_t group = 0;      // runs of one sample share a time per step
+};
+
+fs::path log_of(const Job& j) { return j.dir / (j.kind == Job::Kind::prepare ? "prepare.log" : "run.log"); }
+
+bool finished(const Job& j) {
+  if (j.kind == Job::Kind::prepare) return fs::exists(j.dir / prepared_sample_file) && fs::exists(j.dir / "summary.json");
+  return fs::exists(j.dir / "summary.json") && !fs::exists(j.dir / checkpoint_file);
+}
+
+// A run with a checkpoint resumes from it; anything else starts afresh (--force clears what an
+// unfinished start left). An interrupted `prepare` restarts: `resume` would carry on shearing.
+std::vector<std::string> command(const Job& j) {
+  if (j.kind == Job::Kind::run && (fs::exists(j.dir / checkpoint_file) || fs::exists(j.dir / "checkpoint.qsck.prev")))
+    return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet"};
+  return j.fresh;
+}
+
+// Wall seconds per triaxial step of a finished run (for the ETA).
+std::optional<std::pair<double, double>> run_cost(const fs::path& dir) {
+  try {
+    std::ifstream in(dir / "summary.json");
+    const auto s = nlohmann::json::parse(in);
+    const auto& t = s.at("triaxial");
+    return std::make_pair(t.at("wall_s").get<double>(), t.at("steps").get<double>());
+  } catch (const std::exception&) {
+    return std::nullopt;
+  }
+}
+
+std::string plural(std::size_t n, const std::string& one, const std::string& many = "") {
+  return fmt::format("{} {}", n, n == 1 ? one : many.empty() ? one + "s" : many);
+}
+
+std::string format_duration(double s) {
+  if (s < 90) return fmt::format("{:.0f} s", s);
+  if (s < 5400) return fmt::format("{:.0f} min", s / 60);
+  if (s < 2 * 86400) return fmt::format("{:.1f} h", s / 3600);
+  return fmt::format("{:.1f} days", s / 86400);
+}
+
+// The study's one progress display on stderr: a line redrawn in place on a terminal, a plain
+// line whenever the counts change otherwise.
+class StudyProgress {
+ public:
+  StudyProgress(bool quiet, std::string prefix) : quiet_(quiet), tty_(::isatty(2) != 0), prefix_(std::move(prefix)) {}
+  ~StudyProgress() { end_line(); }
+  StudyProgress(const StudyProgress&) = delete;
+  StudyProgress& operator=(const StudyProgress&) = delete;
+
+  void show(const std::string& counts, const std::string& eta) {
+    if (quiet_) return;
+    const auto now = std::chrono::steady_clock::now();
+    if (tty_) {
+      if (counts == last_ && now - drawn_at_ < std::chrono::seconds(1)) return;
+      std::fprintf(stderr, "\r%s%s%s\033[K", prefix_.c_str(), counts.c_str(), eta.c_str());
+      open_line_ = true;
+    } else {
+      if (counts == last_) return;
+      std::fprintf(stderr, "%s%s%s\n", prefix_.c_str(), counts.c_str(), eta.c_str());
+    }
+    std::fflush(stderr);
+    last_ = counts;
+    drawn_at_ = now;
+  }
+  void end_line() {
+    if (open_line_) std::fputc('\n', stderr);
+    open_line_ = false;
+  }
+  // A message between progress lines.
+  void message(const std::string& text) {
+    end_line();
+    std::fprintf(stderr, "%s%s\n", prefix_.c_str(), text.c_str());
+    last_.clear();
+  }
+
+ private:
+  bool quiet_, tty_;
+  std::string prefix_, last_;
+  bool open_line_ = false;
+  std::chrono::steady_clock::time_point drawn_at_{};
+};
+
+struct PoolResult {
+  int signal = 0;  // the stop signal, when the study was interrupted
+  nlohmann::json failures = nlohmann::json::array();
+};
+
+// Runs `jobs` with at most `parallel` children at once; finished jobs are skipped. Stops
+// launching on SIGINT/SIGTERM, forwards the signal to the running children and waits for them.
+PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int parallel, const Launcher& launcher,
+                    StudyProgress& progress) {
+  using clock = std::chrono::steady_clock;
+  struct Running {
+    std::size_t job;
+    pid_t pid;
+    clock::time_point start;
+  };
+  PoolResult result;
+  std::vector<Running> running;
+  std::map<std::size_t, std::pair<double, double>> cost;  // group -> (wall s, steps) of finished runs
+  std::size_t next = 0, done = 0;
+  bool forwarded = false;
+  const auto t0 = clock::now();
+
+  const auto record_cost = [&](const Job& j) {
+    if (j.kind != Job::Kind::run) return;
+    if (const auto c = run_cost(j.dir)) {
+      cost[j.group].first += c->first;
+      cost[j.group].second += c->second;
+    }
+  };
+  const auto fail = [&](const Job& j, const std::string& why, int code) {
+    nlohmann::json f = {{"id", j.id}, {"dir", j.rel_dir}, {"log", j.rel_dir + "/" + log_of(j).filename().string()},
+                        {"exit_code", code}, {"message", why}};
+    result.failures.push_back(f);
+    progress.message(fmt::format("{} {} failed ({}): {}", what == "samples" ? "sample" : "run", j.id,
+                                 code >= 0 ? fmt::format("exit code {}", code) : "not started", why));
+  };
+  // Seconds left: remaining steps at each sample's measured time per step, over the processes.
+  const auto eta = [&]() -> std::string {
+    double all_wall = 0, all_steps = 0;
+    for (const auto& [g, c] : cost) all_wall += c.first, all_steps += c.second;
+    if (all_steps <= 0) return "";
+    const auto per_step = [&](std::size_t g) {
+      const auto it = cost.find(g);
+      return it != cost.end() && it->second.second > 0 ? it->second.first / it->second.second : all_wall / all_steps;
+    };
+    double left = 0;
+    for (std::size_t k = next; k < jobs.size(); ++k) left += jobs[k].expected_steps * per_step(jobs[k].group);
+    const auto now = clock::now();
+    for (const auto& r : running) {
+      const double elapsed = std::chrono::duration<double>(now - r.start).count();
+      left += std::max(0.0, jobs[r.job].expected_steps * per_step(jobs[r.job].group) - elapsed);
+    }
+    const double width = double(std::min<std::size_t>(std::size_t(parallel), running.size() + jobs.size() - next));
+    return fmt::format(", ETA {}", format_duration(left / std::max(1.0, width)));
+  };
+  const auto show = [&]() {
+    const double elapsed = std::chrono::duration<double>(clock::now() - t0).count();
+    std::string counts = fmt::format("{} {}/{} done, {} running", what, done, jobs.size(), running.size());
+    if (!result.failures.empty()) counts += fmt::format(", {} failed", result.failures.size());
+    progress.show(counts, fmt::format(", {} elapsed", format_duration(elapsed)) + (what == "runs" ? eta() : ""));
+  };
+
+  for (;;) {
+    if (stop_signal != 0 && !forwarded) {
+      for (const auto& r : running) ::kill(r.pid, stop_signal);
+      forwarded = true;
+    }
+    while (stop_signal == 0 && running.size() < std::size_t(parallel) && next < jobs.size()) {
+      const std::size_t k = next++;
+      const Job& j = jobs[k];
+      if (finished(j)) {
+        ++done;
+        record_cost(j);
+        continue;
+      }
+      if (!j.needs.empty() && !fs::exists(j.needs / prepared_sample_file)) {
+        fail(j, fmt::format("its sample {} was not prepared", j.needs.filename().string()), -1);
+        continue;
+      }
+      try {
+        fs::create_directories(j.dir);
+        running.push_back({k, spawn_child(launcher, command(j), log_of(j)), clock::now()});
+      } catch (const std::exception& e) {
+        fail(j, e.what(), -1);
+      }
+    }
+    if (running.empty() && (stop_signal != 0 || next == jobs.size())) break;
+    show();
+    ::usleep(100'000);  // a signal cuts the nap short
+    for (std::size_t r = 0; r < running.size();) {
+      int status = 0;
+      if (::waitpid(running[r].pid, &status, WNOHANG) != running[r].pid) {
+        ++r;
+        continue;
+      }
+      const Job& j = jobs[running[r].job];
+      running.erase(running.begin() + std::ptrdiff_t(r));
+      const int code = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+      if (code == 0 && finished(j)) {
+        ++done;
+        record_cost(j);
+      } else if (stop_signal != 0 && (code == 130 || code == 143)) {
+        // interrupted as asked: its checkpoint continues it next time
+      } else {
+        fail(j, log_tail(log_of(j), 3), code);
+      }
+    }
+  }
+  show();
+  progress.end_line();
+  result.signal = stop_signal;
+  return result;
+}
+
+// ---------------------------------------------------------------------------------------------
+// MPI: only `qsdem study` under mpirun; ranks share the samples, then the runs, by index % size.
+
+struct Mpi {
+  bool active = false;
+  int rank = 0;
+  int size = 1;
+};
+
+Mpi mpi_start() {
+  Mpi m;
+  // mpirun sets OMPI_COMM_WORLD_SIZE; srun --mpi=pmix sets PMIX_RANK.
+  if (!std::getenv("OMPI_COMM_WORLD_SIZE") && !std::getenv("PMIX_RANK")) return m;
+  MPI_Init(nullptr, nullptr);
+  MPI_Comm_rank(MPI_COMM_WORLD, &m.rank);
+  MPI_Comm_size(MPI_COMM_WORLD, &m.size);
+  m.active = true;
+  return m;
+}
+
+// A barrier that sleeps instead of spinning (MPI_Barrier would take a core from the other ranks'
+// children) and gives up on SIGINT/SIGTERM. Returns false when interrupted.
+bool mpi_wait_all(const Mpi& m) {
+  if (!m.active) return true;
+  MPI_Request req;
+  MPI_Ibarrier(MPI_COMM_WORLD, &req);
+  for (;;) {
+    int flag = 0;
+    MPI_Test(&req, &flag, MPI_STATUS_IGNORE);
+    if (flag) return true;
+    if (stop_signal != 0) return false;
+    ::usleep(20'000);
+  }
+}
+
+int mpi_bcast(const Mpi& m, int value) {
+  if (m.active) MPI_Bcast(&value, 1, MPI_INT, 0, MPI_COMM_WORLD);
+  return value;
+}
+
+// Rank 0 receives the failures of every rank.
+nlohmann::json mpi_gather_failures(const Mpi& m, const nlohmann::json& mine) {
+  if (!m.active) return mine;
+  const std::string text = mine.dump();
+  int len = static_cast<int>(text.size());
+  std::vector<int> lens(std::size_t(m.size)), offsets(std::size_t(m.size));
+  MPI_Gather(&len, 1, MPI_INT, lens.data(), 1, MPI_INT, 0, MPI_COMM_WORLD);
+  std::string all;
+  if (m.rank == 0) {
+    int total = 0;
+    for (int r = 0; r < m.size; ++r) offsets[std::size_t(r)] = total, total += lens[std::size_t(r)];
+    all.resize(std::size_t(total));
+  }
+  MPI_Gatherv(text.data(), len, MPI_CHAR, all.data(), lens.data(), offsets.data(), MPI_CHAR, 0, MPI_COMM_WORLD);
+  nlohmann::json out = nlohmann::json::array();
+  if (m.rank == 0)
+    for (int r = 0; r < m.size; ++r)
+      for (const auto& f : nlohmann::json::parse(all.substr(std::size_t(offsets[std::size_t(r)]), std::size_t(lens[std::size_t(r)]))))
+        out.push_back(f);
+  return out;
+}
+
+// ---------------------------------------------------------------------------------------------
+
+constexpr const char* lock_file = ".study.lock";
+
+// Creates DIR with study.toml and study.json, or checks that DIR holds this very study. Holds a
+// lock on DIR until the process ends: two studies in one directory would run the same runs twice
+// at once (a second `qsdem study`, or ranks started without MPI, e.g. a plain srun).
+void setup_directory(const Study& study, const fs::path& out) {
+  std::error_code ec;
+  fs::create_directories(out, ec);
+  if (ec) throw InputError(fmt::format("cannot create the study directory '{}': {}", out.string(), ec.message()));
+  const fs::path copy = out / "study.toml";
+  const bool empty = std::all_of(fs::directory_iterator(out), fs::directory_iterator(),
+                                 [](const fs::directory_entry& e) { return e.path().filename() == lock_file; });
+  if (fs::exists(copy)) {
+    if (slurp(copy) != study.text)
+      throw InputError(fmt::format(
+          "'{}' holds another study: its study.toml differs from '{}'. Continue a study with the study file it was "
+          "started with, or choose another --out",
+          out.string(), study.file.string()));
+  } else if (!empty) {
+    throw InputError(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory",
+                                 out.string()));
+  }
+  const int fd = ::open((out / lock_file).c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);  // kept open: the lock
+  if (fd < 0 || ::flock(fd, LOCK_EX | LOCK_NB) != 0)
+    throw InputError(fmt::format("another `qsdem study` is working in '{}' (it holds {}): wait for it or stop it",
+                                 out.string(), (out / lock_file).string()));
+  if (!fs::exists(copy)) write_file_atomic(copy, study.text);
+  write_file_atomic(out / "study.json", study_manifest(study).dump(2) + "\n");
+}
+
+std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
+  std::vector<Job> jobs;
+  for (std::size_t k = 0; k < study.samples.size(); ++k) {
+    const StudySample& smp = study.samples[k];
+    Job j;
+    j.kind = Job::Kind::prepare;
+    j.id = fs::path(smp.dir).filename().string();
+    j.rel_dir = smp.dir;
+    j.dir = out / smp.dir;
+    j.threads = study.threads_per_run;
+    j.fresh = {"prepare", smp.case_file.string()};
+    for (const auto& s : smp.sets) j.fresh.insert(j.fresh.end(), {"--set", s});
+    j.fresh.insert(j.fresh.end(), {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force"});
+    j.group = k;
+    jobs.push_back(std::move(j));
+  }
+  return jobs;
+}
+
+std::vector<Job> run_jobs(const Study& study, const fs::path& out) {
+  std::vector<Job> jobs;
+  for (const StudyRun& run : study.runs) {
+    const StudySample& smp = study.samples[run.sample];
+    Job j;
+    j.id = run.id;
+    j.rel_dir = run.dir;
+    j.dir = out / run.dir;
+    j.needs = out / smp.dir;
+    j.threads = study.threads_per_run;
+    j.fresh = {"run", smp.case_file.string(), "--set", "sample.from=" + j.needs.string()};
+    for (const auto& s : run.sets) j.fresh.insert(j.fresh.end(), {"--set", s});
+    j.fresh.insert(j.fresh.end(), {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force"});
+    j.expected_steps = run.expected_steps;
+    j.group = run.sample;
+    jobs.push_back(std::move(j));
+  }
+  return jobs;
+}
+
+// This rank's share (index % size), longest first so that the last runs of the pool are short.
+std::vector<Job> share(std::vector<Job> jobs, const Mpi& m) {
+  std::vector<Job> mine;
+  for (std::size_t k = 0; k < jobs.size(); ++k)
+    if (int(k % std::size_t(m.size)) == m.rank) mine.push_back(std::move(jobs[k]));
+  std::stable_sort(mine.begin(), mine.end(), [](const Job& a, const Job& b) { return a.expected_steps > b.expected_steps; });
+  return mine;
+}
+
+int interrupted(const Mpi& m, int sig, const fs::path& out, const std::string& study_file) {
+  std::fprintf(stderr, "qsdem: study stopped by %s; the running children wrote checkpoints. `qsdem study %s --out %s` "
+                       "again continues it (finished runs are kept)\n",
+               sig == SIGINT ? "SIGINT" : "SIGTERM", study_file.c_str(), out.string().c_str());
+  // No MPI_Finalize: the other ranks may be busy; mpirun ends them when this rank exits.
+  (void)m;
+  return 128 + sig;
+}
+
+int study_main(const fs::path& study_file, const StudyOptions& options, const Mpi& mpi) {
+  Study study;
+  try {
+    study = load_study(study_file);
+  } catch (const InputError& e) {
+    if (mpi.rank == 0) std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
+    return 2;
+  }
+  if (options.parallel > 0) study.parallel_runs = options.parallel;
+  const fs::path out = fs::absolute(options.out);
+
+  // Rank 0 sets the directory up; the others wait for its verdict.
+  int status = 0;
+  if (mpi.rank == 0) {
+    try {
+      setup_directory(study, out);
+    } catch (const InputError& e) {
+      std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
+      status = 2;
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "qsdem: error: %s\n", e.what());
+      status = 3;
+    }
+  }
+  status = mpi_bcast(mpi, status);
+  if (status != 0) return status;
+
+  const StopSignals signals;
+  const Launcher launcher = make_launcher();
+  StudyProgress progress(options.quiet, mpi.active ? fmt::format("[rank {}/{}] ", mpi.rank, mpi.size) : "");
+  if (!options.quiet && mpi.rank == 0)
+    std::fprintf(stderr, "qsdem study %s: %s, %s, %s x %s%s -> %s\n", study.name.c_str(),
+                 plural(study.samples.size(), "sample").c_str(), plural(study.runs.size(), "run").c_str(),
+                 plural(std::size_t(study.parallel_runs), "process", "processes").c_str(),
+                 plural(std::size_t(study.threads_per_run), "thread").c_str(),
+                 mpi.active ? fmt::format(" on each of {} MPI ranks", mpi.size).c_str() : "", out.string().c_str());
+
+  nlohmann::json failures = nlohmann::json::array();
+  PoolResult r = run_pool(share(sample_jobs(study, out), mpi), "samples", study.parallel_runs, launcher, progress);
+  failures.insert(failures.end(), r.failures.begin(), r.failures.end());
+  if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
+  if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+
+  r = run_pool(share(run_jobs(study, out), mpi), "runs", study.parallel_runs, launcher, progress);
+  failures.insert(failures.end(), r.failures.begin(), r.failures.end());
+  if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
+  if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+
+  failures = mpi_gather_failures(mpi, failures);
+  int code = 0;
+  if (mpi.rank == 0) {
+    std::sort(failures.begin(), failures.end(),
+              [](const auto& a, const auto& b) { return a["id"].template get<std::string>() < b["id"].template get<std::string>(); });
+    const fs::path failures_file = out / "failures.json";
+    if (failures.empty()) {
+      fs::remove(failures_file);
+    } else {
+      write_file_atomic(failures_file, failures.dump(2) + "\n");
+      std::fprintf(stderr, "qsdem: %zu of %zu samples and runs failed (listed in %s, logs in their directories); "
+                           "the analysis uses the runs that finished\n",
+                   failures.size(), study.samples.size() + study.runs.size(), failures_file.string().c_str());
+      code = 3;
+    }
+    try {
+      analyze_study(out);
+      if (!options.quiet) std::fprintf(stderr, "qsdem: analysis written to %s/analysis/\n", out.string().c_str());
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "qsdem: analysis failed: %s\n", e.what());
+      code = 3;
+    }
+    if (!options.quiet)
+      std::printf("study %s: %zu runs, %zu failed; results in %s\n", study.name.c_str(), study.runs.size(),
+                  failures.size(), out.string().c_str());
+  }
+  return std::max(code, mpi_bcast(mpi, code));
+}
+
+}  // namespace
+
+int run_study(const fs::path& study_file, const StudyOptions& options) {
+  const Mpi mpi = mpi_start();
+  const int code = study_main(study_file, options, mpi);
+  if (mpi.active && code < 128) MPI_Finalize();
+  return code;
 }
 
 }  // namespace qsdem

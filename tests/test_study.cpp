@@ -1,0 +1,451 @@
+// `qsdem study` (docs/study.md): the study file's checks, the directory layout (the contract with
+// the analysis), resuming after SIGTERM, failed runs, and MPI ranks; all with real processes.
+#include <fcntl.h>
+#include <gtest/gtest.h>
+#include <spawn.h>
+#include <sys/file.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <csignal>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <optional>
+#include <set>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "qsdem/study.hpp"
+#include "qsdem/types.hpp"
+
+extern char** environ;
+
+namespace fs = std::filesystem;
+
+namespace {
+
+const std::string binary = QSDEM_BINARY;
+const fs::path source_dir = QSDEM_SOURCE_DIR;
+const fs::path tiny_study = source_dir / "studies" / "tiny.toml";
+
+std::string slurp(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+void write(const fs::path& p, const std::string& text) {
+  std::ofstream out(p, std::ios::binary);
+  out << text;
+}
+
+fs::path fresh_dir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() / ("qsdem_study_" + name + "_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir;
+}
+
+struct Result {
+  int code = -1;
+  std::string out, err;
+};
+
+// Starts `args` (args[0] is looked up in PATH) with stdout and stderr in files next to `log`.
+pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
+  std::vector<char*> argv;
+  std::vector<std::string> all = args;
+  for (auto& a : all) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t fa;
+  posix_spawn_file_actions_init(&fa);
+  posix_spawn_file_actions_addopen(&fa, 1, (log.string() + ".out").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  posix_spawn_file_actions_addopen(&fa, 2, (log.string() + ".err").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  pid_t pid = -1;
+  const int rc = posix_spawnp(&pid, all[0].c_str(), &fa, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&fa);
+  return rc == 0 ? pid : -1;
+}
+
+Result finish(pid_t pid, const fs::path& log) {
+  Result r;
+  int status = 0;
+  if (pid > 0 && ::waitpid(pid, &status, 0) == pid) r.code = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  r.out = slurp(log.string() + ".out");
+  r.err = slurp(log.string() + ".err");
+  return r;
+}
+
+Result run(const std::vector<std::string>& args, const fs::path& log) { return finish(spawn(args, log), log); }
+
+Result study(const fs::path& file, const fs::path& out, const fs::path& log, bool quiet = true) {
+  std::vector<std::string> args{binary, "study", file.string(), "--out", out.string()};
+  if (quiet) args.push_back("--quiet");
+  return run(args, log);
+}
+
+// A study that completed: exit 0, or 3 only because the analysis is not written yet.
+bool completed(const Result& r) {
+  return r.code == 0 || (r.code == 3 && r.err.find("not implemented") != std::string::npos &&
+                         r.err.find("failed (exit code") == std::string::npos);
+}
+
+bool analysis_ready(const fs::path& dir) { return fs::exists(dir / "analysis"); }
+
+nlohmann::json manifest(const fs::path& dir) { return nlohmann::json::parse(slurp(dir / "study.json")); }
+
+// The analysis tables without their wall-time columns (wall time is not reproducible).
+std::map<std::string, std::string> analysis_tables(const fs::path& dir) {
+  std::map<std::string, std::string> out;
+  if (!fs::exists(dir / "analysis")) return out;
+  for (const auto& e : fs::directory_iterator(dir / "analysis")) {
+    if (e.path().extension() != ".csv") continue;
+    std::ifstream in(e.path());
+    std::string table;
+    std::vector<bool> keep;
+    for (std::string line; std::getline(in, line);) {
+      std::vector<std::string> cells;
+      std::stringstream ss(line);
+      for (std::string c; std::getline(ss, c, ',');) cells.push_back(c);
+      if (keep.empty())
+        for (const auto& c : cells) keep.push_back(c.find("wall") == std::string::npos);
+      for (std::size_t k = 0; k < cells.size(); ++k)
+        if (k >= keep.size() || keep[k]) table += cells[k] + ",";
+      table += "\n";
+    }
+    out[e.path().filename().string()] = table;
+  }
+  return out;
+}
+
+// The uninterrupted tiny study, run once per build and shared by the tests (and by the processes
+// of a parallel ctest, under a lock): DIR, the exit code and stderr.
+struct Reference {
+  fs::path dir;
+  Result result;
+};
+
+const Reference& reference() {
+  static const Reference ref = [] {
+    struct stat st {};
+    ::stat(binary.c_str(), &st);
+    const fs::path base = fs::temp_directory_path() /
+                          ("qsdem_study_reference_" + std::to_string(::getuid()) + "_" +
+                           std::to_string(std::hash<std::string>{}(slurp(tiny_study))) + "_" +
+                           std::to_string(st.st_mtim.tv_sec) + "_" + std::to_string(st.st_mtim.tv_nsec) + "_" +
+                           std::to_string(st.st_size));
+    fs::create_directories(base);
+    const int lock = ::open((base / "lock").c_str(), O_RDWR | O_CREAT, 0644);
+    ::flock(lock, LOCK_EX);
+    Reference r;
+    r.dir = base / "study";
+    const fs::path done = base / "done.json";
+    if (fs::exists(done)) {
+      const auto j = nlohmann::json::parse(slurp(done));
+      r.result.code = j["code"];
+      r.result.err = j["err"];
+    } else {
+      fs::remove_all(r.dir);
+      r.result = study(tiny_study, r.dir, base / "log");
+      write(done, nlohmann::json{{"code", r.result.code}, {"err", r.result.err}}.dump());
+    }
+    ::flock(lock, LOCK_UN);
+    ::close(lock);
+    return r;
+  }();
+  return ref;
+}
+
+}  // namespace
+
+// Bad study files: exit code 2 and one message naming the file, the key and the value.
+TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
+  const fs::path dir = fresh_dir("bad");
+  const std::string sample = "[[sample]]\nname = \"s\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
+                             "\"\n";
+  const std::string design = "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n";
+  struct Case {
+    const char* what;
+    std::string text;
+    std::vector<std::string> expect;
+  };
+  const std::vector<Case> cases = {
+      {"unknown key", sample + design + "model = \"od\"\n", {"unknown key 'design.model'"}},
+      {"unknown section", sample + design + "[executon]\n", {"unknown key 'executon'"}},
+      {"wrong type", sample + "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = \"1e-5\"\n",
+       {"design.strain_rates", "\"1e-5\"", "expected an array"}},
+      {"bad model", sample + "[design]\nmodels = [\"xd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n",
+       {"design.models.0", "\"xd\"", "\"od\""}},
+      {"negative damping ratio",
+       sample + "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\", -0.001]\nstrain_rates = [1e-5]\n",
+       {"design.damping_ratios.1", "-0.001", ">= 0"}},
+      {"zero rate", sample + "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [0.0]\n",
+       {"design.strain_rates.0", "= 0", "(0, 0.01)"}},
+      {"negative rate", sample + "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [-1e-5]\n",
+       {"design.strain_rates.0", "-1e-05", "(0, 0.01)"}},
+      {"missing case file", "[[sample]]\nname = \"s\"\ncase = \"nowhere/missing.toml\"\n" + design,
+       {"sample.0.case", "\"nowhere/missing.toml\"", "no such case file"}},
+      {"wrong type of parallel_runs", sample + design + "[execution]\nparallel_runs = \"2\"\n",
+       {"execution.parallel_runs", "\"2\"", "expected an integer"}},
+      {"a key the study sets", sample + design + "set = [\"damping.ratio=0.3 %\"]\n",
+       {"design.set.0", "damping.ratio", "set by the study"}},
+      {"a bad override, caught by the case's own checks", sample + design + "set = [\"triaxial.sample_points=0\"]\n",
+       {"triaxial.sample_points", "out of range"}},
+      {"a bad sample name", "[[sample]]\nname = \"a/b\"\ncase = \"x.toml\"\n" + design, {"sample.0.name", "\"a/b\""}},
+      {"no design", sample, {"'design'", "required"}},
+  };
+  for (const auto& c : cases) {
+    SCOPED_TRACE(c.what);
+    const fs::path file = dir / "bad.toml";
+    write(file, c.text);
+    const Result r = study(file, dir / "out", dir / "log");
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_NE(r.err.find("bad.toml"), std::string::npos) << r.err;
+    for (const auto& e : c.expect) EXPECT_NE(r.err.find(e), std::string::npos) << "expected '" << e << "' in: " << r.err;
+    EXPECT_FALSE(fs::exists(dir / "out")) << "nothing is written for bad input";
+  }
+  fs::remove_all(dir);
+}
+
+// The shipped studies are valid: every case and every override of every run is checked.
+TEST(StudyCli, ShippedStudiesAreValid) {
+  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml"}) {
+    SCOPED_TRACE(name);
+    qsdem::Study s;
+    ASSERT_NO_THROW(s = qsdem::load_study(source_dir / "studies" / name));
+    EXPECT_FALSE(s.runs.empty());
+  }
+  const qsdem::Study paper = qsdem::load_study(source_dir / "studies/paper.toml");
+  EXPECT_EQ(paper.samples.size(), 2u);
+  EXPECT_EQ(paper.runs.size(), 224u);  // 2 samples x 2 models x 14 ratios x 4 rates (SPEC 9)
+  const qsdem::Study tiny = qsdem::load_study(tiny_study);
+  EXPECT_EQ(tiny.runs.size(), 8u);
+  EXPECT_EQ(tiny.runs[0].id, "tiny-seed1/od/xi-0.2%/rate-5e-06");
+  EXPECT_DOUBLE_EQ(tiny.runs[0].xi, 0.002);
+  EXPECT_DOUBLE_EQ(tiny.runs[0].expected_steps, 6250);  // 1 % / (0.32 x 5e-6)
+}
+
+// Seeds multiply the samples; the manifest names every sample and run with its directory.
+TEST(StudyCli, SeedsAndManifest) {
+  const fs::path dir = fresh_dir("seeds");
+  write(dir / "s.toml", "name = \"seeds\"\n[[sample]]\nname = \"A\"\ncase = \"" +
+                            (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\n[design]\nmodels = [\"od\", \"nd\"]\ndamping_ratios = [\"0.5 %\", 0.0012]\n"
+                            "strain_rates = [1e-5]\nseeds = [3, 7]\n");
+  const qsdem::Study s = qsdem::load_study(dir / "s.toml");
+  const auto m = qsdem::study_manifest(s);
+  ASSERT_EQ(m["samples"].size(), 2u);
+  EXPECT_EQ(m["samples"][1]["dir"], "samples/A-seed7");
+  EXPECT_EQ(m["samples"][1]["seed"], 7);
+  ASSERT_EQ(m["runs"].size(), 8u);
+  EXPECT_EQ(m["runs"][1]["id"], "A-seed3/od/xi-0.12%/rate-1e-05");
+  EXPECT_EQ(m["runs"][1]["dir"], "runs/A-seed3/od/xi-0.12%/rate-1e-05");
+  EXPECT_EQ(m["runs"][1]["xi"], 0.0012);
+  EXPECT_EQ(m["runs"][1]["rate"], 1e-5);
+  EXPECT_EQ(s.samples[1].sets.front(), "sample.seed=7");
+  fs::remove_all(dir);
+}
+
+// The tiny study from start to end: the manifest lists every run, every run directory holds its
+// results, the sample was prepared once.
+TEST(Study, TinyStudyEndToEnd) {
+  const Reference& ref = reference();
+  ASSERT_TRUE(completed(ref.result)) << "exit code " << ref.result.code << "\n" << ref.result.err;
+  const auto m = manifest(ref.dir);
+  EXPECT_EQ(m["name"], "tiny");
+  EXPECT_EQ(m["study_file"], "study.toml");
+  EXPECT_EQ(slurp(ref.dir / "study.toml"), slurp(tiny_study));
+  ASSERT_EQ(m["samples"].size(), 1u);
+  EXPECT_TRUE(fs::exists(ref.dir / m["samples"][0]["dir"].get<std::string>() / "sample.qsck"));
+  ASSERT_EQ(m["runs"].size(), 8u);
+  std::set<std::string> ids;
+  for (const auto& r : m["runs"]) {
+    const fs::path d = ref.dir / r["dir"].get<std::string>();
+    SCOPED_TRACE(d.string());
+    ids.insert(r["id"].get<std::string>());
+    EXPECT_TRUE(fs::exists(d / "summary.json"));
+    EXPECT_TRUE(fs::exists(d / "series.csv"));
+    EXPECT_FALSE(fs::exists(d / "checkpoint.qsck"));
+    EXPECT_TRUE(fs::exists(d / "run.log"));
+    // The run sheared the prepared sample with the design's values.
+    const auto s = nlohmann::json::parse(slurp(d / "summary.json"));
+    const auto& cfg = s["config"]["resolved_si"];
+    EXPECT_EQ(cfg["damping"]["model"], r["model"]) << cfg.dump();
+    EXPECT_EQ(cfg["damping"]["ratio"], r["xi"]);
+    EXPECT_EQ(cfg["triaxial"]["strain_rate"], r["rate"]);
+    EXPECT_EQ(s["triaxial"]["rows"], 10);
+  }
+  EXPECT_EQ(ids.size(), 8u);
+  EXPECT_FALSE(fs::exists(ref.dir / "failures.json"));
+}
+
+// Another study file for the same directory is refused before anything is touched.
+TEST(StudyCli, RefusesADirectoryOfAnotherStudy) {
+  const fs::path dir = fresh_dir("other");
+  fs::create_directories(dir / "out");
+  write(dir / "out" / "study.toml", slurp(tiny_study) + "# edited\n");
+  Result r = study(tiny_study, dir / "out", dir / "log");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("holds another study"), std::string::npos) << r.err;
+  fs::remove(dir / "out" / "study.toml");
+  write(dir / "out" / "notes.txt", "mine");
+  r = study(tiny_study, dir / "out", dir / "log");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("not empty"), std::string::npos) << r.err;
+  // A study at work in a directory holds its lock: a second one is refused.
+  fs::remove(dir / "out" / "notes.txt");
+  write(dir / "out" / "study.toml", slurp(tiny_study));
+  const int fd = ::open((dir / "out" / ".study.lock").c_str(), O_RDWR | O_CREAT, 0644);
+  ASSERT_EQ(::flock(fd, LOCK_EX | LOCK_NB), 0);
+  r = study(tiny_study, dir / "out", dir / "log");
+  ::close(fd);
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("another `qsdem study` is working"), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "out" / "samples"));
+  fs::remove_all(dir);
+}
+
+// SIGTERM while runs are in progress: exit 143 and checkpoints; `qsdem study` again finishes the
+// study without repeating finished runs, to the same series.csv as the uninterrupted study.
+TEST(Study, KilledStudyResumesToTheSameResults) {
+  const Reference& ref = reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const fs::path dir = fresh_dir("killed");
+  const fs::path out = dir / "study";
+  const pid_t pid = spawn({binary, "study", tiny_study.string(), "--out", out.string()}, dir / "first");
+  ASSERT_GT(pid, 0);
+  const auto m = manifest(ref.dir);
+  const auto finished_runs = [&] {
+    std::vector<fs::path> done;
+    for (const auto& r : m["runs"])
+      if (fs::exists(out / r["dir"].get<std::string>() / "summary.json")) done.push_back(out / r["dir"].get<std::string>());
+    return done;
+  };
+  // A run in progress: started (case.toml written), not finished.
+  const auto in_progress = [&]() -> std::optional<fs::path> {
+    for (const auto& r : m["runs"]) {
+      const fs::path d = out / r["dir"].get<std::string>();
+      if (fs::exists(d / "case.toml") && !fs::exists(d / "summary.json")) return d;
+    }
+    return std::nullopt;
+  };
+  // Stop it once a run has finished and another has been shearing for a while (its signal
+  // handler is in place: a run of the tiny study lasts 1-2 s).
+  bool ready = false;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(3);
+  while (!ready && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    const auto running = in_progress();
+    if (finished_runs().empty() || !running) continue;
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    ready = !fs::exists(*running / "summary.json");
+  }
+  ASSERT_TRUE(ready) << "no run finished while another was in progress";
+  ASSERT_EQ(::kill(pid, SIGTERM), 0);
+  const Result first = finish(pid, dir / "first");
+  EXPECT_EQ(first.code, 143) << first.err;
+  EXPECT_NE(first.err.find("stopped by SIGTERM"), std::string::npos) << first.err;
+  EXPECT_NE(first.err.find("again continues"), std::string::npos) << first.err;
+  EXPECT_NE(first.err.find("runs 0/8 done"), std::string::npos) << "progress lines on a non-terminal\n" << first.err;
+
+  const std::vector<fs::path> done = finished_runs();
+  ASSERT_LT(done.size(), 8u) << "the study ended before it could be interrupted";
+  std::map<fs::path, fs::file_time_type> mtimes;
+  for (const auto& d : done) mtimes[d] = fs::last_write_time(d / "summary.json");
+  std::vector<fs::path> interrupted;  // runs stopped mid-way, holding a checkpoint
+  for (const auto& r : m["runs"])
+    if (fs::exists(out / r["dir"].get<std::string>() / "checkpoint.qsck"))
+      interrupted.push_back(out / r["dir"].get<std::string>());
+  EXPECT_FALSE(interrupted.empty()) << "a run in progress writes a checkpoint when the study is stopped\n" << first.err;
+
+  const Result second = study(tiny_study, out, dir / "second");
+  EXPECT_TRUE(completed(second)) << second.err;
+  for (const auto& [d, t] : mtimes) EXPECT_EQ(fs::last_write_time(d / "summary.json"), t) << d << " was run again";
+  for (const auto& d : interrupted)
+    EXPECT_NE(slurp(d / "run.log").find("=== qsdem 'resume'"), std::string::npos) << d << " was not resumed";
+  for (const auto& r : m["runs"]) {
+    const std::string rel = r["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(out / rel)) << rel;
+    EXPECT_EQ(slurp(out / rel), slurp(ref.dir / rel)) << rel;
+  }
+  EXPECT_EQ(slurp(out / "study.json"), slurp(ref.dir / "study.json"));
+  if (analysis_ready(ref.dir)) {
+    const auto a = analysis_tables(ref.dir);
+    EXPECT_FALSE(a.empty());
+    EXPECT_EQ(analysis_tables(out), a);
+  }
+
+  // A finished study run again repeats nothing (only the analysis).
+  for (const auto& r : m["runs"])
+    mtimes[out / r["dir"].get<std::string>()] = fs::last_write_time(out / r["dir"].get<std::string>() / "summary.json");
+  const Result third = study(tiny_study, out, dir / "third", false);
+  EXPECT_TRUE(completed(third)) << third.err;
+  EXPECT_NE(third.err.find("runs 8/8 done, 0 running"), std::string::npos) << third.err;
+  for (const auto& [d, t] : mtimes) EXPECT_EQ(fs::last_write_time(d / "summary.json"), t) << d << " was run again";
+  fs::remove_all(dir);
+}
+
+// A run that blows up is recorded in failures.json and reported; the others finish; exit code 3.
+TEST(Study, FailedRunIsRecordedAndTheOthersFinish) {
+  const fs::path dir = fresh_dir("failed");
+  const std::string tiny_sets =
+      "'sample.particles=[{shape=\"sphere\", diameter=\"2.4 mm\", count=60}, {shape=\"sphere\", diameter=\"2.0 mm\", "
+      "count=60}]', \"sample.total_particles=0\", \"sample.initial_solid_fraction=0.2\", "
+      "\"compaction.max_strain_rate=1e-3\"";
+  const std::string case_file = (source_dir / "examples/spheres-A-small.toml").string();
+  write(dir / "f.toml", "[[sample]]\nname = \"good\"\ncase = \"" + case_file + "\"\nset = [" + tiny_sets +
+                            "]\n[[sample]]\nname = \"bad\"\ncase = \"" + case_file + "\"\nset = [" + tiny_sets +
+                            ", \"limits.max_kinetic_ratio=1e-30\"]\n"
+                            "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [2e-5]\n"
+                            "set = [\"triaxial.final_axial_strain=1 %\", \"triaxial.sample_points=10\"]\n"
+                            "[execution]\nparallel_runs = 2\n");
+  const Result r = study(dir / "f.toml", dir / "out", dir / "log");
+  EXPECT_EQ(r.code, 3) << r.err;
+  EXPECT_NE(r.err.find("bad-seed1/nd/xi-0.5%/rate-2e-05 failed (exit code 3)"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("max_kinetic_ratio"), std::string::npos) << "the child's diagnostic is shown\n" << r.err;
+  const auto f = nlohmann::json::parse(slurp(dir / "out" / "failures.json"));
+  ASSERT_EQ(f.size(), 1u);
+  EXPECT_EQ(f[0]["id"], "bad-seed1/nd/xi-0.5%/rate-2e-05");
+  EXPECT_EQ(f[0]["exit_code"], 3);
+  EXPECT_TRUE(fs::exists(dir / "out" / f[0]["log"].get<std::string>()));
+  EXPECT_TRUE(fs::exists(dir / "out/runs/good-seed1/nd/xi-0.5%/rate-2e-05/series.csv"));
+  fs::remove_all(dir);
+}
+
+// `mpirun -np 2` spreads samples and runs over two ranks: the same manifest and byte-identical
+// series (every run is deterministic for its thread count, which the study file fixes).
+TEST(Study, MpiRanksGiveTheSameResults) {
+  if (std::system("command -v mpirun > /dev/null 2>&1") != 0) GTEST_SKIP() << "mpirun is not installed";
+  const Reference& ref = reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const fs::path dir = fresh_dir("mpi");
+  ::setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+  ::setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+  const Result r = run({"mpirun", "-np", "2", "--oversubscribe", binary, "study", tiny_study.string(), "--out",
+                        (dir / "study").string()},
+                       dir / "log");
+  ASSERT_TRUE(completed(r)) << "exit code " << r.code << "\n" << r.err << r.out;
+  EXPECT_NE(r.err.find("[rank 1/2]"), std::string::npos) << r.err;
+  EXPECT_EQ(slurp(dir / "study/study.json"), slurp(ref.dir / "study.json"));
+  for (const auto& run : manifest(ref.dir)["runs"]) {
+    const std::string rel = run["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(dir / "study" / rel)) << rel;
+    EXPECT_EQ(slurp(dir / "study" / rel), slurp(ref.dir / rel)) << rel;
+    // The children were plain processes, not MPI ranks.
+    EXPECT_EQ(slurp(dir / "study" / run["dir"].get<std::string>() / "run.log").find("OMPI"), std::string::npos);
+  }
+  if (analysis_ready(ref.dir)) {
+    const auto a = analysis_tables(ref.dir);
+    EXPECT_FALSE(a.empty());
+    EXPECT_EQ(analysis_tables(dir / "study"), a);
+  }
+  fs::remove_all(dir);
+}
