@@ -374,7 +374,9 @@ TEST(EllipsoidContact, ClosedFormsForAlignedSpheroids) {
 // fewer iterations. A DEM step moves a pair by far less than 1e-6 of a particle size.
 TEST(EllipsoidContact, WarmStartMatchesColdStartWithFewerIterations) {
   Rng rng(77);
-  for (const double move : {1e-9, 1e-6, 1e-3}) {
+  // move = 0: a contact that did not move since the last step (a warm start on the maximiser
+  // itself, whose Newton step rounds to nothing) must not fall back to bisection.
+  for (const double move : {0.0, 1e-9, 1e-6, 1e-3}) {
     long cold_iter = 0, warm_iter = 0;
     int warm_max = 0;
     double e_n = 0, e_delta = 0, e_arm = 0, e_radius = 0, e_lambda = 0;

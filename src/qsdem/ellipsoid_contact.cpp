@@ -163,18 +163,22 @@ bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const
       const double Fp = (1 - 2 * lam) * E - w * su;
       const double Fpp = -2 * E - 2 * (1 - 2 * lam) * su + 2 * w * u.dot(v);
       if (Fp > 0) lo = lam; else hi = lam;
+      if (Fpp < 0) {
+        // Converged: tested before the bracket, since a warm start sits on the maximiser and its
+        // Newton step may round to lambda itself (or an ulp outside the new bracket), which would
+        // otherwise send it bisecting from [lambda, 1] back to lambda (~50 iterations).
+        const double h = -Fp / Fpp;
+        if (h * h * v.squaredNorm() <= kStepTol * kStepTol * s.squaredNorm()) {
+          lam += h;
+          s -= h * v;
+          F += 0.5 * Fp * h;
+          break;
+        }
+      }
       double next = Fpp < 0 ? lam - Fp / Fpp : lo - 1;  // lo - 1: forces bisection
-      const bool newton = next > lo && next < hi;
-      if (!newton) {
+      if (!(next > lo && next < hi)) {
         next = 0.5 * (lo + hi);
         ++stats.bisections;
-      }
-      const double h = next - lam;
-      if (newton && h * h * v.squaredNorm() <= kStepTol * kStepTol * s.squaredNorm()) {
-        lam = next;
-        s -= h * v;
-        F += 0.5 * Fp * h;
-        break;
       }
       if (hi - lo <= 4 * std::numeric_limits<double>::epsilon() || stats.iterations >= kMaxIterations) break;
       lam = next;
