@@ -30,7 +30,7 @@ void set_threads(int threads) {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "qsdem: quasi-static DEM of spheres (and, soon, ellipsoids) in a deformable periodic cell.\n"
+      "qsdem: quasi-static DEM of spheres and ellipsoids in a deformable periodic cell.\n"
       "Drained triaxial tests with size-dependent (nd) or global mass (od) damping, and the equilibrium\n"
       "indices UFR, Iuf and IMom of Yousefi (2018). Cases are TOML files (docs/config.md)."};
   app.require_subcommand(1);
