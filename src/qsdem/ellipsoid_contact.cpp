@@ -106,20 +106,41 @@ double pw_contact_function(const Vec3& l, const Mat3& Q_i, const Mat3& Q_j, doub
   return lambda * (1 - lambda) * l.dot(Q.ldlt().solve(l));
 }
 
+EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
+  Vec3 c0, c1;
+  body_axes(q, c0, c1);
+  const Vec3 a2 = axes.cwiseAbs2();
+  const Sym Q = shape_from_axes(c0, c1, a2.x(), a2.y(), a2.z());
+  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff()};
+}
+
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
                        double& lambda, ContactGeometry& g, EllipsoidContactStats& stats) {
+  // Bounding spheres first: most calls of a sparse pair list end here, before any matrix.
+  const double reach = axes_i.maxCoeff() + axes_j.maxCoeff();
+  if (!(l.squaredNorm() < reach * reach)) {
+    stats = {};
+    return false;
+  }
+  return ellipsoid_contact(l, ellipsoid_shape(axes_i, q_i), ellipsoid_shape(axes_j, q_j), lambda, g, stats);
+}
+
+bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,
+                       ContactGeometry& g) {
+  EllipsoidContactStats stats;
+  return ellipsoid_contact(l, si, sj, lambda, g, stats);
+}
+
+bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,
+                       ContactGeometry& g, EllipsoidContactStats& stats) {
   stats = {};
   // Bounding spheres: cannot overlap (also rejects a non-finite l).
-  const double reach = axes_i.maxCoeff() + axes_j.maxCoeff();
+  const double reach = si.reach + sj.reach;
   const double l2 = l.squaredNorm();
   if (!(l2 < reach * reach)) return false;
 
-  Vec3 ci0, ci1, cj0, cj1;
-  body_axes(q_i, ci0, ci1);
-  body_axes(q_j, cj0, cj1);
-  const Vec3 ai2 = axes_i.cwiseAbs2(), aj2 = axes_j.cwiseAbs2();
-  const Sym Qi = shape_from_axes(ci0, ci1, ai2.x(), ai2.y(), ai2.z());
-  const Sym Qj = shape_from_axes(cj0, cj1, aj2.x(), aj2.y(), aj2.z());
+  const Sym Qi{si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
+  const Sym Qj{sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
   // |l|^2 underflows below ~1e-154 m: take the norm the slow, safe way there (l = 0 only is coincident).
   const double ln = l2 > 1e-200 ? std::sqrt(l2) : l.stableNorm();
 

@@ -68,6 +68,21 @@ bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const
 
 // F(lambda) = lambda (1 - lambda) l^T [(1 - lambda) Q_i + lambda Q_j]^-1 l by an LDLT solve
 // (independent of the adjugate path used by ellipsoid_contact; slow, for checks).
+// Shape matrix Q = R diag(a^2, b^2, c^2) R^T of an ellipsoid (SPEC 4) by its six entries, and its
+// bounding radius. Computed once per particle and step by the force stage (every particle has
+// several pairs), instead of once per pair.
+struct EllipsoidShape {
+  double xx, yy, zz, xy, xz, yz;
+  double reach;  // largest semi-axis
+};
+EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q);
+
+// The same contact from precomputed shapes (bit-identical to the overloads above).
+bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,
+                       ContactGeometry& g, EllipsoidContactStats& stats);
+bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,
+                       ContactGeometry& g);
+
 double pw_contact_function(const Vec3& l, const Mat3& Q_i, const Mat3& Q_j, double lambda);
 
 }  // namespace qsdem

@@ -23,6 +23,17 @@ void compute_contact_forces(const Model& model, State& state) {
   const std::size_t np = pairs.size();
   const std::size_t nblocks = (np + block_size - 1) / block_size;
   state.blocks.resize(nblocks);
+  // Shape matrices once per particle (each takes part in several pairs); only when some particle
+  // is an ellipsoid, so a sphere run pays nothing.
+  const std::size_t n = p.size();
+  const bool any_ellipsoid =
+      std::find(p.shape.begin(), p.shape.end(), ShapeKind::ellipsoid) != p.shape.end();
+  if (any_ellipsoid) {
+    state.shapes.resize(n);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+    for (std::size_t a = 0; a < n; ++a) state.shapes[a] = ellipsoid_shape(p.semi_axes[a], p.q[a]);
+  }
+  const EllipsoidShape* shapes = state.shapes.data();
 
 #pragma omp parallel for schedule(static) if (np > parallel_threshold)
   for (std::size_t b = 0; b < nblocks; ++b) {
@@ -43,7 +54,7 @@ void compute_contact_forces(const Model& model, State& state) {
         else
           pairs.overlap[k] = ri + rj - std::sqrt(d2);
       } else {
-        touching = ellipsoid_contact(l, p.semi_axes[i], p.q[i], p.semi_axes[j], p.q[j], pairs.pw_lambda[k], g);
+        touching = ellipsoid_contact(l, shapes[i], shapes[j], pairs.pw_lambda[k], g);
         if (!touching) pairs.overlap[k] = 0;  // apart (the contact function gives no gap)
       }
       if (!touching) {

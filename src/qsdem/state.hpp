@@ -4,6 +4,7 @@
 #include <vector>
 
 #include "qsdem/cell.hpp"
+#include "qsdem/ellipsoid_contact.hpp"
 #include "qsdem/neighbor.hpp"
 #include "qsdem/particles.hpp"
 #include "qsdem/timers.hpp"
@@ -39,6 +40,7 @@ struct State {
 
   StageTimers timers;
   std::vector<ForceBlock> blocks;       // scratch for the force stage
+  std::vector<EllipsoidShape> shapes;   // scratch: per-particle shape matrices at time t
 };
 
 }  // namespace qsdem
