@@ -412,5 +412,9 @@ TEST(StudyAnalysisGnuplot, MissingGnuplotIsAClearError) {
   ::setenv("PATH", saved.c_str(), 1);
   EXPECT_NE(what.find("gnuplot-nox"), std::string::npos) << "got: " << what;
   EXPECT_TRUE(fs::exists(d / "analysis" / "tables.md"));
+  // A sample named B*: the paper's Table 6 rows (B5-B7) stand next to ours.
+  const std::string md = slurp(d / "analysis" / "tables.md");
+  EXPECT_NE(md.find("| B5 | 0.05 | 1e-05 |"), std::string::npos);
+  EXPECT_NE(md.find("| B7 | 5 | 1e-07 |"), std::string::npos);
   fs::remove_all(d);
 }

@@ -697,7 +697,8 @@ std::vector<Table> make_tables(const std::vector<Run>& runs, const std::vector<G
             {"model", "ξ (%)", "ε'", "ξ·ε'", "ξopt (%)", "peak φ (°)", "Ekin/ε'² (J)", "mean IMom (%)",
              "mean UFR (%)"},
             {}};
-    for (const json& p : paper_reference_json()["table6_B_od"]) {
+    const json paper = paper_reference_json();  // named: a temporary's member would dangle in the loop
+    for (const json& p : paper["table6_B_od"]) {
       const double xi = p["xi"], rate = p["rate"];
       t.rows.push_back({p["model"].get<std::string>(), pct(xi), sig(rate), sig(xi * rate),
                         pct(p["xi_opt"].get<double>()), sig(p["peak_phi_deg"].get<double>(), 4),
