@@ -325,24 +325,26 @@ TEST(Study, KilledStudyResumesToTheSameResults) {
       if (fs::exists(out / r["dir"].get<std::string>() / "summary.json")) done.push_back(out / r["dir"].get<std::string>());
     return done;
   };
-  // A run in progress: started (case.toml written), not finished.
+  // A run shearing: its series.csv.partial exists (written after its signal handlers are in
+  // place), its summary.json not yet.
   const auto in_progress = [&]() -> std::optional<fs::path> {
     for (const auto& r : m["runs"]) {
       const fs::path d = out / r["dir"].get<std::string>();
-      if (fs::exists(d / "case.toml") && !fs::exists(d / "summary.json")) return d;
+      if (fs::exists(d / "series.csv.partial") && !fs::exists(d / "summary.json")) return d;
     }
     return std::nullopt;
   };
-  // Stop it once a run has finished and another has been shearing for a while (its signal
-  // handler is in place: a run of the tiny study lasts 1-2 s).
+  // Stop it as soon as a run has finished and another is shearing. A tiny run lasts only a few
+  // hundred milliseconds on a quiet machine, so poll fast and signal at once (no settling sleep:
+  // that made the test miss every window when runs were quick). If no run has finished after
+  // 20 s (a very slow machine), any run shearing will do.
   bool ready = false;
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(3);
+  const auto start = std::chrono::steady_clock::now();
+  const auto deadline = start + std::chrono::minutes(3);
   while (!ready && std::chrono::steady_clock::now() < deadline) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    const auto running = in_progress();
-    if (finished_runs().empty() || !running) continue;
-    std::this_thread::sleep_for(std::chrono::milliseconds(300));
-    ready = !fs::exists(*running / "summary.json");
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    const bool waited = std::chrono::steady_clock::now() - start > std::chrono::seconds(20);
+    ready = in_progress().has_value() && (waited || !finished_runs().empty());
   }
   ASSERT_TRUE(ready) << "no run finished while another was in progress";
   ASSERT_EQ(::kill(pid, SIGTERM), 0);
