@@ -104,6 +104,17 @@ std::string file_header() {
                      byte_order);
 }
 
+// Closes <Points>, writes the <Cells> of an UnstructuredGrid piece and closes the file.
+void finish_unstructured_grid(std::string& out, const std::vector<std::int64_t>& connectivity,
+                              const std::vector<std::int64_t>& offsets, const std::vector<std::uint8_t>& types,
+                              VtkEncoding enc) {
+  out += "      </Points>\n      <Cells>\n";
+  data_array(out, "connectivity", 1, connectivity, enc);
+  data_array(out, "offsets", 1, offsets, enc);
+  data_array(out, "types", 1, types, enc);
+  out += "      </Cells>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n";
+}
+
 template <class V>
 std::vector<double> flatten(const std::vector<V>& v) {
   std::vector<double> out;
@@ -183,11 +194,7 @@ void write_vtu(const std::filesystem::path& path, const State& state, VtkEncodin
   data_array(out, "id", 1, p.id, enc);
   out += "      </PointData>\n      <Points>\n";
   data_array(out, "centre", 3, flatten(centre), enc);
-  out += "      </Points>\n      <Cells>\n";
-  data_array(out, "connectivity", 1, connectivity, enc);
-  data_array(out, "offsets", 1, offsets, enc);
-  data_array(out, "types", 1, types, enc);
-  out += "      </Cells>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n";
+  finish_unstructured_grid(out, connectivity, offsets, types, enc);
   write_file_atomic(path, out);
 }
 
@@ -213,11 +220,7 @@ void write_cell_vtu(const std::filesystem::path& path, const Cell& cell, double 
   field_data(out, cell.h, time, step, nullptr);
   out += fmt::format("    <Piece NumberOfPoints=\"8\" NumberOfCells=\"{}\">\n      <Points>\n", offsets.size());
   data_array(out, "corner", 3, corners, enc);
-  out += "      </Points>\n      <Cells>\n";
-  data_array(out, "connectivity", 1, connectivity, enc);
-  data_array(out, "offsets", 1, offsets, enc);
-  data_array(out, "types", 1, types, enc);
-  out += "      </Cells>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n";
+  finish_unstructured_grid(out, connectivity, offsets, types, enc);
   write_file_atomic(path, out);
 }
 
