@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "qsdem/checkpoint.hpp"
+#include "test_support.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/protocol.hpp"
@@ -84,27 +85,12 @@ long lines(const fs::path& p) {
 pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
   std::vector<std::string> all{QSDEM_BINARY};
   all.insert(all.end(), args.begin(), args.end());
-  std::vector<char*> argv;
-  for (auto& a : all) argv.push_back(a.data());
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, (log.string() + ".out").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_addopen(&fa, 2, (log.string() + ".err").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  pid_t pid = 0;
-  const int rc = posix_spawn(&pid, all[0].c_str(), &fa, nullptr, argv.data(), environ);
-  posix_spawn_file_actions_destroy(&fa);
-  EXPECT_EQ(rc, 0);
+  const pid_t pid = qsdem_test::spawn_logged(all, log);
+  EXPECT_GT(pid, 0);
   return pid;
 }
 
-int wait_exit(pid_t pid) {
-  int status = 0;
-  waitpid(pid, &status, 0);
-  if (WIFEXITED(status)) return WEXITSTATUS(status);
-  if (WIFSIGNALED(status)) return 128 + WTERMSIG(status);
-  return -1;
-}
+using qsdem_test::wait_exit;
 
 int run_cli(const std::vector<std::string>& args, const fs::path& log) { return wait_exit(spawn(args, log)); }
 

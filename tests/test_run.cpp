@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "qsdem/config.hpp"
+#include "test_support.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
@@ -75,12 +76,7 @@ fs::path fresh_dir(const std::string& name) {
   return dir;
 }
 
-std::string slurp(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
+using qsdem_test::slurp;
 
 // Runs the tiny case (with extra overrides) on `threads` threads into a fresh directory.
 fs::path run_tiny(const std::string& name, int threads, const std::vector<std::string>& overrides = {}) {

@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "qsdem/study.hpp"
+#include "test_support.hpp"
 #include "qsdem/types.hpp"
 
 extern char** environ;
@@ -35,12 +36,7 @@ const std::string binary = QSDEM_BINARY;
 const fs::path source_dir = QSDEM_SOURCE_DIR;
 const fs::path tiny_study = source_dir / "studies" / "tiny.toml";
 
-std::string slurp(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
+using qsdem_test::slurp;
 
 void write(const fs::path& p, const std::string& text) {
   std::ofstream out(p, std::ios::binary);
@@ -60,25 +56,11 @@ struct Result {
 };
 
 // Starts `args` (args[0] is looked up in PATH) with stdout and stderr in files next to `log`.
-pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
-  std::vector<char*> argv;
-  std::vector<std::string> all = args;
-  for (auto& a : all) argv.push_back(a.data());
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, (log.string() + ".out").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_addopen(&fa, 2, (log.string() + ".err").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  pid_t pid = -1;
-  const int rc = posix_spawnp(&pid, all[0].c_str(), &fa, nullptr, argv.data(), environ);
-  posix_spawn_file_actions_destroy(&fa);
-  return rc == 0 ? pid : -1;
-}
+pid_t spawn(const std::vector<std::string>& args, const fs::path& log) { return qsdem_test::spawn_logged(args, log); }
 
 Result finish(pid_t pid, const fs::path& log) {
   Result r;
-  int status = 0;
-  if (pid > 0 && ::waitpid(pid, &status, 0) == pid) r.code = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  r.code = qsdem_test::wait_exit(pid);
   r.out = slurp(log.string() + ".out");
   r.err = slurp(log.string() + ".err");
   return r;

@@ -2,6 +2,7 @@
 // the whole pipeline (tables, gnuplot figures, HTML report rendered by headless Chromium) on a
 // synthetic study whose answers are known in closed form.
 #include "qsdem/study_analysis.hpp"
+#include "test_support.hpp"
 
 #include <gtest/gtest.h>
 #include <unistd.h>
@@ -41,12 +42,7 @@ std::vector<double> bowl(const std::vector<double>& xi, double xi0, double c, do
   return y;
 }
 
-std::string slurp(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using qsdem_test::slurp;
 
 void spit(const fs::path& p, const std::string& text) {
   fs::create_directories(p.parent_path());
