@@ -14,6 +14,7 @@
 #include "qsdem/particles.hpp"
 #include "qsdem/state.hpp"
 #include "qsdem/step.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -172,13 +173,7 @@ void resultant_scales(const State& st, std::vector<double>& fscale, std::vector<
 // Runs a test on one OpenMP thread: these tests evaluate a few spheres many times, and on a busy
 // machine each parallel region of the force stages then waits for a scheduler slice. Threading is
 // not what they check.
-struct SingleThread {
-  int saved = omp_get_max_threads();
-  SingleThread() { omp_set_num_threads(1); }
-  ~SingleThread() { omp_set_num_threads(saved); }
-  SingleThread(const SingleThread&) = delete;
-  SingleThread& operator=(const SingleThread&) = delete;
-};
+using qsdem_test::SingleThread;
 
 }  // namespace
 

@@ -17,11 +17,11 @@
 #include <vector>
 
 #include "qsdem/checkpoint.hpp"
-#include "test_support.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 namespace fs = std::filesystem;

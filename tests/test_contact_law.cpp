@@ -17,6 +17,7 @@
 #include "qsdem/particles.hpp"
 #include "qsdem/state.hpp"
 #include "qsdem/step.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -41,17 +42,7 @@ double hertz_energy(double r1, double r2, double delta) {
 }
 double sphere_mass(double r) { return kRho * 4.0 / 3.0 * pi * r * r * r; }
 
-// The systems here have 1-5 particles: OpenMP fork/join per stage costs far more than the work
-// and, on a loaded 2-core machine, a second thread waiting for a time slice can make 10^4 steps
-// take tens of seconds. Physics does not depend on the thread count (deterministic block sums),
-// so the long loops run on one thread; the previous setting is restored.
-struct SingleThread {
-  int previous = omp_get_max_threads();
-  SingleThread() { omp_set_num_threads(1); }
-  ~SingleThread() { omp_set_num_threads(previous); }
-  SingleThread(const SingleThread&) = delete;
-  SingleThread& operator=(const SingleThread&) = delete;
-};
+using qsdem_test::SingleThread;
 
 // The paper's step dt = 0.32 * 2 R_min sqrt(rho/E) (SPEC 5).
 Model paper_model(double r_min, double mu) {

@@ -23,6 +23,7 @@
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -41,13 +42,7 @@ double wave_speed() { return std::sqrt(kE / kRho); }  // by hand, not Material::
 // and, on a loaded 2-core machine, a second thread waiting for a time slice can make 10^4 steps
 // take tens of seconds. Physics does not depend on the thread count (deterministic block sums),
 // so the long loops run on one thread; the previous setting is restored.
-struct SingleThread {
-  int previous = omp_get_max_threads();
-  SingleThread() { omp_set_num_threads(1); }
-  ~SingleThread() { omp_set_num_threads(previous); }
-  SingleThread(const SingleThread&) = delete;
-  SingleThread& operator=(const SingleThread&) = delete;
-};
+using qsdem_test::SingleThread;
 
 // Values at maxima of a sampled signal (parabolic vertex through the three samples).
 std::vector<double> peaks(const std::vector<double>& x) {

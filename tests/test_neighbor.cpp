@@ -19,6 +19,7 @@
 #include "qsdem/particles.hpp"
 #include "qsdem/state.hpp"
 #include "qsdem/step.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -153,13 +154,7 @@ State random_sample(std::size_t n, double ratio, const Mat3& shape, double solid
 // on a few hundred particles: with threads, each of its parallel regions waits for a scheduler
 // slice when the machine is busy (seconds per test). They check list validity, not threading;
 // the threaded build_pairs is checked against brute force in EqualsBruteForce and at 8000 particles.
-struct SingleThread {
-  int saved = omp_get_max_threads();
-  SingleThread() { omp_set_num_threads(1); }
-  ~SingleThread() { omp_set_num_threads(saved); }
-  SingleThread(const SingleThread&) = delete;
-  SingleThread& operator=(const SingleThread&) = delete;
-};
+using qsdem_test::SingleThread;
 
 }  // namespace
 

@@ -20,6 +20,7 @@
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -31,13 +32,7 @@ constexpr double kNu = 0.3;
 
 // One particle: OpenMP fork/join per call would cost far more than the work (see
 // test_integrator.cpp); physics does not depend on the thread count.
-struct SingleThread {
-  int previous = omp_get_max_threads();
-  SingleThread() { omp_set_num_threads(1); }
-  ~SingleThread() { omp_set_num_threads(previous); }
-  SingleThread(const SingleThread&) = delete;
-  SingleThread& operator=(const SingleThread&) = delete;
-};
+using qsdem_test::SingleThread;
 
 // Principal moments of a solid ellipsoid, by hand (SPEC 2).
 Vec3 moments(const Vec3& ax) {

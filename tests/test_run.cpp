@@ -14,12 +14,12 @@
 #include <vector>
 
 #include "qsdem/config.hpp"
-#include "test_support.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/step.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 namespace fs = std::filesystem;

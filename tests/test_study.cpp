@@ -23,8 +23,8 @@
 #include <vector>
 
 #include "qsdem/study.hpp"
-#include "test_support.hpp"
 #include "qsdem/types.hpp"
+#include "test_support.hpp"
 
 extern char** environ;
 

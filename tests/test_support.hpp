@@ -4,6 +4,7 @@
 #include <fcntl.h>
 #include <spawn.h>
 #include <sys/wait.h>
+#include <omp.h>
 #include <unistd.h>
 
 #include <filesystem>
@@ -45,5 +46,17 @@ inline int wait_exit(pid_t pid) {
   if (WIFSIGNALED(status)) return 128 + WTERMSIG(status);
   return -1;
 }
+
+// One thread for the scope. Tests of 1-5 particles: OpenMP fork/join per stage costs far more
+// than the work and, on a loaded 2-core machine, a second thread waiting for a time slice can
+// make 10^4 steps take tens of seconds. Physics does not depend on the thread count
+// (deterministic block sums); the previous setting is restored.
+struct SingleThread {
+  int previous = omp_get_max_threads();
+  SingleThread() { omp_set_num_threads(1); }
+  ~SingleThread() { omp_set_num_threads(previous); }
+  SingleThread(const SingleThread&) = delete;
+  SingleThread& operator=(const SingleThread&) = delete;
+};
 
 }  // namespace qsdem_test
