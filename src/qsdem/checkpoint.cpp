@@ -147,7 +147,11 @@ void io_state(IO& io, S& st) {
   io.vec(st.pairs.image);
   io.vec(st.pairs.shear);
   io.vec(st.pairs.pw_lambda);
+  io.vec(st.pairs.apart_until);
   io.vec(st.neighbor.s_at_build);
+  io.vec(st.neighbor.surface_path);
+  io.pod(st.neighbor.strain_path);
+  io.pod(st.neighbor.branch_reach);
   io.pod(st.neighbor.h_at_build);
   io.pod(st.neighbor.skin);
   io.pod(st.neighbor.max_bound_radius);
@@ -225,8 +229,15 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   }
   std::filesystem::path prev = path;
   prev += ".prev";
+  // The current checkpoint gets a second name, .prev, then the new one replaces it atomically: at
+  // every instant `path` names a whole checkpoint (renaming path to .prev first left a window in
+  // which a SIGKILL found none). Without hard links (some file systems), rename as before.
   std::error_code ec;
-  if (std::filesystem::exists(path)) std::filesystem::rename(path, prev, ec);
+  if (std::filesystem::exists(path)) {
+    std::filesystem::remove(prev, ec);
+    std::filesystem::create_hard_link(path, prev, ec);
+    if (ec) std::filesystem::rename(path, prev, ec);
+  }
   std::filesystem::rename(tmp, path);
   fsync_dir(path.parent_path());
 }
