@@ -577,3 +577,43 @@ TEST(EllipsoidContact, LambdaMaximisesPerramWertheimFunction) {
     EXPECT_LT(std::abs(slope) * std::min(lambda, 1 - lambda), 1e-8);
   }
 }
+
+// The gap bound that lets the force stage skip apart pairs (EllipsoidContactStats::gap_bound)
+// never exceeds the true distance of the surfaces (the common-normal reference), from a cold
+// start, a warm start and every early exit; for spheres it is the distance itself.
+TEST(EllipsoidContact, GapBoundNeverExceedsTheDistance) {
+  Rng rng(77);
+  int with_bound = 0;
+  double worst_excess = -1, ratio_sum = 0;
+  for (int k = 0; k < 3000; ++k) {
+    const Pair p = make_pair(rng, 10, rng.log_uniform(1e-9, 0.5), true);
+    const double distance = -p.ref.overlap;
+    for (const double start : {-1.0, 0.5, rng.uniform()}) {
+      double lambda = start;
+      ContactGeometry g{};
+      EllipsoidContactStats st;
+      ASSERT_FALSE(run(p, g, lambda, st));
+      // The reference's own accuracy: 1e-6 of the distance (make_pair) plus round-off.
+      const double excess = (st.gap_bound - distance) / distance;
+      worst_excess = std::max(worst_excess, excess);
+      EXPECT_LE(st.gap_bound, distance * (1 + 2e-6) + 1e-15) << "pair " << k << " start " << start;
+      if (st.gap_bound > 0) ++with_bound, ratio_sum += st.gap_bound / distance;
+    }
+  }
+  std::cout << "gap bound / distance: mean " << ratio_sum / with_bound << " over " << with_bound
+            << " calls with a bound; worst excess " << worst_excess << "\n";
+  EXPECT_GT(with_bound, 9000 / 2) << "most apart pairs get a usable bound";
+
+  // Spheres (any orientation): the bound is the distance.
+  for (const double gap : {1e-9, 1e-6, 1e-3}) {
+    const Vec3 ai = Vec3::Constant(2 * kMm), aj = Vec3::Constant(0.5 * kMm);
+    const Vec3 l = (2.5 * kMm + gap) * Vec3(1, 2, -2).normalized();
+    for (const double start : {-1.0, 0.3}) {
+      double lambda = start;
+      ContactGeometry g{};
+      EllipsoidContactStats st;
+      ASSERT_FALSE(ellipsoid_contact(l, ai, rng.rotation(), aj, rng.rotation(), lambda, g, st));
+      EXPECT_NEAR(st.gap_bound, gap, 1e-12 * kMm + 1e-6 * gap) << "gap " << gap << " start " << start;
+    }
+  }
+}

@@ -11,7 +11,7 @@
 
 namespace qsdem {
 
-inline constexpr std::uint32_t checkpoint_format_version = 1;
+inline constexpr std::uint32_t checkpoint_format_version = 2;  // 2: skip state of apart pairs
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

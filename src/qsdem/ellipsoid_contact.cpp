@@ -111,7 +111,7 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
   body_axes(q, c0, c1);
   const Vec3 a2 = axes.cwiseAbs2();
   const Sym Q = shape_from_axes(c0, c1, a2.x(), a2.y(), a2.z());
-  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff()};
+  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff(), axes.minCoeff()};
 }
 
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
@@ -120,6 +120,7 @@ bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const
   const double reach = axes_i.maxCoeff() + axes_j.maxCoeff();
   if (!(l.squaredNorm() < reach * reach)) {
     stats = {};
+    if (l.allFinite()) stats.gap_bound = l.norm() - reach;
     return false;
   }
   return ellipsoid_contact(l, ellipsoid_shape(axes_i, q_i), ellipsoid_shape(axes_j, q_j), lambda, g, stats);
@@ -137,7 +138,10 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   // Bounding spheres: cannot overlap (also rejects a non-finite l).
   const double reach = si.reach + sj.reach;
   const double l2 = l.squaredNorm();
-  if (!(l2 < reach * reach)) return false;
+  if (!(l2 < reach * reach)) {
+    if (std::isfinite(l2)) stats.gap_bound = std::sqrt(l2) - reach;
+    return false;
+  }
 
   const Sym Qi{si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
   const Sym Qj{sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
@@ -159,6 +163,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       if (sup_i + sup_j <= ln) {
         lambda = lam;
         stats.early_exit = true;
+        stats.gap_bound = ln - (sup_i + sup_j);
         return false;
       }
     }
@@ -177,6 +182,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       if (l2 * F >= 1) {  // F(lambda) <= mu^2: separation proved
         stats.early_exit = true;
         stats.mu2 = l2 * F;
+        stats.gap_bound = (std::sqrt(stats.mu2) - 1) * (si.minor + sj.minor);
         lambda = lam;
         return false;
       }
@@ -208,7 +214,10 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   }
   const double mu2 = l2 * F;
   stats.mu2 = mu2;
-  if (!(mu2 < 1)) return false;
+  if (!(mu2 < 1)) {
+    if (mu2 > 1) stats.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
+    return false;                                                               // a first-order step
+  }
 
   const double sn = s.norm();  // s is still Q^-1 e here: no underflow for tiny |l|
   const Vec3 n = sn > 0 ? Vec3(s * (1 / sn)) : Vec3::UnitZ();

@@ -35,6 +35,12 @@ struct EllipsoidContactStats {
   int bisections = 0;         // of which bisection steps (safeguard)
   bool early_exit = false;    // stopped because F(lambda) >= 1 proved separation
   double mu2 = 0;             // F at the last iterate (= max F when converged)
+  // When the call returns false: a proven lower bound of the distance between the two surfaces
+  // (m), 0 when none is known. From the bounding spheres |l| - a_i - a_j, the support planes
+  // |l| - h_i(e) - h_j(e), or the contact function: mu E_k (scaled about its centre) contains
+  // E_k + ball((mu - 1) c_k), c_k its smallest semi-axis, and the mu-scaled pair only touches, so
+  // the gap is >= (mu - 1)(c_i + c_j) with mu = sqrt(F(lambda)) <= sqrt(max F) at any iterate.
+  double gap_bound = 0;
 };
 
 // Exact contact of two ellipsoids (SPEC 4): Perram-Wertheim contact function
@@ -74,6 +80,7 @@ bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const
 struct EllipsoidShape {
   double xx, yy, zz, xy, xz, yz;
   double reach;  // largest semi-axis
+  double minor;  // smallest semi-axis
 };
 EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q);
 

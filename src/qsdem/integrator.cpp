@@ -1,5 +1,6 @@
 #include "qsdem/integrator.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 namespace qsdem {
@@ -105,17 +106,25 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
   return r.normalized();
 }
 
-void advance_positions(const Model& model, const Cell& cell, Particles& p) {
+void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path) {
   const double dt = model.dt;
   const Mat3 step_map = dt * cell.h_inv;
   const std::size_t n = p.size();
+  const bool track = surface_path.size() == n;
 #pragma omp parallel for schedule(static) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) {
-    p.s[i] += step_map * p.v[i];
+    p.s[i] += step_map * p.v[i];  // moves x = h s by exactly dt v in the deformed cell
+    if (track) surface_path[i] += dt * p.v[i].norm();
     if (p.shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
-    p.q[i] = free_rotation(p.q[i], p.inertia[i], p.angmom[i], dt);
+    const Quat old = p.q[i];
+    p.q[i] = free_rotation(old, p.inertia[i], p.angmom[i], dt);
     // The body has turned at constant L: omega follows the new orientation (gyroscopic).
     p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
+    if (track) {  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
+      const double chord2 = std::min((p.q[i].coeffs() - old.coeffs()).squaredNorm(),
+                                     (p.q[i].coeffs() + old.coeffs()).squaredNorm());
+      surface_path[i] += 2 * p.bound_radius[i] * std::sqrt(chord2);
+    }
   }
 }
 

@@ -1,5 +1,7 @@
 // Time integration (SPEC 5) with the particle damping of SPEC 6.
 #pragma once
+#include <span>
+
 #include "qsdem/cell.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
@@ -25,6 +27,8 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
 // part moves with h, SPEC 3); ellipsoids turn by free_rotation at the angular momentum
 // L(t+dt/2) and leave omega = R I^-1 R^T L at the new orientation (what the next contact forces
 // read). Spheres: orientation and omega = L / I untouched.
-void advance_positions(const Model& model, const Cell& cell, Particles& p);
+// surface_path (one per particle, or empty): adds how far each particle's surface can have moved
+// in this step, dt |v| + 2 a |q_new - q_old| (NeighborState::surface_path).
+void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {});
 
 }  // namespace qsdem

@@ -51,6 +51,7 @@ Model base_model(const Params& params, const Particles& particles) {
   m.servo.integral_gain = params.servo.integral_gain;
   m.skin = params.neighbor.skin_ratio * m.r_min;
   m.sort_particles = true;
+  m.skip_apart_pairs = true;
   return m;
 }
 

@@ -48,6 +48,8 @@ struct Model {
   double skin = 0;              // Verlet skin (m)
   bool sort_particles = false;  // re-sort particles in space at every list rebuild (reorder.hpp);
                                 // the protocols turn it on, hand-built states keep their order
+  bool skip_apart_pairs = false;  // skip ellipsoid pairs while provably apart (neighbor.hpp); needs
+                                  // every move to go through step(); the protocols turn it on
 };
 
 // t_c = 2 R_min sqrt(rho / E) (SPEC 5, paper section 4).

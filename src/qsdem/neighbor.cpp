@@ -191,6 +191,7 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   next.image.resize(np);
   next.shear.assign(np, Vec3::Zero());
   next.pw_lambda.assign(np, -1.0);
+  next.apart_until.assign(np, -1.0);  // the motion bounds restart at this build: test every pair
   next.force.assign(np, Vec3::Zero());
   next.torque_i.assign(np, Vec3::Zero());
   next.torque_j.assign(np, Vec3::Zero());
@@ -215,6 +216,12 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   ns.h_at_build = cell.h;
   ns.skin = skin;
   ns.max_bound_radius = *std::max_element(p.bound_radius.begin(), p.bound_radius.end());
+  // A listed pair has |l| < r_i + r_j + skin at the build; until the next build, (1 + strain) times
+  // that plus twice the largest displacement (needs_rebuild: each <= skin). Apart pairs keep
+  // |l| <= |l_0| + gap_0 <= 2 |l_0| while skipped (the gap of convex bodies is <= |l|).
+  ns.branch_reach = 2 * (2 * ns.max_bound_radius + 3 * skin);
+  ns.surface_path.assign(n, 0.0);
+  ns.strain_path = 0;
   ns.valid = true;
   ns.distance_checks = checked;
   ++ns.builds;

@@ -19,6 +19,9 @@ struct PairList {
   // History carried across steps and rebuilds.
   std::vector<Vec3> shear;         // tangential force on j (N), SPEC 4
   std::vector<double> pw_lambda;   // Perram-Wertheim warm start (ellipsoids)
+  // Pairs proved apart are not tested again while they provably stay apart (ellipsoid pairs): the
+  // pair is skipped while NeighborState::moved(i, j) < apart_until (see there). -1: test it.
+  std::vector<double> apart_until;
   // Results of the last force evaluation (at time t). force and torques are valid only where
   // overlap > 0 (non-contacts are not written, to save memory traffic).
   std::vector<Vec3> force;         // contact force on j (N); i receives -force
@@ -40,6 +43,22 @@ struct NeighborState {
   long builds = 0;
   long distance_checks = 0;  // pair distances computed by the last build (linear in N, not N^2)
   bool valid = false;
+
+  // Motion since the last build, for skipping pairs that are provably apart. Per step the branch
+  // vector of a pair changes by l <- (I + dt L) l + dt (v_j - v_i) (advance_positions), and a
+  // turn of particle k by an angle theta moves its surface by at most 2 sin(theta/2) a_k. So
+  // surface_path[k] = sum over steps of dt |v_k| + 2 a_k |q_new - q_old| (the quaternion chord is
+  // 2 sin(theta/4) >= sin(theta/2)) and strain_path = sum of |dt L|_F bound how far the two
+  // surfaces of a pair can have come closer: surface_path[i] + surface_path[j] + strain_path |l|,
+  // with |l| <= branch_reach for any listed pair that is still apart.
+  std::vector<double> surface_path;
+  double strain_path = 0;
+  double branch_reach = 0;  // 2 (2 max bound radius + 3 skin) (neighbor.cpp)
+
+  // Distance by which the surfaces of a listed pair can have approached since the build.
+  double moved(std::uint32_t i, std::uint32_t j) const {
+    return surface_path[i] + surface_path[j] + strain_path * branch_reach;
+  }
 };
 
 // True when some pair outside the list could now be closer than touching (SPEC 4): twice the

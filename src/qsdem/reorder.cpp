@@ -64,6 +64,7 @@ bool sort_particles(State& st) {
   permute(p.force, order);
   permute(p.torque, order);
   if (st.neighbor.s_at_build.size() == n) permute(st.neighbor.s_at_build, order);
+  if (st.neighbor.surface_path.size() == n) permute(st.neighbor.surface_path, order);
 
   // Pair keys in the new indices, i < j. Swapping the ends of a pair reverses its image and its
   // stored tangential force (the force on j becomes the force on the other end), and maps the PW
@@ -96,6 +97,7 @@ bool sort_particles(State& st) {
   permute(pairs.image, by_key);
   permute(pairs.shear, by_key);
   permute(pairs.pw_lambda, by_key);
+  if (pairs.apart_until.size() == np) permute(pairs.apart_until, by_key);
   permute(pairs.force, by_key);
   permute(pairs.torque_i, by_key);
   permute(pairs.torque_j, by_key);

@@ -323,7 +323,11 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
   evaluate_forces(model, st);
   st.timers = {};
   const auto t0 = std::chrono::steady_clock::now();
-  for (long n = 0; n < steps; ++n) step(model, st);
+  long narrow_tests = 0;
+  for (long n = 0; n < steps; ++n) {
+    step(model, st);
+    narrow_tests += st.narrow_tests;
+  }
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const Measures m = measure(st);
   const double np = static_cast<double>(st.particles.size());
@@ -331,6 +335,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"ellipsoids", ellipsoids},
           {"contacts", m.contacts},
           {"pairs", st.pairs.size()},
+          {"narrow_tests_per_step", static_cast<double>(narrow_tests) / static_cast<double>(std::max(1L, steps))},
           {"ekin_J", m.ekin_trans + m.ekin_rot},
           {"ekin_trans_J", m.ekin_trans},
           {"steps", steps},

@@ -18,6 +18,7 @@ struct ForceBlock {
   Vec3 shear_stiffness_sum = Vec3::Zero();  // the same for the shears 12, 13, 23 (servo.hpp)
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
+  long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
 };
 
 struct State {
@@ -37,6 +38,7 @@ struct State {
   Mat3 stress_h = Mat3::Identity();     // cell matrix at which stress was evaluated (m)
   double max_overlap = 0;               // largest delta / min(R_i, R_j) over the contacts
   std::size_t max_overlap_pair = 0;     // the pair where it is
+  long narrow_tests = 0;                // pairs tested by the narrow phase in the last step
 
   StageTimers timers;
   std::vector<ForceBlock> blocks;       // scratch for the force stage

@@ -40,7 +40,8 @@ void step(const Model& model, State& s) {
   {
     ScopedStage t(s.timers, Stage::advance);
     deform(s.cell, model.dt);
-    advance_positions(model, s.cell, s.particles);
+    s.neighbor.strain_path += model.dt * s.cell.L.norm();  // Frobenius >= 2-norm (neighbor.hpp)
+    advance_positions(model, s.cell, s.particles, s.neighbor.surface_path);
     s.time += model.dt;
     ++s.step;
   }
