@@ -111,7 +111,11 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
   body_axes(q, c0, c1);
   const Vec3 a2 = axes.cwiseAbs2();
   const Sym Q = shape_from_axes(c0, c1, a2.x(), a2.y(), a2.z());
-  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff(), axes.minCoeff()};
+  // Through the adjugate of this very Q: the surfaces the overlap step cuts are those the PW
+  // iteration saw (to ~cond(Q) eps <= 9 eps); once per particle instead of once per contact.
+  const Sym adj = Q.adjugate();
+  const Sym M = adj * (1 / Q.det_with(adj));
+  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, M.xx, M.yy, M.zz, M.xy, M.xz, M.yz, axes.maxCoeff(), axes.minCoeff()};
 }
 
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
@@ -223,12 +227,10 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   const Vec3 n = sn > 0 ? Vec3(s * (1 / sn)) : Vec3::UnitZ();
   s *= ln;  // Q^-1 l
 
-  // The line x0 + t n through the one point x0, cut by each surface (3. above).
-  // M = Q^-1 through the adjugate: the inverse of the very Q used above (to ~cond(Q) eps <= 9 eps),
-  // so the surfaces cut here are those the PW iteration saw.
-  const Sym adj_i = Qi.adjugate(), adj_j = Qj.adjugate();
-  const Sym Mi = adj_i * (1 / Qi.det_with(adj_i));
-  const Sym Mj = adj_j * (1 / Qj.det_with(adj_j));
+  // The line x0 + t n through the one point x0, cut by each surface (3. above), M = Q^-1 from
+  // the shapes (ellipsoid_shape).
+  const Sym Mi{si.mxx, si.myy, si.mzz, si.mxy, si.mxz, si.myz};
+  const Sym Mj{sj.mxx, sj.myy, sj.mzz, sj.mxy, sj.mxz, sj.myz};
   const Vec3 di = (1 - lam) * (Qi * s);  // x0 - c_i
   const Vec3 dj = di - l;                // x0 - c_j
   const Vec3 Mdi = Mi * di, Mdj = Mj * dj;

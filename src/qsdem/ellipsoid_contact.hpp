@@ -79,6 +79,7 @@ bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const
 // several pairs), instead of once per pair.
 struct EllipsoidShape {
   double xx, yy, zz, xy, xz, yz;
+  double mxx, myy, mzz, mxy, mxz, myz;  // M = Q^-1 = adj(Q) / det(Q), the surface x^T M x = 1
   double reach;  // largest semi-axis
   double minor;  // smallest semi-axis
 };

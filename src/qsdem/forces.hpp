@@ -7,10 +7,12 @@
 namespace qsdem {
 
 // Evaluates every listed pair at the current positions: pair forces and torques, overlaps,
-// tangential history, and State::stress / affine_stiffness (SPEC 4, 7).
+// tangential history, and State::stress / affine_stiffness (SPEC 4, 7). Writes each particle's
+// resultant over the pairs where it is the i end into Particles::force / torque.
 void compute_contact_forces(const Model& model, State& state);
 
-// Sums pair forces and torques into Particles::force / torque (SPEC 7: contact forces only).
+// Adds the pairs where each particle is the j end: Particles::force / torque are then the
+// contact resultants (SPEC 7: contact forces only).
 void gather_resultants(State& state);
 
 }  // namespace qsdem

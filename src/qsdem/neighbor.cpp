@@ -77,20 +77,26 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
 }
 
 void build_incidence(PairList& pairs, std::size_t n) {
-  // In pair order: the gather then sums in a fixed order for any thread count.
+  // In pair order: the sums then run in a fixed order for any thread count.
   const std::size_t np = pairs.size();
-  pairs.first.assign(n + 1, 0);
+  pairs.first_i.assign(n + 1, 0);
+  pairs.first_j.assign(n + 1, 0);
   for (std::size_t k = 0; k < np; ++k) {
-    ++pairs.first[pairs.i[k] + 1];
-    ++pairs.first[pairs.j[k] + 1];
+    ++pairs.first_i[pairs.i[k] + 1];
+    ++pairs.first_j[pairs.j[k] + 1];
   }
-  std::partial_sum(pairs.first.begin(), pairs.first.end(), pairs.first.begin());
-  pairs.incident.resize(2 * np);
-  std::vector<std::uint32_t> fill(pairs.first.begin(), pairs.first.end() - 1);
-  for (std::size_t k = 0; k < np; ++k) {
-    pairs.incident[fill[pairs.i[k]]++] = static_cast<std::uint32_t>(k << 1);
-    pairs.incident[fill[pairs.j[k]]++] = static_cast<std::uint32_t>((k << 1) | 1u);
-  }
+  std::partial_sum(pairs.first_i.begin(), pairs.first_i.end(), pairs.first_i.begin());
+  std::partial_sum(pairs.first_j.begin(), pairs.first_j.end(), pairs.first_j.begin());
+  pairs.incident_j.resize(np);
+  std::vector<std::uint32_t> fill(pairs.first_j.begin(), pairs.first_j.end() - 1);
+  for (std::size_t k = 0; k < np; ++k) pairs.incident_j[fill[pairs.j[k]]++] = static_cast<std::uint32_t>(k);
+  // Blocks of whole particles (as i) holding at least pairs_per_block pairs: each block owns the
+  // i-side sums of its particles, and the blocks depend on the list only, not on the threads.
+  pairs.block_first.assign(1, 0);
+  for (std::size_t a = 0; a < n; ++a)
+    if (pairs.first_i[a + 1] - pairs.first_i[pairs.block_first.back()] >= pairs_per_block)
+      pairs.block_first.push_back(static_cast<std::uint32_t>(a + 1));
+  if (pairs.block_first.back() != n) pairs.block_first.push_back(static_cast<std::uint32_t>(n));
 }
 
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
@@ -193,7 +199,6 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   next.pw_lambda.assign(np, -1.0);
   next.apart_until.assign(np, -1.0);  // the motion bounds restart at this build: test every pair
   next.force.assign(np, Vec3::Zero());
-  next.torque_i.assign(np, Vec3::Zero());
   next.torque_j.assign(np, Vec3::Zero());
   next.overlap.assign(np, 0.0);
   std::size_t o = 0;

@@ -12,6 +12,8 @@
 
 namespace qsdem {
 
+inline constexpr std::size_t pairs_per_block = 1024;  // force stage work unit (PairList::block_first)
+
 struct PairList {
   // Key, sorted lexicographically by (i, j, image).
   std::vector<std::uint32_t> i, j;
@@ -22,15 +24,19 @@ struct PairList {
   // Pairs proved apart are not tested again while they provably stay apart (ellipsoid pairs): the
   // pair is skipped while NeighborState::moved(i, j) < apart_until (see there). -1: test it.
   std::vector<double> apart_until;
-  // Results of the last force evaluation (at time t). force and torques are valid only where
-  // overlap > 0 (non-contacts are not written, to save memory traffic).
+  // Results of the last force evaluation (at time t), for the j end of each pair (the force
+  // stage sums the i ends at once). Valid only where overlap > 0 (non-contacts are not written,
+  // to save memory traffic).
   std::vector<Vec3> force;         // contact force on j (N); i receives -force
-  std::vector<Vec3> torque_i, torque_j;
+  std::vector<Vec3> torque_j;      // torque of the contact force about j's centre (N m)
   std::vector<double> overlap;     // delta (m); > 0 when the pair is a contact (<= 0: apart; for
                                    // pairs with an ellipsoid, 0 when apart)
-  // Incidence lists for the deterministic per-particle gather (CSR by particle).
-  std::vector<std::uint32_t> first;     // size n + 1
-  std::vector<std::uint32_t> incident;  // (pair index << 1) | (particle is j)
+  // Layout for the deterministic per-particle sums (build_incidence).
+  std::vector<std::uint32_t> first_i;     // size n + 1: pairs [first_i[a], first_i[a+1]) have i = a
+  std::vector<std::uint32_t> first_j;     // size n + 1: CSR into incident_j
+  std::vector<std::uint32_t> incident_j;  // pair indices with j = a, in pair order
+  std::vector<std::uint32_t> block_first; // particle ranges of the force stage's blocks (~1024
+                                          // pairs each, whole particles): nblocks + 1 entries
 
   std::size_t size() const { return i.size(); }
 };
@@ -68,7 +74,7 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
 // Rebuilds `pairs` (keeping the history of pairs present before) and the incidence lists.
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns);
 
-// Rebuilds the incidence lists (first, incident) from the pair keys.
+// Rebuilds first_i, first_j, incident_j and block_first from the (sorted) pair keys.
 void build_incidence(PairList& pairs, std::size_t n_particles);
 
 // Refuses a cell in which a particle could touch its own image (SPEC 3).
