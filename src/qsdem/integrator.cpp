@@ -14,9 +14,9 @@ void integrate_velocities(const Model& model, Particles& p) {
     p.v[i] = damped_kick(p.v[i], p.force[i] / p.mass[i], a, dt);
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
     p.angmom[i] = damped_kick(p.angmom[i], p.torque[i], a, dt);
-    // A sphere's inertia is isotropic: omega = L / I, no frame change needed.
-    p.omega[i] = p.shape[i] == ShapeKind::sphere ? Vec3(p.angmom[i] / p.inertia[i].x())
-                                                 : angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
+    // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
+    // omega is set by advance_positions at its new orientation (nothing reads it before).
+    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] / p.inertia[i].x();
   }
 }
 
@@ -70,32 +70,49 @@ inline void rotate_about_body_axis(int k, double tau, const Vec3& inertia, Vec3&
   q = q * r;
 }
 
-// Free symmetric top, symmetry axis k (moment i_s), transverse moment i_perp.
-inline Quat spheroid_rotation(const Quat& q, int k, double i_s, double i_perp, const Vec3& angmom,
+// Unit vector of body axis k in the world frame: column k of R(q).
+inline Vec3 body_axis(const Quat& q, int k) {
+  const double w = q.w(), x = q.x(), y = q.y(), z = q.z();
+  if (k == 0) return {1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)};
+  if (k == 1) return {2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)};
+  return {2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)};
+}
+
+// Free symmetric top, symmetry axis k, inverse moments inv_s (about k) and inv_perp. Divisions
+// are few on purpose: they dominated this function's profile.
+inline Quat spheroid_rotation(const Quat& q, int k, double inv_s, double inv_perp, const Vec3& angmom,
                               double dt) {
   const double l2 = angmom.squaredNorm();
   if (l2 == 0) return q;
-  const double l = std::sqrt(l2);
-  const double pi_s = (q * Vec3::Unit(k)).dot(angmom);  // body component on the symmetry axis
-  const double precession = 0.5 * dt * l / i_perp;      // half angles
-  const double spin = 0.5 * dt * pi_s * (1 / i_s - 1 / i_perp);
+  const double inv_l = 1 / std::sqrt(l2);
+  const double pi_s = body_axis(q, k).dot(angmom);   // body component on the symmetry axis
+  const double precession = 0.5 * dt * l2 * inv_l * inv_perp;  // half angles
+  const double spin = 0.5 * dt * pi_s * (inv_s - inv_perp);
   double sp, cp, ss, cs;
   sin_cos(precession, sp, cp);
   sin_cos(spin, ss, cs);
-  sp /= l;
+  sp *= inv_l;
   const Quat about_l(cp, sp * angmom.x(), sp * angmom.y(), sp * angmom.z());
   Quat about_axis(cs, 0, 0, 0);
   about_axis.vec()[k] = ss;
-  return (about_l * q * about_axis).normalized();
+  Quat r = about_l * q * about_axis;
+  r.coeffs() *= 1 / r.coeffs().norm();
+  return r;
+}
+
+// The symmetry axis of a body with two equal moments (-1: three distinct moments). Equal moments
+// are computed by the same expression (ellipsoid_inertia), so b == c gives bit-equal I_b, I_c.
+inline int symmetry_axis(const Vec3& inertia) {
+  if (inertia.y() == inertia.z()) return 0;
+  if (inertia.x() == inertia.y()) return 2;
+  return -1;
 }
 
 }  // namespace
 
 Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
-  // Equal moments are computed by the same expression (ellipsoid_inertia), so b == c gives
-  // bit-equal I_b, I_c.
-  if (inertia.y() == inertia.z()) return spheroid_rotation(q, 0, inertia.x(), inertia.y(), angmom, dt);
-  if (inertia.x() == inertia.y()) return spheroid_rotation(q, 2, inertia.z(), inertia.x(), angmom, dt);
+  if (const int k = symmetry_axis(inertia); k >= 0)
+    return spheroid_rotation(q, k, 1 / inertia[k], 1 / inertia[(k + 1) % 3], angmom, dt);
   Vec3 body = q.conjugate() * angmom;  // pi = R^T L
   Quat r = q;
   rotate_about_body_axis(2, 0.5 * dt, inertia, body, r);
@@ -117,9 +134,19 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     if (track) surface_path[i] += dt * p.v[i].norm();
     if (p.shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
     const Quat old = p.q[i];
-    p.q[i] = free_rotation(old, p.inertia[i], p.angmom[i], dt);
-    // The body has turned at constant L: omega follows the new orientation (gyroscopic).
-    p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
+    const Vec3& inertia = p.inertia[i];
+    // The body turns at constant L; omega = R I^-1 R^T L then follows the new orientation
+    // (gyroscopic). Spheroid: I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis.
+    if (const int k = symmetry_axis(inertia); k >= 0) {
+      const double inv_s = 1 / inertia[k], inv_perp = 1 / inertia[(k + 1) % 3];
+      const Vec3& angmom = p.angmom[i];
+      p.q[i] = spheroid_rotation(old, k, inv_s, inv_perp, angmom, dt);
+      const Vec3 e = body_axis(p.q[i], k);
+      p.omega[i] = inv_perp * angmom + ((inv_s - inv_perp) * e.dot(angmom)) * e;
+    } else {
+      p.q[i] = free_rotation(old, inertia, p.angmom[i], dt);
+      p.omega[i] = angular_velocity(p.q[i], inertia, p.angmom[i]);
+    }
     if (track) {  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
       const double chord2 = std::min((p.q[i].coeffs() - old.coeffs()).squaredNorm(),
                                      (p.q[i].coeffs() + old.coeffs()).squaredNorm());
