@@ -10,13 +10,13 @@ void integrate_velocities(const Model& model, Particles& p) {
   const std::size_t n = p.size();
 #pragma omp parallel for schedule(static) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) {
-    const double a = p.damping[i];  // A_i = B_i (SPEC 6)
-    p.v[i] = damped_kick(p.v[i], p.force[i] / p.mass[i], a, dt);
+    const DampedKick kick(p.damping[i], dt);  // A_i = B_i (SPEC 6)
+    p.v[i] = kick(p.v[i], p.force[i] * (1 / p.mass[i]));
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    p.angmom[i] = damped_kick(p.angmom[i], p.torque[i], a, dt);
+    p.angmom[i] = kick(p.angmom[i], p.torque[i]);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] / p.inertia[i].x();
+    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * (1 / p.inertia[i].x());
   }
 }
 
