@@ -37,7 +37,7 @@ void compute_contact_forces(const Model& model, State& state) {
 
   // Each block owns whole particles as the i end of their pairs (sorted by i): it writes their
   // i-side resultants itself; gather_resultants adds the j ends.
-#pragma omp parallel for schedule(static) if (np > parallel_threshold)
+#pragma omp parallel for schedule(dynamic, 1) if (np > parallel_threshold)
   for (std::size_t b = 0; b < nblocks; ++b) {
     ForceBlock acc;
     for (std::uint32_t i = pairs.block_first[b]; i < pairs.block_first[b + 1]; ++i) {
@@ -45,8 +45,9 @@ void compute_contact_forces(const Model& model, State& state) {
       for (std::uint32_t k = pairs.first_i[i]; k < pairs.first_i[i + 1]; ++k) {
         const std::uint32_t j = pairs.j[k];
         const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
-        // Still provably apart (its overlap <= 0 and its spring released since the test that proved it).
-        if (skip_apart && ns.moved(i, j) < pairs.apart_until[k]) continue;
+        // Still provably apart (its overlap is 0 and its spring released since the test that proved
+        // it). Not for two spheres: their direct test is as cheap as the skip test.
+        if (!spheres && skip_apart && ns.moved(i, j) < pairs.apart_until[k]) continue;
         ++acc.narrow_tests;
         const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
         // Narrow phase (SPEC 4): exact for spheres; Perram-Wertheim for any pair with an ellipsoid.
@@ -56,13 +57,10 @@ void compute_contact_forces(const Model& model, State& state) {
           const double ri = p.bound_radius[i], rj = p.bound_radius[j];
           const double d2 = l.squaredNorm();
           touching = d2 < (ri + rj) * (ri + rj);  // most listed pairs are apart: keep that path short
-          if (touching) {
+          if (touching)
             g = sphere_sphere(l, ri, rj);
-          } else {
-            pairs.overlap[k] = ri + rj - std::sqrt(d2);  // minus the gap
-            const double gap = -pairs.overlap[k] - 1e-9 * (ri + rj);
-            if (skip_apart && gap > 0) pairs.apart_until[k] = ns.moved(i, j) + gap;
-          }
+          else
+            pairs.overlap[k] = ri + rj - std::sqrt(d2);
         } else {
           EllipsoidContactStats stats;
           touching = ellipsoid_contact(l, shapes[i], shapes[j], pairs.pw_lambda[k], g, stats);

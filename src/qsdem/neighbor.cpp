@@ -225,7 +225,11 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   // that plus twice the largest displacement (needs_rebuild: each <= skin). Apart pairs keep
   // |l| <= |l_0| + gap_0 <= 2 |l_0| while skipped (the gap of convex bodies is <= |l|).
   ns.branch_reach = 2 * (2 * ns.max_bound_radius + 3 * skin);
-  ns.surface_path.assign(n, 0.0);
+  // Tracked only where pairs with an ellipsoid can be skipped (two spheres are tested directly).
+  if (std::find(p.shape.begin(), p.shape.end(), ShapeKind::ellipsoid) != p.shape.end())
+    ns.surface_path.assign(n, 0.0);
+  else
+    ns.surface_path.clear();
   ns.strain_path = 0;
   ns.valid = true;
   ns.distance_checks = checked;
