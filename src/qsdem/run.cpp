@@ -301,6 +301,36 @@ std::string format_run_table(const nlohmann::json& s) {
   return out;
 }
 
+namespace {
+
+template <class T>
+double kib(const std::vector<T>& v) {
+  return static_cast<double>(v.capacity() * sizeof(T)) / 1024;
+}
+
+// Heap held by the state's arrays (KiB), by structure: what `peak_rss_kib` is made of besides
+// the binary, its libraries and transient build buffers.
+nlohmann::json memory_kib(const State& st) {
+  const Particles& p = st.particles;
+  const PairList& q = st.pairs;
+  const double particles = kib(p.id) + kib(p.shape) + kib(p.semi_axes) + kib(p.bound_radius) + kib(p.equiv_radius) +
+                           kib(p.mass) + kib(p.inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
+                           kib(p.angmom) + kib(p.omega) + kib(p.force) + kib(p.torque);
+  const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
+  const double results = kib(q.force) + kib(q.torque_j) + kib(q.overlap);
+  const double lists = kib(q.first_i) + kib(q.first_j) + kib(q.incident_j) + kib(q.block_first) +
+                       kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
+  const double scratch = kib(st.blocks) + kib(st.shapes);
+  return {{"particles", particles},
+          {"pair_keys_and_history", history},
+          {"pair_results", results},
+          {"lists", lists},
+          {"scratch", scratch},
+          {"total", particles + history + results + lists + scratch}};
+}
+
+}  // namespace
+
 nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps,
                              bool as_spheres) {
   State st = read_packing(packing, params.material.density);
@@ -343,6 +373,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"wall_s", wall},
           {"particle_steps_per_s", np * static_cast<double>(steps) / wall},
           {"peak_rss_kib", peak_rss_kib()},
+          {"state_kib", memory_kib(st)},
           {"dt_s", model.dt},
           {"density_kg_m3", model.material.density},
           {"young_modulus_Pa", model.material.young_modulus},
