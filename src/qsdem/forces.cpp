@@ -36,8 +36,10 @@ void compute_contact_forces(const Model& model, State& state) {
   const bool skip_apart = model.skip_apart_pairs && ns.surface_path.size() == n && pairs.apart_until.size() == np;
 
   // Each block owns whole particles as the i end of their pairs (sorted by i): it writes their
-  // i-side resultants itself; gather_resultants adds the j ends.
-#pragma omp parallel for schedule(dynamic, 1) if (np > parallel_threshold)
+  // i-side resultants itself; gather_resultants adds the j ends. Static: each thread keeps the
+  // same particles (and their data in its cache) from step to step; dynamic was measured slower
+  // on spheres (2 threads, contact stage 484 vs 413 us/step).
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
   for (std::size_t b = 0; b < nblocks; ++b) {
     ForceBlock acc;
     for (std::uint32_t i = pairs.block_first[b]; i < pairs.block_first[b + 1]; ++i) {
