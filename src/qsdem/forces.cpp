@@ -42,10 +42,16 @@ void compute_contact_forces(const Model& model, State& state) {
 #pragma omp parallel for schedule(static) if (np > parallel_threshold)
   for (std::size_t b = 0; b < nblocks; ++b) {
     ForceBlock acc;
-    for (std::uint32_t i = pairs.block_first[b]; i < pairs.block_first[b + 1]; ++i) {
-      Vec3 force_i = Vec3::Zero(), torque_i = Vec3::Zero();
-      for (std::uint32_t k = pairs.first_i[i]; k < pairs.first_i[i + 1]; ++k) {
-        const std::uint32_t j = pairs.j[k];
+    const std::uint32_t a0 = pairs.block_first[b], a1 = pairs.block_first[b + 1];
+    for (std::uint32_t a = a0; a < a1; ++a) {
+      p.force[a] = Vec3::Zero();
+      p.torque[a] = Vec3::Zero();
+    }
+    // One flat loop over the block's pairs, summing into p.force[i] directly (a loop per particle,
+    // ~2-4 pairs each, mispredicts its exit: the sphere contact stage measured 7 % slower).
+    {
+      for (std::uint32_t k = pairs.first_i[a0]; k < pairs.first_i[a1]; ++k) {
+        const std::uint32_t i = pairs.i[k], j = pairs.j[k];
         const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
         // Still provably apart (its overlap is 0 and its spring released since the test that proved
         // it). Not for two spheres: their direct test is as cheap as the skip test.
@@ -89,8 +95,8 @@ void compute_contact_forces(const Model& model, State& state) {
         const ContactForce cf = law.evaluate(g, vrel, dt, pairs.shear[k]);
         pairs.force[k] = cf.force;
         pairs.torque_j[k] = g.arm_j.cross(cf.force);  // SPEC 4: (x_c - x_j) x F
-        force_i -= cf.force;
-        torque_i += g.arm_i.cross(-cf.force);
+        p.force[i] -= cf.force;
+        p.torque[i] += g.arm_i.cross(-cf.force);
         acc.stress_sum.noalias() += cf.force * l.transpose();  // Love-Weber (SPEC 7)
         const Vec3 n2 = g.normal.cwiseProduct(g.normal);
         acc.stiffness_sum += (cf.normal_stiffness * n2 + cf.tangential_stiffness * (Vec3::Ones() - n2))
@@ -101,8 +107,6 @@ void compute_contact_forces(const Model& model, State& state) {
         acc.shear_stiffness_sum +=
             l.squaredNorm() * (2 * cf.normal_stiffness * nn + cf.tangential_stiffness * (half - 2 * nn));
       }
-      p.force[i] = force_i;
-      p.torque[i] = torque_i;
     }
     state.blocks[b] = acc;
   }
