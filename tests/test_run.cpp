@@ -297,3 +297,43 @@ TEST(Run, CommandLine) {
   fs::remove_all(lib);
   fs::remove_all(dir);
 }
+
+// `qsdem bench` (the speed issue): one JSON line with particles, contacts, steps, threads, wall
+// seconds, particle-steps per second, peak memory and the state's heap by structure, on the
+// compacted paper-A-small packing (2001 spheroids). After the first step most apart pairs are
+// skipped, so far fewer pairs than listed reach the narrow phase.
+TEST(Run, BenchPrintsOneMachineReadableLine) {
+  const fs::path dir = fresh_dir("bench");
+  const std::string source = QSDEM_SOURCE_DIR;
+  std::string out, err;
+  ASSERT_EQ(shell("'" + binary + "' bench '" + source + "/tests/golden/paper-A-small.packing' --case '" + source +
+                      "/examples/paper-A-small.toml' --steps 30 --threads 1",
+                  dir, out, err),
+            0)
+      << err;
+  std::istringstream lines(out);
+  std::string line, last;
+  while (std::getline(lines, line))
+    if (!line.empty()) last = line;
+  const auto b = nlohmann::json::parse(last);
+  for (const char* key : {"particles", "ellipsoids", "contacts", "pairs", "steps", "threads", "wall_s",
+                          "particle_steps_per_s", "peak_rss_kib", "narrow_tests_per_step", "state_kib", "stages"})
+    EXPECT_TRUE(b.contains(key)) << key << " in " << last;
+  EXPECT_EQ(b["particles"].get<int>(), 2001);
+  EXPECT_EQ(b["ellipsoids"].get<int>(), 2001);
+  EXPECT_EQ(b["steps"].get<int>(), 30);
+  EXPECT_EQ(b["threads"].get<int>(), 1);
+  EXPECT_GT(b["contacts"].get<int>(), 1000);  // a compacted packing
+  EXPECT_NEAR(b["particle_steps_per_s"].get<double>(), 2001 * 30 / b["wall_s"].get<double>(),
+              1e-9 * b["particle_steps_per_s"].get<double>());
+  EXPECT_LT(b["narrow_tests_per_step"].get<double>(), 0.8 * b["pairs"].get<double>());
+  EXPECT_GE(b["narrow_tests_per_step"].get<double>(), 0.5 * b["contacts"].get<double>());
+  const auto& kib = b["state_kib"];
+  EXPECT_NEAR(kib["total"].get<double>(),
+              kib["particles"].get<double>() + kib["pair_keys_and_history"].get<double>() +
+                  kib["pair_results"].get<double>() + kib["lists"].get<double>() + kib["scratch"].get<double>(),
+              1e-9 * kib["total"].get<double>());
+  EXPECT_GT(kib["particles"].get<double>() * 1024, 2001 * 200.0);  // ~261 B per spheroid
+  EXPECT_GT(b["peak_rss_kib"].get<double>(), kib["total"].get<double>());
+  fs::remove_all(dir);
+}
