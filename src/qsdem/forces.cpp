@@ -49,64 +49,62 @@ void compute_contact_forces(const Model& model, State& state) {
     }
     // One flat loop over the block's pairs, summing into p.force[i] directly (a loop per particle,
     // ~2-4 pairs each, mispredicts its exit: the sphere contact stage measured 7 % slower).
-    {
-      for (std::uint32_t k = pairs.first_i[a0]; k < pairs.first_i[a1]; ++k) {
-        const std::uint32_t i = pairs.i[k], j = pairs.j[k];
-        const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
-        // Still provably apart (its overlap is 0 and its spring released since the test that proved
-        // it). Not for two spheres: their direct test is as cheap as the skip test.
-        if (!spheres && skip_apart && ns.moved(i, j) < pairs.apart_until[k]) continue;
-        ++acc.narrow_tests;
-        const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
-        // Narrow phase (SPEC 4): exact for spheres; Perram-Wertheim for any pair with an ellipsoid.
-        ContactGeometry g;
-        bool touching;
-        if (spheres) {
-          const double ri = p.bound_radius[i], rj = p.bound_radius[j];
-          const double d2 = l.squaredNorm();
-          touching = d2 < (ri + rj) * (ri + rj);  // most listed pairs are apart: keep that path short
-          if (touching)
-            g = sphere_sphere(l, ri, rj);
-          else
-            pairs.overlap[k] = ri + rj - std::sqrt(d2);
-        } else {
-          EllipsoidContactStats stats;
-          touching = ellipsoid_contact(l, shapes[i], shapes[j], pairs.pw_lambda[k], g, stats);
-          if (!touching) {
-            pairs.overlap[k] = 0;  // apart (the contact function gives no gap)
-            // Not tested again until the surfaces may have closed the proven gap; the margin covers
-            // the round-off of mu (1e-9 of the minor axes, far above it).
-            const double gap = stats.gap_bound - 1e-9 * (shapes[i].minor + shapes[j].minor);
-            if (skip_apart && gap > 0) pairs.apart_until[k] = ns.moved(i, j) + gap;
-          }
-        }
+    for (std::uint32_t k = pairs.first_i[a0]; k < pairs.first_i[a1]; ++k) {
+      const std::uint32_t i = pairs.i[k], j = pairs.j[k];
+      const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
+      // Still provably apart (its overlap is 0 and its spring released since the test that proved
+      // it). Not for two spheres: their direct test is as cheap as the skip test.
+      if (!spheres && skip_apart && ns.moved(i, j) < pairs.apart_until[k]) continue;
+      ++acc.narrow_tests;
+      const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
+      // Narrow phase (SPEC 4): exact for spheres; Perram-Wertheim for any pair with an ellipsoid.
+      ContactGeometry g;
+      bool touching;
+      if (spheres) {
+        const double ri = p.bound_radius[i], rj = p.bound_radius[j];
+        const double d2 = l.squaredNorm();
+        touching = d2 < (ri + rj) * (ri + rj);  // most listed pairs are apart: keep that path short
+        if (touching)
+          g = sphere_sphere(l, ri, rj);
+        else
+          pairs.overlap[k] = ri + rj - std::sqrt(d2);
+      } else {
+        EllipsoidContactStats stats;
+        touching = ellipsoid_contact(l, shapes[i], shapes[j], pairs.pw_lambda[k], g, stats);
         if (!touching) {
-          if (!pairs.shear[k].isZero()) pairs.shear[k].setZero();  // contact lost: spring released
-          continue;  // force and torque are read only where overlap > 0
+          pairs.overlap[k] = 0;  // apart (the contact function gives no gap)
+          // Not tested again until the surfaces may have closed the proven gap; the margin covers
+          // the round-off of mu (1e-9 of the minor axes, far above it).
+          const double gap = stats.gap_bound - 1e-9 * (shapes[i].minor + shapes[j].minor);
+          if (skip_apart && gap > 0) pairs.apart_until[k] = ns.moved(i, j) + gap;
         }
-        pairs.overlap[k] = g.overlap;
-        const double ratio = g.overlap / std::min(p.equiv_radius[i], p.equiv_radius[j]);
-        if (ratio > acc.max_overlap) {
-          acc.max_overlap = ratio;
-          acc.max_overlap_pair = k;
-        }
-        // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
-        const Vec3 vrel = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + cell.L * l;
-        const ContactForce cf = law.evaluate(g, vrel, dt, pairs.shear[k]);
-        pairs.force[k] = cf.force;
-        pairs.torque_j[k] = g.arm_j.cross(cf.force);  // SPEC 4: (x_c - x_j) x F
-        p.force[i] -= cf.force;
-        p.torque[i] += g.arm_i.cross(-cf.force);
-        acc.stress_sum.noalias() += cf.force * l.transpose();  // Love-Weber (SPEC 7)
-        const Vec3 n2 = g.normal.cwiseProduct(g.normal);
-        acc.stiffness_sum += (cf.normal_stiffness * n2 + cf.tangential_stiffness * (Vec3::Ones() - n2))
-                                 .cwiseProduct(l.cwiseProduct(l));
-        // Affine pure shear D_ab = D_ba (servo.hpp): 2 k_n n_a^2 n_b^2 + k_t ((n_a^2 + n_b^2)/2 - 2 n_a^2 n_b^2).
-        const Vec3 nn(n2.x() * n2.y(), n2.x() * n2.z(), n2.y() * n2.z());
-        const Vec3 half(0.5 * (n2.x() + n2.y()), 0.5 * (n2.x() + n2.z()), 0.5 * (n2.y() + n2.z()));
-        acc.shear_stiffness_sum +=
-            l.squaredNorm() * (2 * cf.normal_stiffness * nn + cf.tangential_stiffness * (half - 2 * nn));
       }
+      if (!touching) {
+        if (!pairs.shear[k].isZero()) pairs.shear[k].setZero();  // contact lost: spring released
+        continue;  // force and torque are read only where overlap > 0
+      }
+      pairs.overlap[k] = g.overlap;
+      const double ratio = g.overlap / std::min(p.equiv_radius[i], p.equiv_radius[j]);
+      if (ratio > acc.max_overlap) {
+        acc.max_overlap = ratio;
+        acc.max_overlap_pair = k;
+      }
+      // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
+      const Vec3 vrel = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + cell.L * l;
+      const ContactForce cf = law.evaluate(g, vrel, dt, pairs.shear[k]);
+      pairs.force[k] = cf.force;
+      pairs.torque_j[k] = g.arm_j.cross(cf.force);  // SPEC 4: (x_c - x_j) x F
+      p.force[i] -= cf.force;
+      p.torque[i] += g.arm_i.cross(-cf.force);
+      acc.stress_sum.noalias() += cf.force * l.transpose();  // Love-Weber (SPEC 7)
+      const Vec3 n2 = g.normal.cwiseProduct(g.normal);
+      acc.stiffness_sum += (cf.normal_stiffness * n2 + cf.tangential_stiffness * (Vec3::Ones() - n2))
+                             .cwiseProduct(l.cwiseProduct(l));
+      // Affine pure shear D_ab = D_ba (servo.hpp): 2 k_n n_a^2 n_b^2 + k_t ((n_a^2 + n_b^2)/2 - 2 n_a^2 n_b^2).
+      const Vec3 nn(n2.x() * n2.y(), n2.x() * n2.z(), n2.y() * n2.z());
+      const Vec3 half(0.5 * (n2.x() + n2.y()), 0.5 * (n2.x() + n2.z()), 0.5 * (n2.y() + n2.z()));
+      acc.shear_stiffness_sum +=
+          l.squaredNorm() * (2 * cf.normal_stiffness * nn + cf.tangential_stiffness * (half - 2 * nn));
     }
     state.blocks[b] = acc;
   }
