@@ -4,6 +4,7 @@
 #include <fmt/format.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstring>
 #include <fstream>
 #include <iterator>
@@ -137,8 +138,9 @@ void io_run(IO& io, R& r) {
   io.pod(r.wall_s);
 }
 
+// `version`: the format being read (the writer always writes checkpoint_format_version).
 template <class IO, class S>
-void io_state(IO& io, S& st) {
+void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) {
   io_particles(io, st.particles);
   io.pod(st.cell.h);
   io.pod(st.cell.L);
@@ -147,11 +149,13 @@ void io_state(IO& io, S& st) {
   io.vec(st.pairs.image);
   io.vec(st.pairs.shear);
   io.vec(st.pairs.pw_lambda);
-  io.vec(st.pairs.apart_until);
+  if (version >= 2) io.vec(st.pairs.apart_until);
   io.vec(st.neighbor.s_at_build);
-  io.vec(st.neighbor.surface_path);
-  io.pod(st.neighbor.strain_path);
-  io.pod(st.neighbor.branch_reach);
+  if (version >= 2) {
+    io.vec(st.neighbor.surface_path);
+    io.pod(st.neighbor.strain_path);
+    io.pod(st.neighbor.branch_reach);
+  }
   io.pod(st.neighbor.h_at_build);
   io.pod(st.neighbor.skin);
   io.pod(st.neighbor.max_bound_radius);
@@ -254,9 +258,9 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   std::memcpy(&version, bytes.data() + 8, 4);
   std::memcpy(&size, bytes.data() + 16, 8);
   std::memcpy(&sum, bytes.data() + 24, 8);
-  if (version != checkpoint_format_version)
-    throw InputError(fmt::format("checkpoint '{}' has format version {}; this qsdem reads version {}", name, version,
-                                 checkpoint_format_version));
+  if (version < 1 || version > checkpoint_format_version)
+    throw InputError(fmt::format("checkpoint '{}' has format version {}; this qsdem reads versions 1 to {}", name,
+                                 version, checkpoint_format_version));
   if (bytes.size() - header_size != size)
     throw InputError(fmt::format("checkpoint '{}' is damaged: truncated ({} of {} bytes)", name,
                                  bytes.size() - header_size, size));
@@ -268,7 +272,7 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   r.str(c.case_text);
   r.str(c.case_source);
   io_run(r, c.run);
-  io_state(r, c.state);
+  io_state(r, c.state, version);
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);
   const std::size_t np = c.state.pairs.size();
@@ -276,6 +280,17 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   c.state.pairs.torque_j.assign(np, Vec3::Zero());
   c.state.pairs.overlap.assign(np, 0.0);
   build_incidence(c.state.pairs, c.state.particles.size());
+  if (version < 2) {
+    // Format 1 (before apart pairs were skipped): no skip state, so every pair is tested at the
+    // first step and the motion bounds start from zero (as after a list build).
+    NeighborState& ns = c.state.neighbor;
+    c.state.pairs.apart_until.assign(np, -1.0);
+    const auto& shape = c.state.particles.shape;
+    if (std::find(shape.begin(), shape.end(), ShapeKind::ellipsoid) != shape.end())
+      ns.surface_path.assign(c.state.particles.size(), 0.0);
+    ns.strain_path = 0;
+    ns.branch_reach = NeighborState::reach_of(ns.max_bound_radius, ns.skin);
+  }
   return c;
 }
 

@@ -221,10 +221,7 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   ns.h_at_build = cell.h;
   ns.skin = skin;
   ns.max_bound_radius = *std::max_element(p.bound_radius.begin(), p.bound_radius.end());
-  // A listed pair has |l| < r_i + r_j + skin at the build; until the next build, (1 + strain) times
-  // that plus twice the largest displacement (needs_rebuild: each <= skin). Apart pairs keep
-  // |l| <= |l_0| + gap_0 <= 2 |l_0| while skipped (the gap of convex bodies is <= |l|).
-  ns.branch_reach = 2 * (2 * ns.max_bound_radius + 3 * skin);
+  ns.branch_reach = NeighborState::reach_of(ns.max_bound_radius, skin);
   // Tracked only where pairs with an ellipsoid can be skipped (two spheres are tested directly).
   if (std::find(p.shape.begin(), p.shape.end(), ShapeKind::ellipsoid) != p.shape.end())
     ns.surface_path.assign(n, 0.0);

@@ -59,7 +59,12 @@ struct NeighborState {
   // with |l| <= branch_reach for any listed pair that is still apart.
   std::vector<double> surface_path;
   double strain_path = 0;
-  double branch_reach = 0;  // 2 (2 max bound radius + 3 skin) (neighbor.cpp)
+  double branch_reach = 0;  // reach_of(max_bound_radius, skin)
+
+  // A listed pair has |l| < r_i + r_j + skin at the build; until the next build, (1 + strain)
+  // times that plus twice the largest displacement (needs_rebuild: each <= skin). Apart pairs keep
+  // |l| <= |l_0| + gap_0 <= 2 |l_0| while skipped (the gap of convex bodies is <= |l|).
+  static double reach_of(double max_bound_radius, double skin) { return 2 * (2 * max_bound_radius + 3 * skin); }
 
   // Distance by which the surfaces of a listed pair can have approached since the build.
   double moved(std::uint32_t i, std::uint32_t j) const {
