@@ -1,6 +1,7 @@
 // Runs that survive (checkpoints, resume, prepared samples, blow-ups, output safety), tested with
 // real processes and real signals on the qsdem binary where the behaviour is the process's.
 #include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
 #include <signal.h>
 #include <spawn.h>
 #include <fcntl.h>
@@ -247,6 +248,18 @@ TEST(PreparedSample, ShearingAPreparedSampleEqualsTheFullRun) {
       << read(r.string() + ".err");
   EXPECT_EQ(read(r / "series.csv"), read(ref / "series.csv"));
   EXPECT_FALSE(fs::exists(r / "compaction.csv")) << "no compaction was run";
+  // Its summary counts its own steps and time only (not the sample's compaction): the triaxial
+  // steps, and particle-steps per second over its own wall time.
+  {
+    const auto full = nlohmann::json::parse(read(ref / "summary.json"));
+    const auto own = nlohmann::json::parse(read(r / "summary.json"));
+    EXPECT_EQ(own["steps"].get<long>(), own["triaxial"]["steps"].get<long>());
+    EXPECT_EQ(full["steps"].get<long>(), full["compaction"]["steps"].get<long>() + full["triaxial"]["steps"].get<long>());
+    EXPECT_EQ(own["steps_cover"], "triaxial of a prepared sample");
+    EXPECT_NEAR(own["particle_steps_per_s"].get<double>(),
+                own["derived"]["particles"].get<double>() * own["steps"].get<double>() / own["wall_s"].get<double>(),
+                1e-9 * own["particle_steps_per_s"].get<double>());
+  }
   // The same sample at another damping ratio: a different series from the same start.
   const fs::path o = scratch("from-prepared-od");
   ASSERT_EQ(run_cli({"run", case_file().string(), "--out", o.string(), "--threads", "1", "--quiet", "--set",

@@ -108,7 +108,7 @@ void io_particles(IO& io, P& p) {
 }
 
 template <class IO, class R>
-void io_run(IO& io, R& r) {
+void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
   io.pod(r.phase);
   io.pod(r.phase_started);
   io.pod(r.phase_steps);
@@ -136,6 +136,7 @@ void io_run(IO& io, R& r) {
   io.pod(m.void_ratio);
   io.pod(r.sums);
   io.pod(r.wall_s);
+  if (version >= 2) io.pod(r.first_step);
 }
 
 // `version`: the format being read (the writer always writes checkpoint_format_version).
@@ -271,7 +272,7 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   Checkpoint c;
   r.str(c.case_text);
   r.str(c.case_source);
-  io_run(r, c.run);
+  io_run(r, c.run, version);
   io_state(r, c.state, version);
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);

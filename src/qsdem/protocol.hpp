@@ -51,6 +51,8 @@ struct RunProgress {
   CompactionResult compaction; // set when compaction ends
   TriaxialSums sums;
   double wall_s = 0;           // wall time of the run's earlier sessions (s)
+  long first_step = 0;         // State::step when this run's own work began (a prepared
+                               // sample's compaction steps are not this run's)
 };
 
 // Called after every step; `sample_point` is true when a CSV row was just written. It may save a

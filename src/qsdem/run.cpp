@@ -185,7 +185,8 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
   }
 
   const double wall = wall_before + session_s();
-  const double particle_steps = static_cast<double>(st.step) * static_cast<double>(st.particles.size());
+  const long own_steps = st.step - run.first_step;  // steps this run took (not a prepared sample's)
+  const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st.particles.size());
   const CompactionResult& comp = run.compaction;
   nlohmann::json s;
   s["version"] = QSDEM_VERSION;
@@ -216,13 +217,15 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     s["peak_phi_e1"] = tri.peak_phi_e1;
     s["final_ev"] = tri.final_ev;
   }
-  s["steps"] = st.step;
+  s["steps"] = own_steps;
+  s["steps_cover"] = run.first_step == 0 ? (options.prepare_only ? "compaction" : "compaction + triaxial")
+                                         : "triaxial of a prepared sample";
   s["wall_s"] = wall;
   s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
   s["neighbor_builds"] = st.neighbor.builds;
   s["peak_rss_kib"] = peak_rss_kib();
-  s["stages"] = stage_json(st.timers, st.step);
-  s["stage_table"] = format_stage_table(st.timers, st.step);
+  s["stages"] = stage_json(st.timers, own_steps);
+  s["stage_table"] = format_stage_table(st.timers, own_steps);
   write_file_atomic(dir / "summary.json", s.dump(2) + "\n");
   // A finished run needs no checkpoint; a prepared sample keeps sample.qsck.
   fs::remove(dir / checkpoint_file);
@@ -252,7 +255,10 @@ State load_sample(const Params& params, RunProgress& run) {
                                    prepared_sample_file));
     run = c.run;
     run.wall_s = 0;
-    return c.state;
+    run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
+    State st = c.state;
+    st.timers = {};
+    return st;
   }
   if (!fs::is_regular_file(from))
     throw InputError(fmt::format("sample.from = '{}': no such prepared sample directory or packing file",
@@ -284,7 +290,9 @@ nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& op
 
 std::string format_run_table(const nlohmann::json& s) {
   std::string out;
-  auto row = [&](const char* name, const std::string& value) { out += fmt::format("| {:<38} | {:>14} |\n", name, value); };
+  auto row = [&](const std::string& name, const std::string& value) {
+    out += fmt::format("| {:<38} | {:>14} |\n", name, value);
+  };
   row("quantity", "value");
   out += fmt::format("|{:-<40}|{:->16}|\n", "", "");
   row("particles", fmt::format("{}", s["derived"]["particles"].get<long>()));
@@ -295,7 +303,7 @@ std::string format_run_table(const nlohmann::json& s) {
     row("mean IMom", fmt::format("{:.4g}", s["mean_imom"].get<double>()));
     row("max lateral stress error", fmt::format("{:.3g} %", 100 * s["triaxial"]["max_lateral_stress_error"].get<double>()));
   }
-  row("steps (compaction + triaxial)", fmt::format("{}", s["steps"].get<long>()));
+  row("steps (" + s["steps_cover"].get<std::string>() + ")", fmt::format("{}", s["steps"].get<long>()));
   row("wall time (s)", fmt::format("{:.1f}", s["wall_s"].get<double>()));
   row("particle-steps per second", fmt::format("{:.4g}", s["particle_steps_per_s"].get<double>()));
   return out;
