@@ -4,7 +4,6 @@
 #include <fmt/format.h>
 #include <unistd.h>
 
-#include <algorithm>
 #include <cstring>
 #include <fstream>
 #include <iterator>
@@ -155,7 +154,6 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
   if (version >= 2) {
     io.vec(st.neighbor.surface_path);
     io.pod(st.neighbor.strain_path);
-    io.pod(st.neighbor.branch_reach);
   }
   io.pod(st.neighbor.h_at_build);
   io.pod(st.neighbor.skin);
@@ -284,13 +282,8 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   if (version < 2) {
     // Format 1 (before apart pairs were skipped): no skip state, so every pair is tested at the
     // first step and the motion bounds start from zero (as after a list build).
-    NeighborState& ns = c.state.neighbor;
     c.state.pairs.apart_until.assign(np, -1.0);
-    const auto& shape = c.state.particles.shape;
-    if (std::find(shape.begin(), shape.end(), ShapeKind::ellipsoid) != shape.end())
-      ns.surface_path.assign(c.state.particles.size(), 0.0);
-    ns.strain_path = 0;
-    ns.branch_reach = NeighborState::reach_of(ns.max_bound_radius, ns.skin);
+    c.state.neighbor.restart_motion(c.state.particles);
   }
   return c;
 }

@@ -18,14 +18,11 @@ void compute_contact_forces(const Model& model, State& state) {
   const double dt = model.dt;
   const std::size_t np = pairs.size();
   const std::size_t n = p.size();
-  if (pairs.block_first.empty()) build_incidence(pairs, n);  // a hand-made list
   const std::size_t nblocks = pairs.block_first.size() - 1;
   state.blocks.resize(nblocks);
   // Shape matrices once per particle (each takes part in several pairs); only when some particle
   // is an ellipsoid, so a sphere run pays nothing.
-  const bool any_ellipsoid =
-      std::find(p.shape.begin(), p.shape.end(), ShapeKind::ellipsoid) != p.shape.end();
-  if (any_ellipsoid) {
+  if (p.has_ellipsoids()) {
     state.shapes.resize(n);
 #pragma omp parallel for schedule(static) if (n > parallel_threshold)
     for (std::size_t a = 0; a < n; ++a) state.shapes[a] = ellipsoid_shape(p.semi_axes[a], p.q[a]);

@@ -65,6 +65,14 @@ void check_cell_size(const Particles& p, const Cell& cell, double skin) {
         2e3 * rmax, 1e3 * skin, 1e3 * wmin));
 }
 
+void NeighborState::restart_motion(const Particles& p) {
+  if (p.has_ellipsoids())
+    surface_path.assign(p.size(), 0.0);
+  else
+    surface_path.clear();
+  strain_path = 0;
+}
+
 bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell) {
   if (!ns.valid) return true;
   double d2max = 0;
@@ -221,13 +229,7 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   ns.h_at_build = cell.h;
   ns.skin = skin;
   ns.max_bound_radius = *std::max_element(p.bound_radius.begin(), p.bound_radius.end());
-  ns.branch_reach = NeighborState::reach_of(ns.max_bound_radius, skin);
-  // Tracked only where pairs with an ellipsoid can be skipped (two spheres are tested directly).
-  if (std::find(p.shape.begin(), p.shape.end(), ShapeKind::ellipsoid) != p.shape.end())
-    ns.surface_path.assign(n, 0.0);
-  else
-    ns.surface_path.clear();
-  ns.strain_path = 0;
+  ns.restart_motion(p);
   ns.valid = true;
   ns.distance_checks = checked;
   ++ns.builds;

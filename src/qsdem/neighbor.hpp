@@ -56,19 +56,22 @@ struct NeighborState {
   // surface_path[k] = sum over steps of dt |v_k| + 2 a_k |q_new - q_old| (the quaternion chord is
   // 2 sin(theta/4) >= sin(theta/2)) and strain_path = sum of |dt L|_F bound how far the two
   // surfaces of a pair can have come closer: surface_path[i] + surface_path[j] + strain_path |l|,
-  // with |l| <= branch_reach for any listed pair that is still apart.
+  // with |l| <= branch_reach() for any listed pair that is still apart.
   std::vector<double> surface_path;
   double strain_path = 0;
-  double branch_reach = 0;  // reach_of(max_bound_radius, skin)
 
   // A listed pair has |l| < r_i + r_j + skin at the build; until the next build, (1 + strain)
   // times that plus twice the largest displacement (needs_rebuild: each <= skin). Apart pairs keep
   // |l| <= |l_0| + gap_0 <= 2 |l_0| while skipped (the gap of convex bodies is <= |l|).
-  static double reach_of(double max_bound_radius, double skin) { return 2 * (2 * max_bound_radius + 3 * skin); }
+  double branch_reach() const { return 2 * (2 * max_bound_radius + 3 * skin); }
+
+  // Zero motion, as at a list build. Paths are tracked only where pairs with an ellipsoid can be
+  // skipped (two spheres are always tested directly).
+  void restart_motion(const Particles& p);
 
   // Distance by which the surfaces of a listed pair can have approached since the build.
   double moved(std::uint32_t i, std::uint32_t j) const {
-    return surface_path[i] + surface_path[j] + strain_path * branch_reach;
+    return surface_path[i] + surface_path[j] + strain_path * branch_reach();
   }
 };
 

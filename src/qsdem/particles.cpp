@@ -1,5 +1,6 @@
 #include "qsdem/particles.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 namespace qsdem {
@@ -9,6 +10,10 @@ double ellipsoid_volume(const Vec3& ax) { return 4.0 / 3.0 * pi * ax.x() * ax.y(
 Vec3 ellipsoid_inertia(double m, const Vec3& ax) {
   const Vec3 sq = ax.cwiseProduct(ax);
   return m / 5.0 * Vec3(sq.y() + sq.z(), sq.x() + sq.z(), sq.x() + sq.y());
+}
+
+bool Particles::has_ellipsoids() const {
+  return std::find(shape.begin(), shape.end(), ShapeKind::ellipsoid) != shape.end();
 }
 
 void Particles::resize(std::size_t n) {

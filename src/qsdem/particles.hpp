@@ -32,6 +32,7 @@ struct Particles {
   std::vector<Vec3> torque;
 
   std::size_t size() const { return id.size(); }
+  bool has_ellipsoids() const;
   void resize(std::size_t n);
   // Appends one particle at rest with mass properties from the shape (SPEC 2).
   void add(std::uint32_t pid, ShapeKind kind, const Vec3& semi_axes, double density,

@@ -239,7 +239,7 @@ State load_sample(const Params& params, RunProgress& run) {
   namespace fs = std::filesystem;
   const fs::path from = params.sample.from;
   if (fs::is_directory(from)) {
-    const Checkpoint c = load_checkpoint(from / prepared_sample_file);
+    Checkpoint c = load_checkpoint(from / prepared_sample_file);
     const Params prepared = parse_case(c.case_text, c.case_source);
     const auto& a = prepared.material;
     const auto& b = params.material;
@@ -256,9 +256,8 @@ State load_sample(const Params& params, RunProgress& run) {
     run = c.run;
     run.wall_s = 0;
     run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
-    State st = c.state;
-    st.timers = {};
-    return st;
+    c.state.timers = {};
+    return std::move(c.state);
   }
   if (!fs::is_regular_file(from))
     throw InputError(fmt::format("sample.from = '{}': no such prepared sample directory or packing file",
