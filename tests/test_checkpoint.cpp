@@ -228,7 +228,7 @@ TEST(CheckpointFile, RoundTripIsExact) {
   EXPECT_EQ(c.state.pairs.image, st.pairs.image);
   EXPECT_EQ(c.state.cell.h, st.cell.h);
   EXPECT_EQ(c.state.cell.L, st.cell.L);
-  EXPECT_EQ(c.state.pairs.incident_j, st.pairs.incident_j);
+  EXPECT_EQ(c.state.pairs.first_i, st.pairs.first_i);
   EXPECT_EQ(c.state.pairs.block_first, st.pairs.block_first);
   ASSERT_GT(st.pairs.size(), 0u);
 }

@@ -85,19 +85,10 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
 }
 
 void build_incidence(PairList& pairs, std::size_t n) {
-  // In pair order: the sums then run in a fixed order for any thread count.
   const std::size_t np = pairs.size();
   pairs.first_i.assign(n + 1, 0);
-  pairs.first_j.assign(n + 1, 0);
-  for (std::size_t k = 0; k < np; ++k) {
-    ++pairs.first_i[pairs.i[k] + 1];
-    ++pairs.first_j[pairs.j[k] + 1];
-  }
+  for (std::size_t k = 0; k < np; ++k) ++pairs.first_i[pairs.i[k] + 1];
   std::partial_sum(pairs.first_i.begin(), pairs.first_i.end(), pairs.first_i.begin());
-  std::partial_sum(pairs.first_j.begin(), pairs.first_j.end(), pairs.first_j.begin());
-  pairs.incident_j.resize(np);
-  std::vector<std::uint32_t> fill(pairs.first_j.begin(), pairs.first_j.end() - 1);
-  for (std::size_t k = 0; k < np; ++k) pairs.incident_j[fill[pairs.j[k]]++] = static_cast<std::uint32_t>(k);
   // Blocks of whole particles (as i) holding at least pairs_per_block pairs: each block owns the
   // i-side sums of its particles, and the blocks depend on the list only, not on the threads.
   pairs.block_first.assign(1, 0);

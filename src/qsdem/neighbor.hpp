@@ -29,12 +29,12 @@ struct PairList {
   // to save memory traffic).
   std::vector<Vec3> force;         // contact force on j (N); i receives -force
   std::vector<Vec3> torque_j;      // torque of the contact force about j's centre (N m)
-  std::vector<double> overlap;     // delta (m); > 0 when the pair is a contact (<= 0: apart; for
-                                   // pairs with an ellipsoid, 0 when apart)
+  std::vector<double> overlap;     // delta (m) when the pair is a contact, 0 when apart
+  // The contacts' pair indices, block by block (slots from the block's first pair on; see
+  // ForceBlock): the gather reads only these, not every pair's overlap.
+  std::vector<std::uint32_t> contact_pairs;
   // Layout for the deterministic per-particle sums (build_incidence).
   std::vector<std::uint32_t> first_i;     // size n + 1: pairs [first_i[a], first_i[a+1]) have i = a
-  std::vector<std::uint32_t> first_j;     // size n + 1: CSR into incident_j
-  std::vector<std::uint32_t> incident_j;  // pair indices with j = a, in pair order
   std::vector<std::uint32_t> block_first; // particle ranges of the force stage's blocks (~1024
                                           // pairs each, whole particles): nblocks + 1 entries
 
@@ -82,7 +82,7 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
 // Rebuilds `pairs` (keeping the history of pairs present before) and the incidence lists.
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns);
 
-// Rebuilds first_i, first_j, incident_j and block_first from the (sorted) pair keys.
+// Rebuilds first_i and block_first from the (sorted) pair keys.
 void build_incidence(PairList& pairs, std::size_t n_particles);
 
 // Refuses a cell in which a particle could touch its own image (SPEC 3).

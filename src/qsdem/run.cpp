@@ -324,8 +324,8 @@ nlohmann::json memory_kib(const State& st) {
                            kib(p.mass) + kib(p.inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
                            kib(p.angmom) + kib(p.omega) + kib(p.force) + kib(p.torque);
   const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
-  const double results = kib(q.force) + kib(q.torque_j) + kib(q.overlap);
-  const double lists = kib(q.first_i) + kib(q.first_j) + kib(q.incident_j) + kib(q.block_first) +
+  const double results = kib(q.force) + kib(q.torque_j) + kib(q.overlap) + kib(q.contact_pairs);
+  const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
   const double scratch = kib(st.blocks) + kib(st.shapes);
   return {{"particles", particles},

@@ -19,6 +19,9 @@ struct ForceBlock {
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
   long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
+  // The block's contacts, in pair order: PairList::contact_pairs[first_contact, + contacts).
+  std::uint32_t first_contact = 0;
+  std::uint32_t contacts = 0;
 };
 
 struct State {
