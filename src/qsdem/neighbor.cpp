@@ -210,9 +210,11 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
     if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) {
       next.shear[k] = pairs.shear[o];
       next.pw_lambda[k] = pairs.pw_lambda[o];
+      next.overlap[k] = pairs.overlap[o];
     }
   }
 
+  next.overlap_known = pairs.overlap_known && pairs.overlap.size() == pairs.size();
   build_incidence(next, n);
   pairs = std::move(next);
 

@@ -29,7 +29,11 @@ struct PairList {
   // to save memory traffic).
   std::vector<Vec3> force;         // contact force on j (N); i receives -force
   std::vector<Vec3> torque_j;      // torque of the contact force about j's centre (N m)
-  std::vector<double> overlap;     // delta (m) when the pair is a contact, 0 when apart
+  std::vector<double> overlap;     // delta (m) > 0 when the pair is a contact, 0 when apart
+  // overlap is that of the last force evaluation, so a pair with overlap 0 has no tangential
+  // history. False until a force evaluation has run on this list (a checkpoint restores shear,
+  // not overlap): then every apart pair's history is checked.
+  bool overlap_known = false;
   // The contacts' pair indices, block by block (slots from the block's first pair on; see
   // ForceBlock): the gather reads only these, not every pair's overlap.
   std::vector<std::uint32_t> contact_pairs;
