@@ -28,9 +28,9 @@ inline void add_contact(const ForceInputs& in, Particles& p, PairList& pairs, st
                         std::uint32_t j, const Vec3& l, const ContactGeometry& g, ForceBlock& acc) {
   pairs.overlap[k] = g.overlap;
   pairs.contact_pairs[acc.first_contact + acc.contacts++] = k;
-  const double ratio = g.overlap / std::min(p.equiv_radius[i], p.equiv_radius[j]);
-  if (ratio > acc.max_overlap) {
-    acc.max_overlap = ratio;
+  const double r_min = std::min(p.equiv_radius[i], p.equiv_radius[j]);
+  if (g.overlap > acc.max_overlap * r_min) {  // delta / R_min > max, without a division per contact
+    acc.max_overlap = g.overlap / r_min;
     acc.max_overlap_pair = k;
   }
   // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
