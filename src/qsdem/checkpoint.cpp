@@ -155,6 +155,7 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
     io.vec(st.neighbor.surface_path);
     io.pod(st.neighbor.strain_path);
   }
+  if (version >= 3) io.pod(st.neighbor.fluctuation_path);
   io.pod(st.neighbor.h_at_build);
   io.pod(st.neighbor.skin);
   io.pod(st.neighbor.max_bound_radius);

@@ -11,7 +11,8 @@
 
 namespace qsdem {
 
-inline constexpr std::uint32_t checkpoint_format_version = 2;  // 2: skip state of apart pairs
+// 2: skip state of apart pairs; 3: the same for runs of spheres only (fluctuation_path)
+inline constexpr std::uint32_t checkpoint_format_version = 3;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

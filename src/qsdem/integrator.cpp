@@ -5,19 +5,29 @@
 
 namespace qsdem {
 
-void integrate_velocities(const Model& model, Particles& p) {
+double integrate_velocities(const Model& model, Particles& p) {
   const double dt = model.dt;
   const std::size_t n = p.size();
-#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  double v2max = 0;
+#pragma omp parallel if (n > parallel_threshold)
+  {
+    double m = 0;  // this thread's (an OpenMP max reduction measured 15 us/step slower here)
+#pragma omp for schedule(static) nowait
   for (std::size_t i = 0; i < n; ++i) {
     const DampedKick kick(p.damping[i], dt);  // A_i = B_i (SPEC 6)
-    p.v[i] = kick(p.v[i], p.force[i] * (1 / p.mass[i]));
+    const Vec3 v = kick(p.v[i], p.force[i] * (1 / p.mass[i]));
+    p.v[i] = v;
+    m = std::max(m, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
     p.angmom[i] = kick(p.angmom[i], p.torque[i]);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
     if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * (1 / p.inertia[i].x());
   }
+#pragma omp critical(qsdem_max_speed)
+    v2max = std::max(v2max, m);
+  }
+  return v2max;
 }
 
 // Orientation scheme (SPEC 5; notes-ellipsoid-algorithms 3). The kick above moves L with the

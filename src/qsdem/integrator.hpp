@@ -26,7 +26,8 @@ inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, do
 }
 
 // Velocities and angular momenta to t + dt/2 (SPEC 5); angular velocity from the body inertia.
-void integrate_velocities(const Model& model, Particles& p);
+// Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
+double integrate_velocities(const Model& model, Particles& p);
 
 // Free rotation of a rigid body over dt at constant world angular momentum L (the drift half of
 // the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and

@@ -70,6 +70,7 @@ void NeighborState::restart_motion(const Particles& p) {
     surface_path.assign(p.size(), 0.0);
   else
     surface_path.clear();
+  fluctuation_path = 0;
   strain_path = 0;
 }
 

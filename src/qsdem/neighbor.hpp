@@ -61,7 +61,11 @@ struct NeighborState {
   // 2 sin(theta/4) >= sin(theta/2)) and strain_path = sum of |dt L|_F bound how far the two
   // surfaces of a pair can have come closer: surface_path[i] + surface_path[j] + strain_path |l|,
   // with |l| <= branch_reach() for any listed pair that is still apart.
+  // A run of spheres only (rotation moves no sphere's surface) keeps one number instead:
+  // fluctuation_path = sum over steps of 2 dt max_k |v_k| bounds surface_path[i] + surface_path[j]
+  // for every pair, so skipping costs one sequential read per pair and nothing per particle.
   std::vector<double> surface_path;
+  double fluctuation_path = 0;
   double strain_path = 0;
 
   // A listed pair has |l| < r_i + r_j + skin at the build; until the next build, (1 + strain)
@@ -69,14 +73,16 @@ struct NeighborState {
   // |l| <= |l_0| + gap_0 <= 2 |l_0| while skipped (the gap of convex bodies is <= |l|).
   double branch_reach() const { return 2 * (2 * max_bound_radius + 3 * skin); }
 
-  // Zero motion, as at a list build. Paths are tracked only where pairs with an ellipsoid can be
-  // skipped (two spheres are always tested directly).
+  // Zero motion, as at a list build. Per-particle paths are tracked only when some particle is an
+  // ellipsoid (and then two spheres are always tested directly); otherwise fluctuation_path.
   void restart_motion(const Particles& p);
 
   // Distance by which the surfaces of a listed pair can have approached since the build.
   double moved(std::uint32_t i, std::uint32_t j) const {
-    return surface_path[i] + surface_path[j] + strain_path * branch_reach();
+    return surface_path.empty() ? moved_any() : surface_path[i] + surface_path[j] + strain_path * branch_reach();
   }
+  // The same for any pair, in a run of spheres only.
+  double moved_any() const { return fluctuation_path + strain_path * branch_reach(); }
 };
 
 // True when some pair outside the list could now be closer than touching (SPEC 4): twice the
