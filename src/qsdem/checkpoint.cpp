@@ -273,6 +273,7 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   r.str(c.case_source);
   io_run(r, c.run, version);
   io_state(r, c.state, version);
+  c.state.particles.derive_inverses();
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);
   const std::size_t np = c.state.pairs.size();

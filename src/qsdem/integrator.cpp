@@ -12,17 +12,19 @@ double integrate_velocities(const Model& model, Particles& p) {
 #pragma omp parallel if (n > parallel_threshold)
   {
     double m = 0;  // this thread's (an OpenMP max reduction measured 15 us/step slower here)
+    double damping = 0;  // the factors of the last damping seen (one value in most runs)
+    DampedKick kick(damping, dt);
 #pragma omp for schedule(static) nowait
   for (std::size_t i = 0; i < n; ++i) {
-    const DampedKick kick(p.damping[i], dt);  // A_i = B_i (SPEC 6)
-    const Vec3 v = kick(p.v[i], p.force[i] * (1 / p.mass[i]));
+    if (p.damping[i] != damping) kick = DampedKick(damping = p.damping[i], dt);  // A_i = B_i (SPEC 6)
+    const Vec3 v = kick(p.v[i], p.force[i] * p.inv_mass[i]);
     p.v[i] = v;
     m = std::max(m, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
     p.angmom[i] = kick(p.angmom[i], p.torque[i]);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * (1 / p.inertia[i].x());
+    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
   }
 #pragma omp critical(qsdem_max_speed)
     v2max = std::max(v2max, m);
@@ -151,7 +153,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     // The body turns at constant L; omega = R I^-1 R^T L then follows the new orientation
     // (gyroscopic). Spheroid: I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis.
     if (const int k = symmetry_axis(inertia); k >= 0) {
-      const double inv_s = 1 / inertia[k], inv_perp = 1 / inertia[(k + 1) % 3];
+      const double inv_s = p.inv_inertia[i][k], inv_perp = p.inv_inertia[i][(k + 1) % 3];
       const Vec3& angmom = p.angmom[i];
       p.q[i] = spheroid_rotation(old, k, inv_s, inv_perp, angmom, dt);
       const Vec3 e = body_axis(p.q[i], k);

@@ -16,6 +16,15 @@ bool Particles::has_ellipsoids() const {
   return std::find(shape.begin(), shape.end(), ShapeKind::ellipsoid) != shape.end();
 }
 
+void Particles::derive_inverses() {
+  inv_mass.resize(mass.size());
+  inv_inertia.resize(inertia.size());
+  for (std::size_t i = 0; i < mass.size(); ++i) {
+    inv_mass[i] = 1 / mass[i];
+    inv_inertia[i] = inertia[i].cwiseInverse();
+  }
+}
+
 void Particles::resize(std::size_t n) {
   id.resize(n);
   shape.resize(n);
@@ -24,6 +33,8 @@ void Particles::resize(std::size_t n) {
   equiv_radius.resize(n);
   mass.resize(n);
   inertia.resize(n);
+  inv_mass.resize(n);
+  inv_inertia.resize(n);
   damping.resize(n);
   s.resize(n);
   q.resize(n);
@@ -44,6 +55,8 @@ void Particles::add(std::uint32_t pid, ShapeKind kind, const Vec3& ax, double de
   equiv_radius.push_back(std::cbrt(ax.x() * ax.y() * ax.z()));
   mass.push_back(m);
   inertia.push_back(ellipsoid_inertia(m, ax));
+  inv_mass.push_back(1 / m);
+  inv_inertia.push_back(inertia.back().cwiseInverse());
   damping.push_back(0.0);
   s.push_back(frac_pos);
   q.push_back(orientation.normalized());

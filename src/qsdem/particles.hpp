@@ -18,6 +18,8 @@ struct Particles {
   std::vector<double> equiv_radius;    // R_i = (abc)^(1/3) (m), SPEC 2
   std::vector<double> mass;            // kg
   std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2)
+  std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
+  std::vector<Vec3> inv_inertia;       // (divisions led the integrator's profile)
   std::vector<double> damping;         // A_i = B_i (1/s) of the current phase, SPEC 6
 
   // Dynamic state.
@@ -33,6 +35,8 @@ struct Particles {
 
   std::size_t size() const { return id.size(); }
   bool has_ellipsoids() const;
+  // Sets inv_mass and inv_inertia from mass and inertia (a restored checkpoint stores only these).
+  void derive_inverses();
   void resize(std::size_t n);
   // Appends one particle at rest with mass properties from the shape (SPEC 2).
   void add(std::uint32_t pid, ShapeKind kind, const Vec3& semi_axes, double density,

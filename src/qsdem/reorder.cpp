@@ -55,6 +55,8 @@ bool sort_particles(State& st) {
   permute(p.equiv_radius, order);
   permute(p.mass, order);
   permute(p.inertia, order);
+  permute(p.inv_mass, order);
+  permute(p.inv_inertia, order);
   permute(p.damping, order);
   permute(p.s, order);
   permute(p.q, order);

@@ -321,7 +321,7 @@ nlohmann::json memory_kib(const State& st) {
   const Particles& p = st.particles;
   const PairList& q = st.pairs;
   const double particles = kib(p.id) + kib(p.shape) + kib(p.semi_axes) + kib(p.bound_radius) + kib(p.equiv_radius) +
-                           kib(p.mass) + kib(p.inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
+                           kib(p.mass) + kib(p.inertia) + kib(p.inv_mass) + kib(p.inv_inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
                            kib(p.angmom) + kib(p.omega) + kib(p.force) + kib(p.torque);
   const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
   const double results = kib(q.force) + kib(q.torque_j) + kib(q.overlap) + kib(q.contact_pairs);
