@@ -15,17 +15,17 @@ double integrate_velocities(const Model& model, Particles& p) {
     double damping = 0;  // the factors of the last damping seen (one value in most runs)
     DampedKick kick(damping, dt);
 #pragma omp for schedule(static) nowait
-  for (std::size_t i = 0; i < n; ++i) {
-    if (p.damping[i] != damping) kick = DampedKick(damping = p.damping[i], dt);  // A_i = B_i (SPEC 6)
-    const Vec3 v = kick(p.v[i], p.force[i] * p.inv_mass[i]);
-    p.v[i] = v;
-    m = std::max(m, v.squaredNorm());
-    // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    p.angmom[i] = kick(p.angmom[i], p.torque[i]);
-    // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
-    // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
-  }
+    for (std::size_t i = 0; i < n; ++i) {
+      if (p.damping[i] != damping) kick = DampedKick(damping = p.damping[i], dt);  // A_i = B_i (SPEC 6)
+      const Vec3 v = kick(p.v[i], p.force[i] * p.inv_mass[i]);
+      p.v[i] = v;
+      m = std::max(m, v.squaredNorm());
+      // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
+      p.angmom[i] = kick(p.angmom[i], p.torque[i]);
+      // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
+      // omega is set by advance_positions at its new orientation (nothing reads it before).
+      if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
+    }
 #pragma omp critical(qsdem_max_speed)
     v2max = std::max(v2max, m);
   }
