@@ -611,11 +611,16 @@ static void check_skipping(State skipping, const char* what) {
   State testing_all = skipping;
 
   const int steps = 400;
-  long skipped = 0, listed = 0, contacts_after_skip = 0, checked_steps = 0;
+  long skipped = 0, listed = 0, contacts_after_skip = 0, checked_steps = 0, ruled_out_by_bound = 0;
   std::set<std::size_t> ever_skipped;  // pair indices since the last build
   long builds = skipping.neighbor.builds;
   for (int n = 0; n < steps; ++n) {
-    if (skipping.neighbor.valid && !needs_rebuild(skipping.neighbor, p, skipping.cell)) {
+    // A rebuild ruled out by the motion bound (spheres only) is ruled out by the full test too.
+    if (motion_bound_rules_out_rebuild(skipping.neighbor, skipping.cell)) {
+      ++ruled_out_by_bound;
+      ASSERT_FALSE(needs_rebuild(skipping.neighbor, p, skipping.cell, false)) << "step " << n;
+    }
+    if (skipping.neighbor.valid && !needs_rebuild(skipping.neighbor, p, skipping.cell, false)) {
       ++checked_steps;
       const PairList& pairs = skipping.pairs;
       for (std::size_t k = 0; k < pairs.size(); ++k) {
@@ -641,6 +646,7 @@ static void check_skipping(State skipping, const char* what) {
     step(with_skip, skipping);
     step(without_skip, testing_all);
     if (skipping.neighbor.builds != builds) ever_skipped.clear(), builds = skipping.neighbor.builds;
+    ASSERT_EQ(skipping.neighbor.builds, testing_all.neighbor.builds) << "step " << n;  // the same rebuilds
     ASSERT_EQ(skipping.pairs.size(), testing_all.pairs.size());
     for (std::size_t k = 0; k < skipping.pairs.size(); ++k) {
       ASSERT_EQ(skipping.pairs.overlap[k] > 0, testing_all.pairs.overlap[k] > 0) << "step " << n << ", pair " << k;
@@ -650,8 +656,11 @@ static void check_skipping(State skipping, const char* what) {
     ASSERT_LT((skipping.stress - testing_all.stress).norm(), 1e-9 * scale) << "step " << n;
   }
   std::printf("[ info ] %s: %ld of %ld pair tests skipped over %ld steps without a rebuild; %ld contact-steps of "
-              "pairs skipped earlier; %ld list builds\n",
-              what, skipped, listed, checked_steps, contacts_after_skip, skipping.neighbor.builds);
+              "pairs skipped earlier; %ld list builds; %ld skin tests answered by the motion bound\n",
+              what, skipped, listed, checked_steps, contacts_after_skip, skipping.neighbor.builds, ruled_out_by_bound);
+  if (!p.has_ellipsoids()) {
+    EXPECT_GT(ruled_out_by_bound, steps / 10) << "the motion bound answers some skin tests";
+  }
   EXPECT_GT(checked_steps, steps / 2);
   EXPECT_GT(skipped, listed / 3) << "most apart pairs are skipped";
   EXPECT_GT(contacts_after_skip, 0) << "skipped pairs came back into contact: the skip expired in time";

@@ -7,6 +7,7 @@
 #include <cstring>
 #include <fstream>
 #include <iterator>
+#include <limits>
 #include <type_traits>
 
 namespace qsdem {
@@ -155,7 +156,12 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
     io.vec(st.neighbor.surface_path);
     io.pod(st.neighbor.strain_path);
   }
-  if (version >= 3) io.pod(st.neighbor.fluctuation_path);
+  if (version >= 3)
+    io.pod(st.neighbor.fluctuation_path);
+  else if constexpr (!std::is_const_v<S>)
+    // Before format 3 a run of spheres did not keep its motion since the list build: unknown, so
+    // no apart pair is skipped and the skin test runs in full until the next build.
+    st.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
   io.pod(st.neighbor.h_at_build);
   io.pod(st.neighbor.skin);
   io.pod(st.neighbor.max_bound_radius);

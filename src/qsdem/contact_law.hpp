@@ -73,15 +73,18 @@ struct HertzMindlin {
 };
 
 // Exact sphere-sphere geometry for the branch l from i to j; overlap <= 0 means apart.
-inline ContactGeometry sphere_sphere(const Vec3& branch, double ri, double rj) {
+// d = |branch| (the caller's, when it has it: the same bits as branch.norm()).
+inline ContactGeometry sphere_sphere(const Vec3& branch, double d, double ri, double rj) {
   ContactGeometry g;
-  const double d = branch.norm();
   g.overlap = ri + rj - d;
   g.normal = d > 0 ? Vec3(branch / d) : Vec3::UnitZ();
   g.arm_i = (ri - 0.5 * g.overlap) * g.normal;   // midpoint of the overlap (SPEC 4)
   g.arm_j = -(rj - 0.5 * g.overlap) * g.normal;
   g.radius = ri * rj / (ri + rj);
   return g;
+}
+inline ContactGeometry sphere_sphere(const Vec3& branch, double ri, double rj) {
+  return sphere_sphere(branch, branch.norm(), ri, rj);
 }
 
 }  // namespace qsdem

@@ -24,9 +24,10 @@ struct ForceInputs {
 
 // One contact (SPEC 4): the law, the pair's results for its j end, i's resultant, and the block's
 // stress and stiffness sums.
-inline void add_contact(const ForceInputs& in, Particles& p, PairList& pairs, std::uint32_t k, std::uint32_t i,
+[[gnu::always_inline]] inline void add_contact(const ForceInputs& in, Particles& p, PairList& pairs, std::uint32_t k, std::uint32_t i,
                         std::uint32_t j, const Vec3& l, const ContactGeometry& g, ForceBlock& acc) {
   pairs.overlap[k] = g.overlap;
+  pairs.contact_j[acc.first_contact + acc.contacts] = j;
   pairs.contact_pairs[acc.first_contact + acc.contacts++] = k;
   const double r_min = std::min(p.equiv_radius[i], p.equiv_radius[j]);
   if (g.overlap > acc.max_overlap * r_min) {  // delta / R_min > max, without a division per contact
@@ -120,6 +121,7 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
   constexpr std::uint32_t chunk = 128;
   std::uint32_t tested[chunk], touching[chunk];
   Vec3 branch[chunk];
+  double distance[chunk];
   const std::uint32_t k0 = pairs.first_i[pairs.block_first[b]], k1 = pairs.first_i[pairs.block_first[b + 1]];
   const bool overlap_known = pairs.overlap_known;
   const double moved = in.skip_apart ? in.ns.moved_any() : 0;
@@ -139,8 +141,10 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
       const Vec3 l = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[k]);
       const double r = p.bound_radius[i] + p.bound_radius[j];
       const double d2 = l.squaredNorm();
+      const double d = std::sqrt(d2);  // |l|, for the gap of an apart pair or a contact's geometry
       const bool t = d2 < r * r;
       branch[nt] = l;
+      distance[nt] = d;
       touching[nt] = k;
       nt += t ? 1 : 0;
       // An apart pair is written only when it was a contact (rare, so well predicted; `&`, not
@@ -150,13 +154,15 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
       if (in.skip_apart) {
         // Not tested again until the spheres may have closed the gap |l| - r_i - r_j; the margin
         // covers its round-off. Touching pairs: -1 (always tested).
-        const double gap = std::sqrt(d2) - r * (1 + 1e-9);
-        pairs.apart_until[k] = !t && gap > 0 ? moved + gap : -1.0;
+        // (`&` and a select: `!t && ...` compiled to a branch on t, which mispredicts.)
+        const double gap = d - r * (1 + 1e-9);
+        const bool apart = (!t) & (gap > 0);
+        pairs.apart_until[k] = apart ? moved + gap : -1.0;
       }
     }
     for (std::uint32_t m = 0; m < nt; ++m) {
       const std::uint32_t k = touching[m], i = pairs.i[k], j = pairs.j[k];
-      const ContactGeometry g = sphere_sphere(branch[m], p.bound_radius[i], p.bound_radius[j]);
+      const ContactGeometry g = sphere_sphere(branch[m], distance[m], p.bound_radius[i], p.bound_radius[j]);
       if (g.overlap > 0)
         add_contact(in, p, pairs, k, i, j, branch[m], g, acc);
       else
@@ -178,6 +184,7 @@ void compute_contact_forces(const Model& model, State& state) {
   const std::size_t nblocks = pairs.block_first.size() - 1;
   state.blocks.resize(nblocks);
   pairs.contact_pairs.resize(np);
+  pairs.contact_j.resize(np);
   // Shape matrices once per particle (each takes part in several pairs); only when some particle
   // is an ellipsoid, so a sphere run pays nothing.
   const bool all_spheres = !p.has_ellipsoids();
@@ -239,8 +246,9 @@ void gather_resultants(State& state) {
     const std::uint32_t lo = static_cast<std::uint32_t>(n * t / nt), hi = static_cast<std::uint32_t>(n * (t + 1) / nt);
     for (const ForceBlock& b : state.blocks)
       for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m) {
-        const std::uint32_t k = pairs.contact_pairs[m], j = pairs.j[k];
+        const std::uint32_t j = pairs.contact_j[m];
         if (j < lo || j >= hi) continue;
+        const std::uint32_t k = pairs.contact_pairs[m];
         p.force[j] += pairs.force[k];
         p.torque[j] += pairs.torque_j[k];
       }

@@ -74,15 +74,29 @@ void NeighborState::restart_motion(const Particles& p) {
   strain_path = 0;
 }
 
-bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell) {
+// Stretch of any listed branch by the cell deformation F = h h0^-1 (Frobenius bounds the 2-norm).
+static double branch_stretch(const NeighborState& ns, const Cell& cell) {
+  const double strain = (cell.h * ns.h_at_build.inverse() - Mat3::Identity()).norm();
+  return strain * (2 * ns.max_bound_radius + ns.skin);
+}
+
+bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell) {
+  // Spheres only: no particle has moved by more than sum dt max|v| = fluctuation_path / 2 in the
+  // frame of its step, which the cell has since turned and stretched by at most exp(strain_path)
+  // (h_n h_m^-1 = prod (I + dt L)). The margins cover the round-off of the positions.
+  return ns.valid && ns.surface_path.empty() &&
+         std::exp(ns.strain_path) * ns.fluctuation_path * (1 + 1e-6) + branch_stretch(ns, cell) <
+             ns.skin * (1 - 1e-6);
+}
+
+bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound) {
   if (!ns.valid) return true;
+  if (use_motion_bound && motion_bound_rules_out_rebuild(ns, cell)) return false;  // no pass over particles
   double d2max = 0;
   const std::size_t n = p.size();
 #pragma omp parallel for reduction(max : d2max) schedule(static) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) d2max = std::max(d2max, (cell.h * (p.s[i] - ns.s_at_build[i])).squaredNorm());
-  // Stretch of any listed branch by the cell deformation F = h h0^-1 (Frobenius bounds the 2-norm).
-  const double strain = (cell.h * ns.h_at_build.inverse() - Mat3::Identity()).norm();
-  return 2 * std::sqrt(d2max) + strain * (2 * ns.max_bound_radius + ns.skin) > ns.skin;
+  return 2 * std::sqrt(d2max) + branch_stretch(ns, cell) > ns.skin;
 }
 
 void build_incidence(PairList& pairs, std::size_t n) {

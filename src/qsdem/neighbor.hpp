@@ -37,6 +37,7 @@ struct PairList {
   // The contacts' pair indices, block by block (slots from the block's first pair on; see
   // ForceBlock): the gather reads only these, not every pair's overlap.
   std::vector<std::uint32_t> contact_pairs;
+  std::vector<std::uint32_t> contact_j;  // their j ends, read in sequence by the gather's threads
   // Layout for the deterministic per-particle sums (build_incidence).
   std::vector<std::uint32_t> first_i;     // size n + 1: pairs [first_i[a], first_i[a+1]) have i = a
   std::vector<std::uint32_t> block_first; // particle ranges of the force stage's blocks (~1024
@@ -87,7 +88,13 @@ struct NeighborState {
 
 // True when some pair outside the list could now be closer than touching (SPEC 4): twice the
 // largest fluctuation displacement plus the stretch of the longest listed branch exceeds the skin.
-bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell);
+// use_motion_bound: first try motion_bound_rules_out_rebuild, valid only when the particles moved
+// through step() since the build (which keeps the paths); the same answer, without the pass.
+bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound);
+
+// True when the paths of a run of spheres (fluctuation_path, strain_path) prove that no particle
+// has moved far enough for needs_rebuild to be true.
+bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell);
 
 // Rebuilds `pairs` (keeping the history of pairs present before) and the incidence lists.
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns);

@@ -14,7 +14,8 @@ namespace qsdem {
 void evaluate_forces(const Model& model, State& s) {
   {
     ScopedStage t(s.timers, Stage::neighbor);
-    if (needs_rebuild(s.neighbor, s.particles, s.cell)) {
+    // The motion bounds are those of the skipping of apart pairs (kept by step()).
+    if (needs_rebuild(s.neighbor, s.particles, s.cell, model.skip_apart_pairs)) {
       if (model.sort_particles) sort_particles(s);  // neighbours in space, neighbours in memory
       build_pairs(s.particles, s.cell, model.skin, s.pairs, s.neighbor);
     }
