@@ -22,6 +22,7 @@ struct ForceBlock {
   // The block's contacts, in pair order: PairList::contact_pairs[first_contact, + contacts).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
+  double seconds = 0;  // time the block took (its weight when the threads share the next step's)
 };
 
 struct State {
@@ -45,6 +46,8 @@ struct State {
 
   StageTimers timers;
   std::vector<ForceBlock> blocks;       // scratch for the force stage
+  long blocks_build = -1;               // NeighborState::builds of the list the blocks were timed on
+  std::vector<std::size_t> block_cut;   // scratch: thread t runs blocks [cut[t], cut[t + 1])
   std::vector<EllipsoidShape> shapes;   // scratch: per-particle shape matrices at time t
 };
 
