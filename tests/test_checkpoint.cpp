@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cmath>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -20,6 +21,7 @@
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/neighbor.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
 #include "test_support.hpp"
@@ -333,6 +335,14 @@ TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
 TEST(CheckpointFile, Format1PreparedSampleStillShears) {
   const fs::path golden = fs::path(QSDEM_SOURCE_DIR) / "tests" / "golden" / "format1-sample";
   EXPECT_NO_THROW(load_checkpoint(golden / "sample.qsck"));
+  {
+    // The motion since the last list build was not kept before format 3: the skin test must not
+    // be answered by the motion bound (a run of spheres would otherwise take it as zero).
+    Checkpoint c = load_checkpoint(golden / "sample.qsck");
+    EXPECT_TRUE(std::isinf(c.state.neighbor.fluctuation_path));
+    c.state.neighbor.surface_path.clear();  // as in a run of spheres
+    EXPECT_FALSE(motion_bound_rules_out_rebuild(c.state.neighbor, c.state.cell));
+  }
   const fs::path d = scratch("format1");
   ASSERT_EQ(run_cli({"run", (fs::path(QSDEM_SOURCE_DIR) / "examples" / "paper-A-small.toml").string(), "--out",
                      d.string(), "--quiet", "--set", "sample.from=" + golden.string(), "--set",

@@ -156,12 +156,7 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
     io.vec(st.neighbor.surface_path);
     io.pod(st.neighbor.strain_path);
   }
-  if (version >= 3)
-    io.pod(st.neighbor.fluctuation_path);
-  else if constexpr (!std::is_const_v<S>)
-    // Before format 3 a run of spheres did not keep its motion since the list build: unknown, so
-    // no apart pair is skipped and the skin test runs in full until the next build.
-    st.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
+  if (version >= 3) io.pod(st.neighbor.fluctuation_path);
   io.pod(st.neighbor.h_at_build);
   io.pod(st.neighbor.skin);
   io.pod(st.neighbor.max_bound_radius);
@@ -293,6 +288,9 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
     c.state.pairs.apart_until.assign(np, -1.0);
     c.state.neighbor.restart_motion(c.state.particles);
   }
+  // Before format 3 a run of spheres did not keep its motion since the list build: unknown, so no
+  // apart sphere pair is skipped and the skin test runs in full until the next build.
+  if (version < 3) c.state.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
   return c;
 }
 
