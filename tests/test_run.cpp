@@ -335,5 +335,17 @@ TEST(Run, BenchPrintsOneMachineReadableLine) {
               1e-9 * kib["total"].get<double>());
   EXPECT_GT(kib["particles"].get<double>() * 1024, 2001 * 200.0);  // ~261 B per spheroid
   EXPECT_GT(b["peak_rss_kib"].get<double>(), kib["total"].get<double>());
+  EXPECT_TRUE(b["force_stage_balance"].is_null()) << "one thread: no balance to report";
+  // On two threads: the force stage's balance, mean / largest thread time, in (0, 1].
+  ASSERT_EQ(shell("'" + binary + "' bench '" + source + "/tests/golden/paper-A-small.packing' --case '" + source +
+                      "/examples/paper-A-small.toml' --steps 30 --threads 2",
+                  dir, out, err),
+            0)
+      << err;
+  const auto b2 = nlohmann::json::parse(out.substr(out.find('{')));
+  EXPECT_EQ(b2["threads"].get<int>(), 2);
+  EXPECT_EQ(b2["contacts"].get<int>(), b["contacts"].get<int>()) << "the same physics on two threads";
+  EXPECT_GT(b2["force_stage_balance"].get<double>(), 0.0);
+  EXPECT_LE(b2["force_stage_balance"].get<double>(), 1.0);
   fs::remove_all(dir);
 }

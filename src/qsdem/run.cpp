@@ -379,6 +379,10 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"threads", omp_get_max_threads()},
           {"wall_s", wall},
           {"particle_steps_per_s", np * static_cast<double>(steps) / wall},
+          // mean / largest thread time in the force stage (1: balanced; null on one thread)
+          {"force_stage_balance", st.timers.force_thread_max > 0
+                                      ? nlohmann::json(st.timers.force_thread_mean / st.timers.force_thread_max)
+                                      : nlohmann::json(nullptr)},
           {"peak_rss_kib", peak_rss_kib()},
           {"state_kib", memory_kib(st)},
           {"dt_s", model.dt},

@@ -22,7 +22,8 @@ struct ForceBlock {
   // The block's contacts, in pair order: PairList::contact_pairs[first_contact, + contacts).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
-  double seconds = 0;  // time the block took (its weight when the threads share the next step's)
+  double seconds = 0;  // time the block took
+  double weight = 0;   // its recent times, smoothed: what the threads share in the next step
 };
 
 struct State {

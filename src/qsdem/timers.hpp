@@ -14,6 +14,9 @@ inline constexpr std::array<const char*, static_cast<std::size_t>(Stage::count)>
 
 struct StageTimers {
   std::array<double, static_cast<std::size_t>(Stage::count)> seconds{};
+  // The force stage's threads (when it runs on several): summed over steps, the mean and the
+  // largest time a thread spent on its blocks. mean / max is the stage's load balance.
+  double force_thread_mean = 0, force_thread_max = 0;
   double total() const {
     double t = 0;
     for (double s : seconds) t += s;
