@@ -24,8 +24,10 @@ struct ForceInputs {
 
 // One contact (SPEC 4): the law, the pair's results for its j end, i's resultant, and the block's
 // stress and stiffness sums.
-[[gnu::always_inline]] inline void add_contact(const ForceInputs& in, Particles& p, PairList& pairs, std::uint32_t k, std::uint32_t i,
-                        std::uint32_t j, const Vec3& l, const ContactGeometry& g, ForceBlock& acc) {
+// Inlined into both loops (GCC made it a call per contact).
+[[gnu::always_inline]] inline void add_contact(const ForceInputs& in, Particles& p, PairList& pairs, std::uint32_t k,
+                                               std::uint32_t i, std::uint32_t j, const Vec3& l,
+                                               const ContactGeometry& g, ForceBlock& acc) {
   pairs.overlap[k] = g.overlap;
   pairs.contact_j[acc.first_contact + acc.contacts] = j;
   pairs.contact_pairs[acc.first_contact + acc.contacts++] = k;
@@ -172,6 +174,44 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
   return acc;
 }
 
+// Cuts the blocks into contiguous ranges of equal cost for the threads (State::block_cut): the
+// blocks' smoothed times of the last steps when `timed`, else (right after a list build) their
+// pair counts.
+void share_blocks(State& state, int nthreads, bool timed) {
+  const PairList& pairs = state.pairs;
+  const std::size_t nblocks = state.blocks.size();
+  std::vector<std::size_t>& cut = state.block_cut;
+  cut.assign(static_cast<std::size_t>(nthreads) + 1, nblocks);
+  cut[0] = 0;
+  if (nthreads == 1) return;
+  const auto cost = [&](std::size_t b) {
+    return timed ? state.blocks[b].weight
+                 : static_cast<double>(pairs.first_i[pairs.block_first[b + 1]] - pairs.first_i[pairs.block_first[b]]);
+  };
+  double total = 0;
+  for (std::size_t b = 0; b < nblocks; ++b) total += cost(b);
+  double before = 0;  // cost of blocks [0, b)
+  int t = 1;
+  for (std::size_t b = 0; b < nblocks && t < nthreads; ++b) {
+    const double c = cost(b);
+    while (t < nthreads && before + 0.5 * c >= total * t / nthreads) cut[t++] = b;  // b's middle is past the share
+    before += c;
+  }
+}
+
+// Adds this step's mean and largest thread time in the force stage to the timers (balance).
+void record_thread_balance(State& state, int nthreads) {
+  double busiest = 0, sum = 0;
+  for (int t = 0; t < nthreads; ++t) {
+    double busy = 0;
+    for (std::size_t b = state.block_cut[t]; b < state.block_cut[t + 1]; ++b) busy += state.blocks[b].seconds;
+    busiest = std::max(busiest, busy);
+    sum += busy;
+  }
+  state.timers.force_thread_mean += sum / nthreads;
+  state.timers.force_thread_max += busiest;
+}
+
 }  // namespace
 
 void compute_contact_forces(const Model& model, State& state) {
@@ -207,25 +247,9 @@ void compute_contact_forces(const Model& model, State& state) {
   // equal (an equal number of blocks left one thread idle ~15 % of the stage: blocks differ in
   // contacts and narrow tests). Right after a list build the blocks' pair counts stand in.
   const int nthreads = np > parallel_threshold ? omp_get_max_threads() : 1;
-  std::vector<std::size_t>& cut = state.block_cut;
-  cut.assign(static_cast<std::size_t>(nthreads) + 1, nblocks);
-  cut[0] = 0;
   const bool timed = state.blocks_build == state.neighbor.builds;  // the same blocks as last step
-  if (nthreads > 1) {
-    const auto cost = [&](std::size_t b) {
-      return timed ? state.blocks[b].weight
-                   : static_cast<double>(pairs.first_i[pairs.block_first[b + 1]] - pairs.first_i[pairs.block_first[b]]);
-    };
-    double total = 0;
-    for (std::size_t b = 0; b < nblocks; ++b) total += cost(b);
-    double before = 0;  // cost of blocks [0, b)
-    int t = 1;
-    for (std::size_t b = 0; b < nblocks && t < nthreads; ++b) {
-      const double c = cost(b);
-      while (t < nthreads && before + 0.5 * c >= total * t / nthreads) cut[t++] = b;  // b's middle is past the share
-      before += c;
-    }
-  }
+  share_blocks(state, nthreads, timed);
+  const std::vector<std::size_t>& cut = state.block_cut;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();
@@ -241,17 +265,7 @@ void compute_contact_forces(const Model& model, State& state) {
   }
   state.blocks_build = state.neighbor.builds;
   pairs.overlap_known = true;
-  if (nthreads > 1) {
-    double busiest = 0, sum = 0;
-    for (int t = 0; t < nthreads; ++t) {
-      double busy = 0;
-      for (std::size_t b = cut[t]; b < cut[t + 1]; ++b) busy += state.blocks[b].seconds;
-      busiest = std::max(busiest, busy);
-      sum += busy;
-    }
-    state.timers.force_thread_mean += sum / nthreads;
-    state.timers.force_thread_max += busiest;
-  }
+  if (nthreads > 1) record_thread_balance(state, nthreads);
 
   Mat3 sum = Mat3::Zero();
   Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
