@@ -243,9 +243,9 @@ void compute_contact_forces(const Model& model, State& state) {
   // i-side resultants itself; gather_resultants adds the j ends. Which thread runs a block changes
   // no result. Each thread runs a contiguous range of blocks, so it keeps the same particles (and
   // their data in its cache) from step to step (dynamic scheduling was measured slower on spheres:
-  // 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' times of the last step are
-  // equal (an equal number of blocks left one thread idle ~15 % of the stage: blocks differ in
-  // contacts and narrow tests). Right after a list build the blocks' pair counts stand in.
+  // 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' smoothed times of the last
+  // steps are equal (with an equal number of blocks the slowest thread took 1.06-1.20x the mean:
+  // blocks differ in contacts and narrow tests). Right after a list build pair counts stand in.
   const int nthreads = np > parallel_threshold ? omp_get_max_threads() : 1;
   const bool timed = state.blocks_build == state.neighbor.builds;  // the same blocks as last step
   share_blocks(state, nthreads, timed);

@@ -80,23 +80,27 @@ static double branch_stretch(const NeighborState& ns, const Cell& cell) {
   return strain * (2 * ns.max_bound_radius + ns.skin);
 }
 
-bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell) {
-  // Spheres only: no particle has moved by more than sum dt max|v| = fluctuation_path / 2 in the
-  // frame of its step, which the cell has since turned and stretched by at most exp(strain_path)
-  // (h_n h_m^-1 = prod (I + dt L)). The margins cover the round-off of the positions.
+// Spheres only: no particle has moved by more than sum dt max|v| = fluctuation_path / 2 in the
+// frame of its step, which the cell has since turned and stretched by at most exp(strain_path)
+// (h_n h_m^-1 = prod (I + dt L)). The margins cover the round-off of the positions.
+static bool bound_rules_out_rebuild(const NeighborState& ns, double stretch) {
   return ns.valid && ns.surface_path.empty() &&
-         std::exp(ns.strain_path) * ns.fluctuation_path * (1 + 1e-6) + branch_stretch(ns, cell) <
-             ns.skin * (1 - 1e-6);
+         std::exp(ns.strain_path) * ns.fluctuation_path * (1 + 1e-6) + stretch < ns.skin * (1 - 1e-6);
+}
+
+bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell) {
+  return bound_rules_out_rebuild(ns, branch_stretch(ns, cell));
 }
 
 bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound) {
   if (!ns.valid) return true;
-  if (use_motion_bound && motion_bound_rules_out_rebuild(ns, cell)) return false;  // no pass over particles
+  const double stretch = branch_stretch(ns, cell);
+  if (use_motion_bound && bound_rules_out_rebuild(ns, stretch)) return false;  // no pass over particles
   double d2max = 0;
   const std::size_t n = p.size();
 #pragma omp parallel for reduction(max : d2max) schedule(static) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) d2max = std::max(d2max, (cell.h * (p.s[i] - ns.s_at_build[i])).squaredNorm());
-  return 2 * std::sqrt(d2max) + branch_stretch(ns, cell) > ns.skin;
+  return 2 * std::sqrt(d2max) + stretch > ns.skin;
 }
 
 void build_incidence(PairList& pairs, std::size_t n) {
