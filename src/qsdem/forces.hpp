@@ -1,6 +1,9 @@
 // The force stages of the step: per-pair contact forces (narrow phase + contact law), then a
 // per-particle gather of resultants. Both are deterministic for any thread count.
 #pragma once
+#include <cstdint>
+#include <span>
+
 #include "qsdem/model.hpp"
 #include "qsdem/state.hpp"
 
@@ -14,5 +17,10 @@ void compute_contact_forces(const Model& model, State& state);
 // Adds the pairs where each particle is the j end: Particles::force / torque are then the
 // contact resultants (SPEC 7: contact forces only).
 void gather_resultants(State& state);
+
+// The same for the particles [lo, hi) only: one thread's part of the step's particle pass
+// (step.cpp). Reads every contact, in pair order, so the sums do not depend on the threads.
+void gather_resultants(const PairList& pairs, std::span<const ForceBlock> blocks, Particles& p, std::uint32_t lo,
+                       std::uint32_t hi);
 
 }  // namespace qsdem

@@ -5,29 +5,22 @@
 
 namespace qsdem {
 
-double integrate_velocities(const Model& model, Particles& p) {
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
   const double dt = model.dt;
-  const std::size_t n = p.size();
+  hi = std::min(hi, p.size());
   double v2max = 0;
-#pragma omp parallel if (n > parallel_threshold)
-  {
-    double m = 0;  // this thread's (an OpenMP max reduction measured 15 us/step slower here)
-    double damping = 0;  // the factors of the last damping seen (one value in most runs)
-    DampedKick kick(damping, dt);
-#pragma omp for schedule(static) nowait
-    for (std::size_t i = 0; i < n; ++i) {
-      if (p.damping[i] != damping) kick = DampedKick(damping = p.damping[i], dt);  // A_i = B_i (SPEC 6)
-      const Vec3 v = kick(p.v[i], p.force[i] * p.inv_mass[i]);
-      p.v[i] = v;
-      m = std::max(m, v.squaredNorm());
-      // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-      p.angmom[i] = kick(p.angmom[i], p.torque[i]);
-      // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
-      // omega is set by advance_positions at its new orientation (nothing reads it before).
-      if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
-    }
-#pragma omp critical(qsdem_max_speed)
-    v2max = std::max(v2max, m);
+  double damping = 0;  // the factors of the last damping seen (one value in most runs)
+  DampedKick kick(damping, dt);
+  for (std::size_t i = lo; i < hi; ++i) {
+    if (p.damping[i] != damping) kick = DampedKick(damping = p.damping[i], dt);  // A_i = B_i (SPEC 6)
+    const Vec3 v = kick(p.v[i], p.force[i] * p.inv_mass[i]);
+    p.v[i] = v;
+    v2max = std::max(v2max, v.squaredNorm());
+    // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
+    p.angmom[i] = kick(p.angmom[i], p.torque[i]);
+    // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
+    // omega is set by advance_positions at its new orientation (nothing reads it before).
+    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
   }
   return v2max;
 }
@@ -138,13 +131,14 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
   return r.normalized();
 }
 
-void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path) {
+void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path,
+                       std::size_t lo, std::size_t hi) {
   const double dt = model.dt;
   const Mat3 step_map = dt * cell.h_inv;
   const std::size_t n = p.size();
   const bool track = surface_path.size() == n;
-#pragma omp parallel for schedule(static) if (n > parallel_threshold)
-  for (std::size_t i = 0; i < n; ++i) {
+  hi = std::min(hi, n);
+  for (std::size_t i = lo; i < hi; ++i) {
     p.s[i] += step_map * p.v[i];  // moves x = h s by exactly dt v in the deformed cell
     if (track) surface_path[i] += dt * p.v[i].norm();
     if (p.shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing

@@ -1,5 +1,6 @@
 // Time integration (SPEC 5) with the particle damping of SPEC 6.
 #pragma once
+#include <cstdint>
 #include <span>
 
 #include "qsdem/cell.hpp"
@@ -26,8 +27,9 @@ inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, do
 }
 
 // Velocities and angular momenta to t + dt/2 (SPEC 5); angular velocity from the body inertia.
+// Particles [lo, hi), on the calling thread (the step runs it on each thread's range, step.cpp).
 // Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
-double integrate_velocities(const Model& model, Particles& p);
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX);
 
 // Free rotation of a rigid body over dt at constant world angular momentum L (the drift half of
 // the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and
@@ -41,6 +43,8 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
 // read). Spheres: orientation and omega = L / I untouched.
 // surface_path (one per particle, or empty): adds how far each particle's surface can have moved
 // in this step, dt |v| + 2 a |q_new - q_old| (NeighborState::surface_path).
-void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {});
+// Particles [lo, hi), on the calling thread, as integrate_velocities.
+void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {},
+                       std::size_t lo = 0, std::size_t hi = SIZE_MAX);
 
 }  // namespace qsdem

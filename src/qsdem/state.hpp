@@ -1,6 +1,7 @@
 // The mutable state of a run (MuJoCo-style data): particles, cell, pairs and what the last step
 // computed, plus the timers of every stage.
 #pragma once
+#include <cstdint>
 #include <vector>
 
 #include "qsdem/cell.hpp"
@@ -22,6 +23,8 @@ struct ForceBlock {
   // The block's contacts, in pair order: PairList::contact_pairs[first_contact, + contacts).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
+  // The range of their j ends: a thread of the gather skips a block none of whose j is its own.
+  std::uint32_t lowest_j = UINT32_MAX, highest_j = 0;
   double seconds = 0;  // time the block took
   double weight = 0;   // its recent times, smoothed: what the threads share in the next step
 };

@@ -8,13 +8,14 @@ namespace qsdem {
 // Advances the state from t to t + dt:
 //   1. neighbor        rebuild the Verlet list if the skin test fails (SPEC 4)
 //   2. contact forces  pair forces at t, stress and affine stiffness (SPEC 4, 7)
-//   3. gather          per-particle contact resultants f_p, M_p (SPEC 7)
-//   4. integrate       damped leapfrog kick to t + dt/2 (SPEC 5, 6)
-//   5. servo           velocity gradient L of the cell for this step (SPEC 3)
-//   6. advance         deform the cell, drift positions and orientations to t + dt
+//   3. servo           velocity gradient L of the cell for this step (SPEC 3); deform the cell
+//   then, in one pass over the particles (each thread its own range, step.cpp):
+//   4. gather          per-particle contact resultants f_p, M_p (SPEC 7)
+//   5. integrate       damped leapfrog kick to t + dt/2 (SPEC 5, 6)
+//   6. advance         drift positions and orientations to t + dt in the deformed cell
 void step(const Model& model, State& state);
 
-// Stages 1-3 only: forces and resultants at the current positions (used at start-up and by
+// Stages 1, 2 and 4 only: forces and resultants at the current positions (used at start-up and by
 // tools that need the forces of a given configuration).
 void evaluate_forces(const Model& model, State& state);
 
