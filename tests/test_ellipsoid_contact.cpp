@@ -617,3 +617,80 @@ TEST(EllipsoidContact, GapBoundNeverExceedsTheDistance) {
     }
   }
 }
+
+// The batch (EllipsoidContactBatch, what the force stage uses) gives every lane exactly what the
+// pair gives alone, whatever the other lanes do: lanes that converge at once, iterate long, bisect,
+// stop early as apart, are rejected by their bounding spheres or by support planes, or have
+// coincident centres, mixed in one batch and in shuffled order. Bit for bit: the lanes leave the
+// iteration at different passes, so a slip in the bookkeeping would show as a different bit.
+TEST(EllipsoidContact, BatchLanesMatchLonePairs) {
+  Rng rng(2026113001);
+  struct Case {
+    Vec3 l;
+    EllipsoidShape si, sj;
+    double lambda;
+  };
+  std::vector<Case> cases;
+  for (int k = 0; k < 600; ++k) {
+    const int kind = k % 6;
+    Pair p = make_pair(rng, 4.0, rng.log_uniform(1e-6, 0.3), kind == 1);
+    if (kind == 2) p.l *= 1.5;                 // well apart: bounding spheres or support planes
+    if (kind == 3 && k % 36 == 3) p.l.setZero();  // coincident centres
+    const double warm[] = {-1.0, 0.5, rng.uniform(), 1e-9, 1 - 1e-9, std::numeric_limits<double>::quiet_NaN()};
+    cases.push_back({p.l, ellipsoid_shape(p.axes_i, p.q_i), ellipsoid_shape(p.axes_j, p.q_j), warm[k % 6]});
+  }
+  // The converged lambda as warm start too (the common case in a run).
+  for (int k = 0; k < 100; ++k) {
+    Case c = cases[static_cast<std::size_t>(k)];
+    ContactGeometry g;
+    ellipsoid_contact(c.l, c.si, c.sj, c.lambda, g);
+    cases.push_back(c);
+  }
+  std::shuffle(cases.begin(), cases.end(), rng.engine);
+
+  int long_runs = 0, bisecting = 0, separated = 0, touching = 0, rejected = 0, batches = 0;
+  for (std::size_t first = 0; first < cases.size(); first += EllipsoidContactBatch::capacity) {
+    EllipsoidContactBatch batch;
+    const std::size_t last = std::min(cases.size(), first + EllipsoidContactBatch::capacity);
+    for (std::size_t c = first; c < last; ++c) batch.add(cases[c].l, cases[c].si, cases[c].sj, cases[c].lambda);
+    ellipsoid_contacts(batch);
+    ++batches;
+    for (std::size_t c = first; c < last; ++c) {
+      const int a = static_cast<int>(c - first);
+      double lambda = cases[c].lambda;
+      ContactGeometry g;
+      EllipsoidContactStats st;
+      const bool alone = ellipsoid_contact(cases[c].l, cases[c].si, cases[c].sj, lambda, g, st);
+      const EllipsoidContactStats& sb = batch.stats[a];
+      ASSERT_EQ(batch.touching[a], alone) << "case " << c;
+      // Same bits (NaN only as a NaN warm start left unchanged by a rejection).
+      EXPECT_TRUE(batch.lambda[a] == lambda || (std::isnan(lambda) && std::isnan(batch.lambda[a]))) << "case " << c;
+      EXPECT_EQ(sb.iterations, st.iterations);
+      EXPECT_EQ(sb.bisections, st.bisections);
+      EXPECT_EQ(sb.early_exit, st.early_exit);
+      EXPECT_EQ(sb.mu2, st.mu2);
+      EXPECT_EQ(sb.gap_bound, st.gap_bound);
+      if (alone) {
+        const ContactGeometry& gb = batch.g[a];
+        EXPECT_EQ(gb.normal, g.normal);
+        EXPECT_EQ(gb.overlap, g.overlap);
+        EXPECT_EQ(gb.arm_i, g.arm_i);
+        EXPECT_EQ(gb.arm_j, g.arm_j);
+        EXPECT_EQ(gb.radius, g.radius);
+      }
+      long_runs += st.iterations >= 3;
+      bisecting += st.bisections > 0;
+      separated += !alone && st.iterations > 0;
+      touching += alone;
+      rejected += !alone && st.iterations == 0;
+    }
+  }
+  // The mix this test is about did occur.
+  std::cout << batches << " batches: " << touching << " touching, " << separated << " apart after PW, " << rejected
+            << " rejected before, " << long_runs << " with >= 3 iterations, " << bisecting << " bisecting\n";
+  EXPECT_GT(touching, 100);
+  EXPECT_GT(separated, 20);
+  EXPECT_GT(rejected, 20);
+  EXPECT_GT(long_runs, 20);
+  EXPECT_GT(bisecting, 0);
+}

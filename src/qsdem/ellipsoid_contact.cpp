@@ -94,9 +94,11 @@ Sym shape_from_axes(const Vec3& c0, const Vec3& c1, double d0, double d1, double
 
 // Larger root of A t^2 + 2 B t + C = 0 (A > 0), without cancellation; a negative discriminant
 // (line missing the ellipsoid, impossible when it is needed) is clamped to the tangent point.
+// Both forms are computed, so that a loop of calls has no branch (vector lanes).
 double far_root(double A, double B, double C) {
   const double root = std::sqrt(std::max(0.0, B * B - A * C));
-  return B > 0 ? -C / (B + root) : (-B + root) / A;
+  const double stable_positive = -C / (B + root), stable_negative = (-B + root) / A;
+  return B > 0 ? stable_positive : stable_negative;
 }
 
 }  // namespace
@@ -138,119 +140,265 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
 
 bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,
                        ContactGeometry& g, EllipsoidContactStats& stats) {
-  stats = {};
-  // Bounding spheres: cannot overlap (also rejects a non-finite l).
-  const double reach = si.reach + sj.reach;
-  const double l2 = l.squaredNorm();
-  if (!(l2 < reach * reach)) {
-    if (std::isfinite(l2)) stats.gap_bound = std::sqrt(l2) - reach;
-    return false;
-  }
+  EllipsoidContactBatch batch;
+  batch.add(l, si, sj, lambda);
+  ellipsoid_contacts(batch);
+  lambda = batch.lambda[0];
+  g = batch.g[0];
+  stats = batch.stats[0];
+  return batch.touching[0];
+}
 
-  const Sym Qi{si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
-  const Sym Qj{sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
-  // |l|^2 underflows below ~1e-154 m: take the norm the slow, safe way there (l = 0 only is coincident).
-  const double ln = l2 > 1e-200 ? std::sqrt(l2) : l.stableNorm();
+// The batch: 1. per lane, the quick rejections and the start of the iteration; 2. one PW iteration
+// of every lane still iterating, in one loop without branches (selects), the lanes that are done
+// then leave the working set (compacted); 3. the overlap and radius of every lane with mu^2 < 1,
+// again in one loop. Each lane's arithmetic is the same sequence as for a lone pair.
+void ellipsoid_contacts(EllipsoidContactBatch& b) {
+  constexpr int cap = EllipsoidContactBatch::capacity;
+  // Lanes still iterating (slot a -> lane[a]): unit branch e, Q_i, D = Q_j - Q_i, bracket.
+  alignas(64) double ex[cap], ey[cap], ez[cap], l2s[cap], lams[cap], los[cap], his[cap];
+  alignas(64) double qxx[cap], qyy[cap], qzz[cap], qxy[cap], qxz[cap], qyz[cap];
+  alignas(64) double dxx[cap], dyy[cap], dzz[cap], dxy[cap], dxz[cap], dyz[cap];
+  int lane[cap];
+  int na = 0;
+  // Lanes that end the iteration with F(lambda) < 1/|l|^2 candidates: s = Q^-1 e, F, lambda.
+  alignas(64) double sx[cap], sy[cap], sz[cap], Fs[cap], lam_end[cap], lns[cap];
+  int done[cap];
+  int nd = 0;
 
-  Vec3 s = Vec3::Zero();  // Q(lambda)^-1 e, later Q^-1 l
-  double lam = 0.5;       // irrelevant for coincident centres (s = 0)
-  double F = 0;           // F(lambda; e)
-  if (ln > 0) {
+  // 1. Quick rejections, start of the iteration.
+  for (int k = 0; k < b.size; ++k) {
+    EllipsoidContactStats& st = b.stats[k];
+    st = {};
+    b.touching[k] = false;
+    const Vec3& l = b.l[k];
+    const EllipsoidShape& si = *b.shape_i[k];
+    const EllipsoidShape& sj = *b.shape_j[k];
+    // Bounding spheres: cannot overlap (also rejects a non-finite l).
+    const double reach = si.reach + sj.reach;
+    const double l2 = l.squaredNorm();
+    if (!(l2 < reach * reach)) {
+      if (std::isfinite(l2)) st.gap_bound = std::sqrt(l2) - reach;
+      continue;
+    }
+    // |l|^2 underflows below ~1e-154 m: take the norm the slow, safe way there (l = 0 only is coincident).
+    const double ln = l2 > 1e-200 ? std::sqrt(l2) : l.stableNorm();
+    lns[k] = ln;
+    if (!(ln > 0)) {  // coincident centres: s = 0, F = 0 (lambda irrelevant and unchanged)
+      sx[k] = sy[k] = sz[k] = Fs[k] = 0;
+      lam_end[k] = 0.5;
+      done[nd++] = k;
+      continue;
+    }
     const Vec3 e = l * (1 / ln);
+    const Sym Qi{si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
+    const Sym Qj{sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
     const Sym D = Qj - Qi;
-    if (lambda > 0 && lambda < 1) {
-      lam = lambda;
+    double lam;
+    if (b.lambda[k] > 0 && b.lambda[k] < 1) {
+      lam = b.lambda[k];
     } else {
       const double sup_i = std::sqrt(e.dot(Qi * e)), sup_j = std::sqrt(e.dot(Qj * e));  // h_i(e), h_j(e)
       lam = sup_i / (sup_i + sup_j);
       // Support planes normal to e already separate the pair: no PW needed.
       if (sup_i + sup_j <= ln) {
-        lambda = lam;
-        stats.early_exit = true;
-        stats.gap_bound = ln - (sup_i + sup_j);
-        return false;
+        b.lambda[k] = lam;
+        st.early_exit = true;
+        st.gap_bound = ln - (sup_i + sup_j);
+        continue;
       }
     }
-    double lo = 0, hi = 1;
-    for (;;) {
-      ++stats.iterations;
-      const Sym Q = Qi + D * lam;
-      const Sym adj = Q.adjugate();
-      const double inv_det = 1 / Q.det_with(adj);
-      s = (adj * e) * inv_det;
-      const double E = e.dot(s);
-      const Vec3 u = D * s;
-      const double su = s.dot(u);
+    lane[na] = k;
+    ex[na] = e.x(), ey[na] = e.y(), ez[na] = e.z(), l2s[na] = l2;
+    lams[na] = lam, los[na] = 0, his[na] = 1;
+    qxx[na] = Qi.xx, qyy[na] = Qi.yy, qzz[na] = Qi.zz, qxy[na] = Qi.xy, qxz[na] = Qi.xz, qyz[na] = Qi.yz;
+    dxx[na] = D.xx, dyy[na] = D.yy, dzz[na] = D.zz, dxy[na] = D.xy, dxz[na] = D.xz, dyz[na] = D.yz;
+    ++na;
+  }
+
+  // 2. PW iterations (2. in the header comment), one per pass for all iterating lanes.
+  // The lanes' outcome (flags as doubles: the compiler keeps the loop in vector lanes only when
+  // every value it stores has the doubles' width).
+  constexpr double iterate = 0, separated = 1, converged = 2;
+  alignas(64) double Fo[cap], lam_out[cap], next[cap], isx[cap], isy[cap], isz[cap];
+  alignas(64) double status[cap], bisected[cap], exhausted[cap];
+  while (na > 0) {
+#pragma omp simd
+    for (int a = 0; a < na; ++a) {
+      const double lam = lams[a], e_x = ex[a], e_y = ey[a], e_z = ez[a];
+      // Q = Q_i + D lambda, its adjugate and determinant.
+      const double Qxx = qxx[a] + dxx[a] * lam, Qyy = qyy[a] + dyy[a] * lam, Qzz = qzz[a] + dzz[a] * lam;
+      const double Qxy = qxy[a] + dxy[a] * lam, Qxz = qxz[a] + dxz[a] * lam, Qyz = qyz[a] + dyz[a] * lam;
+      const double Axx = Qyy * Qzz - Qyz * Qyz, Ayy = Qxx * Qzz - Qxz * Qxz, Azz = Qxx * Qyy - Qxy * Qxy;
+      const double Axy = Qxz * Qyz - Qxy * Qzz, Axz = Qxy * Qyz - Qxz * Qyy, Ayz = Qxy * Qxz - Qxx * Qyz;
+      const double inv_det = 1 / (Qxx * Axx + Qxy * Axy + Qxz * Axz);
+      // s = Q^-1 e, u = D s, v = Q^-1 u.
+      const double s_x = (Axx * e_x + Axy * e_y + Axz * e_z) * inv_det;
+      const double s_y = (Axy * e_x + Ayy * e_y + Ayz * e_z) * inv_det;
+      const double s_z = (Axz * e_x + Ayz * e_y + Azz * e_z) * inv_det;
+      const double E = e_x * s_x + e_y * s_y + e_z * s_z;
+      const double u_x = dxx[a] * s_x + dxy[a] * s_y + dxz[a] * s_z;
+      const double u_y = dxy[a] * s_x + dyy[a] * s_y + dyz[a] * s_z;
+      const double u_z = dxz[a] * s_x + dyz[a] * s_y + dzz[a] * s_z;
+      const double su = s_x * u_x + s_y * u_y + s_z * u_z;
       const double w = lam * (1 - lam);
-      F = w * E;
-      if (l2 * F >= 1) {  // F(lambda) <= mu^2: separation proved
-        stats.early_exit = true;
-        stats.mu2 = l2 * F;
-        stats.gap_bound = (std::sqrt(stats.mu2) - 1) * (si.minor + sj.minor);
-        lambda = lam;
-        return false;
-      }
-      const Vec3 v = (adj * u) * inv_det;
+      const double F = w * E;
+      const double apart = l2s[a] * F >= 1 ? 1.0 : 0.0;  // F(lambda) <= mu^2: separation proved
+      const double v_x = (Axx * u_x + Axy * u_y + Axz * u_z) * inv_det;
+      const double v_y = (Axy * u_x + Ayy * u_y + Ayz * u_z) * inv_det;
+      const double v_z = (Axz * u_x + Ayz * u_y + Azz * u_z) * inv_det;
       const double Fp = (1 - 2 * lam) * E - w * su;
-      const double Fpp = -2 * E - 2 * (1 - 2 * lam) * su + 2 * w * u.dot(v);
-      if (Fp > 0) lo = lam; else hi = lam;
-      if (Fpp < 0) {
-        // Converged: tested before the bracket, since a warm start sits on the maximiser and its
-        // Newton step may round to lambda itself (or an ulp outside the new bracket), which would
-        // otherwise send it bisecting from [lambda, 1] back to lambda (~50 iterations).
-        const double h = -Fp / Fpp;
-        if (h * h * v.squaredNorm() <= kStepTol * kStepTol * s.squaredNorm()) {
-          lam += h;
-          s -= h * v;
-          F += 0.5 * Fp * h;
-          break;
-        }
-      }
-      double next = Fpp < 0 ? lam - Fp / Fpp : lo - 1;  // lo - 1: forces bisection
-      if (!(next > lo && next < hi)) {
-        next = 0.5 * (lo + hi);
-        ++stats.bisections;
-      }
-      if (hi - lo <= 4 * std::numeric_limits<double>::epsilon() || stats.iterations >= kMaxIterations) break;
-      lam = next;
+      const double Fpp = -2 * E - 2 * (1 - 2 * lam) * su + 2 * w * (u_x * v_x + u_y * v_y + u_z * v_z);
+      const double lo_old = los[a], hi_old = his[a];  // loaded in every lane (no conditional load)
+      const double lo = Fp > 0 ? lam : lo_old, hi = Fp > 0 ? hi_old : lam;
+      // Converged: tested before the bracket, since a warm start sits on the maximiser and its
+      // Newton step may round to lambda itself (or an ulp outside the new bracket), which would
+      // otherwise send it bisecting from [lambda, 1] back to lambda (~50 iterations).
+      const double h = -Fp / Fpp;
+      // (`&`, not `&&`, here and below: the loop must have no branch to run in vector lanes.)
+      const double small_step = h * h * (v_x * v_x + v_y * v_y + v_z * v_z) <=
+                                        kStepTol * kStepTol * (s_x * s_x + s_y * s_y + s_z * s_z) ? 1.0 : 0.0;
+      const double conv = Fpp < 0 ? small_step : 0.0;
+      double step = Fpp < 0 ? lam + h : lo - 1;  // lam + h = lam - Fp / Fpp; lo - 1 forces bisection
+      const double inside = step > lo ? (step < hi ? 1.0 : 0.0) : 0.0;
+      step = inside != 0 ? step : 0.5 * (lo + hi);
+      // A converged step is taken to first order (2. in the header comment).
+      const bool take = conv * (1 - apart) != 0;
+      lam_out[a] = take ? lam + h : lam;
+      isx[a] = take ? s_x - h * v_x : s_x;
+      isy[a] = take ? s_y - h * v_y : s_y;
+      isz[a] = take ? s_z - h * v_z : s_z;
+      Fo[a] = take ? F + 0.5 * Fp * h : F;
+      status[a] = apart != 0 ? separated : conv != 0 ? converged : iterate;
+      bisected[a] = (1 - apart) * (1 - conv) * (1 - inside);
+      exhausted[a] = hi - lo <= 4 * std::numeric_limits<double>::epsilon() ? 1.0 : 0.0;
+      los[a] = lo, his[a] = hi, next[a] = step;
     }
-    lambda = lam;
+    // The lanes that are done leave; the others move down with their next lambda.
+    int m = 0;
+    for (int a = 0; a < na; ++a) {
+      const int k = lane[a];
+      EllipsoidContactStats& st = b.stats[k];
+      ++st.iterations;
+      st.bisections += bisected[a] != 0 ? 1 : 0;
+      if (status[a] == separated) {
+        st.early_exit = true;
+        st.mu2 = l2s[a] * Fo[a];
+        st.gap_bound = (std::sqrt(st.mu2) - 1) * (b.shape_i[k]->minor + b.shape_j[k]->minor);
+        b.lambda[k] = lams[a];
+      } else if (status[a] == converged || exhausted[a] != 0 || st.iterations >= kMaxIterations) {
+        b.lambda[k] = lam_end[k] = lam_out[a];
+        sx[k] = isx[a], sy[k] = isy[a], sz[k] = isz[a], Fs[k] = Fo[a];
+        done[nd++] = k;
+      } else {
+        lane[m] = k;
+        ex[m] = ex[a], ey[m] = ey[a], ez[m] = ez[a], l2s[m] = l2s[a];
+        lams[m] = next[a], los[m] = los[a], his[m] = his[a];
+        qxx[m] = qxx[a], qyy[m] = qyy[a], qzz[m] = qzz[a], qxy[m] = qxy[a], qxz[m] = qxz[a], qyz[m] = qyz[a];
+        dxx[m] = dxx[a], dyy[m] = dyy[a], dzz[m] = dzz[a], dxy[m] = dxy[a], dxz[m] = dxz[a], dyz[m] = dyz[a];
+        ++m;
+      }
+    }
+    na = m;
   }
-  const double mu2 = l2 * F;
-  stats.mu2 = mu2;
-  if (!(mu2 < 1)) {
-    if (mu2 > 1) stats.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
-    return false;                                                               // a first-order step
+
+  // 3. Overlap (3. in the header comment) of the lanes with mu^2 < 1, gathered into slots.
+  alignas(64) double c_l[3][cap], c_s[3][cap], c_lam[cap], c_ln[cap], c_Q[6][cap], c_Mi[6][cap], c_Mj[6][cap];
+  int ov[cap];
+  int no = 0;
+  for (int d = 0; d < nd; ++d) {
+    const int k = done[d];
+    EllipsoidContactStats& st = b.stats[k];
+    const double l2 = b.l[k].squaredNorm();
+    const double mu2 = l2 * Fs[k];
+    st.mu2 = mu2;
+    if (!(mu2 < 1)) {
+      const EllipsoidShape& si = *b.shape_i[k];
+      const EllipsoidShape& sj = *b.shape_j[k];
+      if (mu2 > 1) st.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
+      continue;                                                                  // a first-order step
+    }
+    const EllipsoidShape& si = *b.shape_i[k];
+    const EllipsoidShape& sj = *b.shape_j[k];
+    ov[no] = k;
+    for (int c = 0; c < 3; ++c) c_l[c][no] = b.l[k][c];
+    c_s[0][no] = sx[k], c_s[1][no] = sy[k], c_s[2][no] = sz[k];
+    c_lam[no] = lam_end[k], c_ln[no] = lns[k];
+    const double q[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
+    const double mi[6] = {si.mxx, si.myy, si.mzz, si.mxy, si.mxz, si.myz};
+    const double mj[6] = {sj.mxx, sj.myy, sj.mzz, sj.mxy, sj.mxz, sj.myz};
+    for (int c = 0; c < 6; ++c) c_Q[c][no] = q[c], c_Mi[c][no] = mi[c], c_Mj[c][no] = mj[c];
+    ++no;
   }
+  alignas(64) double o_n[3][cap], o_arm[3][cap], o_delta[cap], o_radius[cap];
+#pragma omp simd
+  for (int a = 0; a < no; ++a) {
+    const Sym Qi{c_Q[0][a], c_Q[1][a], c_Q[2][a], c_Q[3][a], c_Q[4][a], c_Q[5][a]};
+    const Sym Mi{c_Mi[0][a], c_Mi[1][a], c_Mi[2][a], c_Mi[3][a], c_Mi[4][a], c_Mi[5][a]};
+    const Sym Mj{c_Mj[0][a], c_Mj[1][a], c_Mj[2][a], c_Mj[3][a], c_Mj[4][a], c_Mj[5][a]};
+    const double s_x = c_s[0][a], s_y = c_s[1][a], s_z = c_s[2][a], ln = c_ln[a], lam = c_lam[a];
+    const double l_x = c_l[0][a], l_y = c_l[1][a], l_z = c_l[2][a];
+    const double sn = std::sqrt(s_x * s_x + s_y * s_y + s_z * s_z);  // s = Q^-1 e: no underflow for tiny |l|
+    const double inv_sn = 1 / sn;
+    const double n_x = sn > 0 ? s_x * inv_sn : 0, n_y = sn > 0 ? s_y * inv_sn : 0, n_z = sn > 0 ? s_z * inv_sn : 1;
+    const double S_x = s_x * ln, S_y = s_y * ln, S_z = s_z * ln;  // Q^-1 l
+    // The line x0 + t n through the one point x0, cut by each surface.
+    const double k0 = 1 - lam;
+    const double di_x = k0 * (Qi.xx * S_x + Qi.xy * S_y + Qi.xz * S_z);  // x0 - c_i
+    const double di_y = k0 * (Qi.xy * S_x + Qi.yy * S_y + Qi.yz * S_z);
+    const double di_z = k0 * (Qi.xz * S_x + Qi.yz * S_y + Qi.zz * S_z);
+    const double dj_x = di_x - l_x, dj_y = di_y - l_y, dj_z = di_z - l_z;  // x0 - c_j
+    const double Mdi_x = Mi.xx * di_x + Mi.xy * di_y + Mi.xz * di_z;
+    const double Mdi_y = Mi.xy * di_x + Mi.yy * di_y + Mi.yz * di_z;
+    const double Mdi_z = Mi.xz * di_x + Mi.yz * di_y + Mi.zz * di_z;
+    const double Mdj_x = Mj.xx * dj_x + Mj.xy * dj_y + Mj.xz * dj_z;
+    const double Mdj_y = Mj.xy * dj_x + Mj.yy * dj_y + Mj.yz * dj_z;
+    const double Mdj_z = Mj.xz * dj_x + Mj.yz * dj_y + Mj.zz * dj_z;
+    const double wi_x = Mi.xx * n_x + Mi.xy * n_y + Mi.xz * n_z;
+    const double wi_y = Mi.xy * n_x + Mi.yy * n_y + Mi.yz * n_z;
+    const double wi_z = Mi.xz * n_x + Mi.yz * n_y + Mi.zz * n_z;
+    const double wj_x = Mj.xx * n_x + Mj.xy * n_y + Mj.xz * n_z;
+    const double wj_y = Mj.xy * n_x + Mj.yy * n_y + Mj.yz * n_z;
+    const double wj_z = Mj.xz * n_x + Mj.yz * n_y + Mj.zz * n_z;
+    const double ti = far_root(n_x * wi_x + n_y * wi_y + n_z * wi_z, n_x * Mdi_x + n_y * Mdi_y + n_z * Mdi_z,
+                               di_x * Mdi_x + di_y * Mdi_y + di_z * Mdi_z - 1);  // along +n
+    const double tj = far_root(n_x * wj_x + n_y * wj_y + n_z * wj_z, -(n_x * Mdj_x + n_y * Mdj_y + n_z * Mdj_z),
+                               dj_x * Mdj_x + dj_y * Mdj_y + dj_z * Mdj_z - 1);  // along -n
+    const double half = 0.5 * (ti - tj);
+    o_n[0][a] = n_x, o_n[1][a] = n_y, o_n[2][a] = n_z;
+    o_delta[a] = ti + tj;
+    o_arm[0][a] = di_x + half * n_x, o_arm[1][a] = di_y + half * n_y, o_arm[2][a] = di_z + half * n_z;
+    // 4. in the header comment: |M_i (p_i - c_i)|, |M_j (p_j - c_j)|, and adj(c A) = c^2 adj(A):
+    // M_i/g_i + M_j/g_j scaled by g_i g_j to save two divisions.
+    const double pi_x = Mdi_x + ti * wi_x, pi_y = Mdi_y + ti * wi_y, pi_z = Mdi_z + ti * wi_z;
+    const double pj_x = Mdj_x - tj * wj_x, pj_y = Mdj_y - tj * wj_y, pj_z = Mdj_z - tj * wj_z;
+    const double gi = std::sqrt(pi_x * pi_x + pi_y * pi_y + pi_z * pi_z);
+    const double gj = std::sqrt(pj_x * pj_x + pj_y * pj_y + pj_z * pj_z);
+    const Sym A = (Mi * gj + Mj * gi).adjugate();
+    const double nAn = n_x * (A.xx * n_x + A.xy * n_y + A.xz * n_z) + n_y * (A.xy * n_x + A.yy * n_y + A.yz * n_z) +
+                       n_z * (A.xz * n_x + A.yz * n_y + A.zz * n_z);
+    o_radius[a] = gi * gj / std::sqrt(nAn);
+  }
+  for (int a = 0; a < no; ++a) {
+    const int k = ov[a];
+    if (!(o_delta[a] > 0)) continue;  // mu^2 within round-off of 1
+    ContactGeometry& g = b.g[k];
+    g.normal = {o_n[0][a], o_n[1][a], o_n[2][a]};
+    g.overlap = o_delta[a];
+    g.arm_i = {o_arm[0][a], o_arm[1][a], o_arm[2][a]};
+    g.arm_j = g.arm_i - b.l[k];
+    g.radius = o_radius[a];
+    b.touching[k] = true;
+  }
+}
 
-  const double sn = s.norm();  // s is still Q^-1 e here: no underflow for tiny |l|
-  const Vec3 n = sn > 0 ? Vec3(s * (1 / sn)) : Vec3::UnitZ();
-  s *= ln;  // Q^-1 l
-
-  // The line x0 + t n through the one point x0, cut by each surface (3. above), M = Q^-1 from
-  // the shapes (ellipsoid_shape).
-  const Sym Mi{si.mxx, si.myy, si.mzz, si.mxy, si.mxz, si.myz};
-  const Sym Mj{sj.mxx, sj.myy, sj.mzz, sj.mxy, sj.mxz, sj.myz};
-  const Vec3 di = (1 - lam) * (Qi * s);  // x0 - c_i
-  const Vec3 dj = di - l;                // x0 - c_j
-  const Vec3 Mdi = Mi * di, Mdj = Mj * dj;
-  const Vec3 wi = Mi * n, wj = Mj * n;
-  const double ti = far_root(n.dot(wi), n.dot(Mdi), di.dot(Mdi) - 1);   // along +n
-  const double tj = far_root(n.dot(wj), -n.dot(Mdj), dj.dot(Mdj) - 1);  // along -n
-  const double delta = ti + tj;
-  if (!(delta > 0)) return false;  // mu^2 within round-off of 1
-
-  g.normal = n;
-  g.overlap = delta;
-  g.arm_i = di + 0.5 * (ti - tj) * n;
-  g.arm_j = g.arm_i - l;
-
-  const double gi = (Mdi + ti * wi).norm();  // |M_i (p_i - c_i)|
-  const double gj = (Mdj - tj * wj).norm();  // |M_j (p_j - c_j)|
-  // adj(c A) = c^2 adj(A): scale M_i/g_i + M_j/g_j by g_i g_j to save two divisions.
-  const Sym A = Mi * gj + Mj * gi;
-  g.radius = gi * gj / std::sqrt(n.dot(A.adjugate() * n));
-  return true;
+int EllipsoidContactBatch::add(const Vec3& branch, const EllipsoidShape& si, const EllipsoidShape& sj,
+                               double warm_start) {
+  l[size] = branch;
+  shape_i[size] = &si;
+  shape_j[size] = &sj;
+  lambda[size] = warm_start;
+  return size++;
 }
 
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,

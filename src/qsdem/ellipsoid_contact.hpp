@@ -91,6 +91,28 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
 bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,
                        ContactGeometry& g);
 
+// A batch of contact tests, evaluated together by ellipsoid_contacts: the lanes' arithmetic is
+// laid out as structure of arrays, so the compiler runs several pairs per vector instruction and
+// the core overlaps their division and square-root chains (a lone pair is latency bound). Each
+// lane gets exactly what ellipsoid_contact gives that pair alone (which is a batch of one).
+struct EllipsoidContactBatch {
+  static constexpr int capacity = 64;
+  int size = 0;
+  // In: the branch vector and the two shapes (not owned; alive until ellipsoid_contacts returns).
+  Vec3 l[capacity];
+  const EllipsoidShape* shape_i[capacity];
+  const EllipsoidShape* shape_j[capacity];
+  double lambda[capacity];  // in/out: the warm start, as for ellipsoid_contact
+  // Out.
+  bool touching[capacity];
+  ContactGeometry g[capacity];  // where touching
+  EllipsoidContactStats stats[capacity];
+
+  // Appends a pair (size < capacity) and returns its lane.
+  int add(const Vec3& branch, const EllipsoidShape& si, const EllipsoidShape& sj, double warm_start);
+};
+void ellipsoid_contacts(EllipsoidContactBatch& batch);
+
 double pw_contact_function(const Vec3& l, const Mat3& Q_i, const Mat3& Q_j, double lambda);
 
 }  // namespace qsdem
