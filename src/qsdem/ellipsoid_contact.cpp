@@ -153,7 +153,9 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
 // of every lane still iterating, in one loop without branches (selects), the lanes that are done
 // then leave the working set (compacted); 3. the overlap and radius of every lane with mu^2 < 1,
 // again in one loop. Each lane's arithmetic is the same sequence as for a lone pair.
-void ellipsoid_contacts(EllipsoidContactBatch& b) {
+// Two builds of the batch, chosen at load time by the CPU: four lanes per instruction with AVX2,
+// two with the x86-64 baseline (SSE2). Neither uses FMA, so both give the same bits.
+[[gnu::target_clones("avx2", "default")]] void ellipsoid_contacts(EllipsoidContactBatch& b) {
   constexpr int cap = EllipsoidContactBatch::capacity;
   // Lanes still iterating (slot a -> lane[a]): unit branch e, Q_i, D = Q_j - Q_i, bracket.
   alignas(64) double ex[cap], ey[cap], ez[cap], l2s[cap], lams[cap], los[cap], his[cap];
