@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 
 namespace qsdem {
 
@@ -47,11 +48,14 @@ namespace {
 // sin and cos of a half angle. The per-step rotations of a quasi-static run are ~1e-6-1e-3 rad:
 // below 0.05 the Taylor polynomials (to x^7 and x^8) are within 3e-16 relative of libm and
 // ~4x cheaper than its sin + cos (micro-benchmark).
+[[gnu::always_inline]] inline void sin_cos_taylor(double x, double& s, double& c) {
+  const double x2 = x * x;
+  s = x * (1 - x2 * (1.0 / 6) * (1 - x2 * (1.0 / 20) * (1 - x2 * (1.0 / 42))));
+  c = 1 - x2 * 0.5 * (1 - x2 * (1.0 / 12) * (1 - x2 * (1.0 / 30) * (1 - x2 * (1.0 / 56))));
+}
 inline void sin_cos(double x, double& s, double& c) {
   if (std::abs(x) <= 0.05) {
-    const double x2 = x * x;
-    s = x * (1 - x2 * (1.0 / 6) * (1 - x2 * (1.0 / 20) * (1 - x2 * (1.0 / 42))));
-    c = 1 - x2 * 0.5 * (1 - x2 * (1.0 / 12) * (1 - x2 * (1.0 / 30) * (1 - x2 * (1.0 / 56))));
+    sin_cos_taylor(x, s, c);
   } else {
     s = std::sin(x);
     c = std::cos(x);
@@ -75,37 +79,75 @@ inline void rotate_about_body_axis(int k, double tau, const Vec3& inertia, Vec3&
   q = q * r;
 }
 
-// Unit vector of body axis k in the world frame: column k of R(q).
-inline Vec3 body_axis(const Quat& q, int k) {
-  const double w = q.w(), x = q.x(), y = q.y(), z = q.z();
-  if (k == 0) return {1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)};
-  if (k == 1) return {2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)};
-  return {2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)};
+// Quaternion product a b by components (w, x, y, z), in the order of Eigen's SSE product (what
+// Quat * Quat runs): the lanes give the same bits as the Eigen code did before them.
+struct QuatParts {
+  double w, x, y, z;
+};
+[[gnu::always_inline]] inline QuatParts multiply(const QuatParts& a, const QuatParts& b) {
+  return {(a.w * b.w - a.y * b.y) - (a.z * b.z + a.x * b.x), (a.w * b.x + a.y * b.z) - (a.z * b.y - a.x * b.w),
+          (a.w * b.y + a.y * b.w) + (a.z * b.x - a.x * b.z), (a.w * b.z - a.y * b.x) + (a.z * b.w + a.x * b.y)};
 }
 
-// Free symmetric top, symmetry axis k, inverse moments inv_s (about k) and inv_perp. Divisions
-// are few on purpose: they dominated this function's profile.
-inline Quat spheroid_rotation(const Quat& q, int k, double inv_s, double inv_perp, const Vec3& angmom,
-                              double dt) {
-  const double l2 = angmom.squaredNorm();
-  if (l2 == 0) return q;
+// Column K of R(q): the body axis K in the world frame.
+template <int K>
+[[gnu::always_inline]] inline void body_axis(const QuatParts& q, double& ax, double& ay, double& az) {
+  const double w = q.w, x = q.x, y = q.y, z = q.z;
+  if constexpr (K == 0) {
+    ax = 1 - 2 * (y * y + z * z), ay = 2 * (x * y + w * z), az = 2 * (x * z - w * y);
+  } else if constexpr (K == 1) {
+    ax = 2 * (x * y - w * z), ay = 1 - 2 * (x * x + z * z), az = 2 * (y * z + w * x);
+  } else {
+    ax = 2 * (x * z + w * y), ay = 2 * (y * z - w * x), az = 1 - 2 * (x * x + y * y);
+  }
+}
+
+// Free symmetric top, symmetry axis K, inverse moments inv_s (about K) and inv_perp, angular
+// momentum L: the orientation after dt. Divisions are few on purpose: they dominated this
+// function's profile. With `taylor_only` both half angles take the Taylor polynomials (no branch,
+// for vector lanes) and `outside` tells when one of them is beyond their range (the caller then
+// runs the lane again without it).
+template <int K, bool taylor_only>
+[[gnu::always_inline]] inline QuatParts spheroid_rotation(const QuatParts& q, double inv_s, double inv_perp,
+                                                          double lx, double ly, double lz, double dt, bool& outside) {
+  const double l2 = lx * lx + ly * ly + lz * lz;
   const double inv_l = 1 / std::sqrt(l2);
-  const double pi_s = body_axis(q, k).dot(angmom);   // body component on the symmetry axis
+  double ax, ay, az;
+  body_axis<K>(q, ax, ay, az);
+  const double pi_s = ax * lx + ay * ly + az * lz;               // body component on the symmetry axis
   const double precession = 0.5 * dt * l2 * inv_l * inv_perp;  // half angles
   const double spin = 0.5 * dt * pi_s * (inv_s - inv_perp);
   double sp, cp, ss, cs;
-  sin_cos(precession, sp, cp);
-  sin_cos(spin, ss, cs);
+  if constexpr (taylor_only) {
+    outside = !(std::abs(precession) <= 0.05) | !(std::abs(spin) <= 0.05);
+    sin_cos_taylor(precession, sp, cp);
+    sin_cos_taylor(spin, ss, cs);
+  } else {
+    outside = false;
+    sin_cos(precession, sp, cp);
+    sin_cos(spin, ss, cs);
+  }
   sp *= inv_l;
-  const Quat about_l(cp, sp * angmom.x(), sp * angmom.y(), sp * angmom.z());
-  Quat about_axis(cs, 0, 0, 0);
-  about_axis.vec()[k] = ss;
-  Quat r = about_l * q * about_axis;
+  const QuatParts about_l{cp, sp * lx, sp * ly, sp * lz};
+  const QuatParts about_axis{cs, K == 0 ? ss : 0.0, K == 1 ? ss : 0.0, K == 2 ? ss : 0.0};
+  const QuatParts r = multiply(multiply(about_l, q), about_axis);
   // |r|^2 = 1 + O(ulps) (unit factors): one Newton step for |r|^-1, 1.5 - |r|^2/2, is exact to
   // round-off there and needs no square root or division (they led this function's profile).
-  const double n2 = r.coeffs().squaredNorm();
-  r.coeffs() *= std::abs(n2 - 1) < 1e-8 ? 1.5 - 0.5 * n2 : 1 / std::sqrt(n2);
-  return r;
+  // (Summed as Eigen sums a 4-vector: (x^2 + z^2) + (y^2 + w^2).)
+  const double n2 = (r.x * r.x + r.z * r.z) + (r.y * r.y + r.w * r.w);
+  const double scale = std::abs(n2 - 1) < 1e-8 ? 1.5 - 0.5 * n2 : 1 / std::sqrt(n2);
+  const bool still = l2 == 0;  // no angular momentum: no turn
+  return {still ? q.w : r.w * scale, still ? q.x : r.x * scale, still ? q.y : r.y * scale, still ? q.z : r.z * scale};
+}
+
+inline QuatParts parts(const Quat& q) { return {q.w(), q.x(), q.y(), q.z()}; }
+
+template <bool taylor_only>
+inline QuatParts spheroid_rotation(int k, const QuatParts& q, double inv_s, double inv_perp, const Vec3& l, double dt,
+                                   bool& outside) {
+  if (k == 0) return spheroid_rotation<0, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
+  if (k == 1) return spheroid_rotation<1, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
+  return spheroid_rotation<2, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
 }
 
 // The symmetry axis of a body with two equal moments (-1: three distinct moments). Equal moments
@@ -116,11 +158,98 @@ inline int symmetry_axis(const Vec3& inertia) {
   return -1;
 }
 
+// Spheroids to turn, with the same symmetry axis, in lanes (structure of arrays): in, the
+// orientation, angular momentum and inverse moments; out, the new orientation, omega, and the
+// squared quaternion chord of the turn.
+struct TurnLanes {
+  static constexpr int capacity = 64;
+  int size = 0;
+  std::uint32_t particle[capacity];
+  double qw[capacity], qx[capacity], qy[capacity], qz[capacity];
+  double lx[capacity], ly[capacity], lz[capacity], inv_s[capacity], inv_perp[capacity];
+  double ox[capacity], oy[capacity], oz[capacity], chord2[capacity];
+  double outside[capacity];  // 1: a half angle beyond the Taylor range (lane to run again)
+};
+
+// One lane: the turn, then omega = R I^-1 R^T L at the new orientation (gyroscopic; spheroid:
+// I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis), then the chord.
+template <int K, bool taylor_only>
+[[gnu::always_inline]] inline void turn_lane(TurnLanes& t, int a, double dt) {
+  const QuatParts old{t.qw[a], t.qx[a], t.qy[a], t.qz[a]};
+  const double lx = t.lx[a], ly = t.ly[a], lz = t.lz[a], inv_s = t.inv_s[a], inv_perp = t.inv_perp[a];
+  bool outside;
+  const QuatParts q = spheroid_rotation<K, taylor_only>(old, inv_s, inv_perp, lx, ly, lz, dt, outside);
+  double ex, ey, ez;
+  body_axis<K>(q, ex, ey, ez);
+  const double f = (inv_s - inv_perp) * (ex * lx + ey * ly + ez * lz);
+  t.ox[a] = inv_perp * lx + f * ex, t.oy[a] = inv_perp * ly + f * ey, t.oz[a] = inv_perp * lz + f * ez;
+  t.qw[a] = q.w, t.qx[a] = q.x, t.qy[a] = q.y, t.qz[a] = q.z;
+  // Chord |q - q_old| of the shorter arc (q and -q are one turn), summed as Eigen sums a 4-vector.
+  const double dx = q.x - old.x, dy = q.y - old.y, dz = q.z - old.z, dw = q.w - old.w;
+  const double sx = q.x + old.x, sy = q.y + old.y, sz = q.z + old.z, sw = q.w + old.w;
+  const double minus = (dx * dx + dz * dz) + (dy * dy + dw * dw), plus = (sx * sx + sz * sz) + (sy * sy + sw * sw);
+  t.chord2[a] = plus < minus ? plus : minus;
+  t.outside[a] = outside ? 1.0 : 0.0;
+}
+
+template <bool taylor_only>
+inline void turn_lane(int k, TurnLanes& t, int a, double dt) {
+  if (k == 0) turn_lane<0, taylor_only>(t, a, dt);
+  else if (k == 1) turn_lane<1, taylor_only>(t, a, dt);
+  else turn_lane<2, taylor_only>(t, a, dt);
+}
+
+// All lanes at once, by the Taylor polynomials (several lanes per vector instruction: a lone
+// spheroid's turn is one long chain of dependent operations). Built for AVX2 and the x86-64
+// baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
+[[gnu::target_clones("avx2", "default")]] void turn_lanes(int k, TurnLanes& t, double dt) {
+  if (k == 0) {
+#pragma omp simd
+    for (int a = 0; a < t.size; ++a) turn_lane<0, true>(t, a, dt);
+  } else if (k == 1) {
+#pragma omp simd
+    for (int a = 0; a < t.size; ++a) turn_lane<1, true>(t, a, dt);
+  } else {
+#pragma omp simd
+    for (int a = 0; a < t.size; ++a) turn_lane<2, true>(t, a, dt);
+  }
+}
+
+// Lane a <- particle i.
+inline void load_lane(TurnLanes& t, int a, const Particles& p, std::uint32_t i, int k) {
+  t.particle[a] = i;
+  const Quat& q = p.q[i];
+  t.qw[a] = q.w(), t.qx[a] = q.x(), t.qy[a] = q.y(), t.qz[a] = q.z();
+  t.lx[a] = p.angmom[i].x(), t.ly[a] = p.angmom[i].y(), t.lz[a] = p.angmom[i].z();
+  t.inv_s[a] = p.inv_inertia[i][k], t.inv_perp[a] = p.inv_inertia[i][(k + 1) % 3];
+}
+
+// Turns the spheroids of the lanes (symmetry axis k) and stores their orientation, omega and
+// surface path.
+void turn_spheroids(int k, TurnLanes& t, Particles& p, std::span<double> surface_path, bool track, double dt) {
+  turn_lanes(k, t, dt);
+  for (int a = 0; a < t.size; ++a) {
+    const std::uint32_t i = t.particle[a];
+    if (t.outside[a] != 0) {  // a half angle beyond the Taylor range: again, with libm
+      load_lane(t, a, p, i, k);
+      turn_lane<false>(k, t, a, dt);
+    }
+    p.q[i] = Quat(t.qw[a], t.qx[a], t.qy[a], t.qz[a]);
+    p.omega[i] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
+    if (track) surface_path[i] += 2 * p.bound_radius[i] * std::sqrt(t.chord2[a]);
+  }
+  t.size = 0;
+}
+
 }  // namespace
 
 Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
-  if (const int k = symmetry_axis(inertia); k >= 0)
-    return spheroid_rotation(q, k, 1 / inertia[k], 1 / inertia[(k + 1) % 3], angmom, dt);
+  if (const int k = symmetry_axis(inertia); k >= 0) {
+    bool outside;
+    const QuatParts r = spheroid_rotation<false>(k, parts(q), 1 / inertia[k], 1 / inertia[(k + 1) % 3], angmom, dt,
+                                                 outside);
+    return Quat(r.w, r.x, r.y, r.z);
+  }
   Vec3 body = q.conjugate() * angmom;  // pi = R^T L
   Quat r = q;
   rotate_about_body_axis(2, 0.5 * dt, inertia, body, r);
@@ -138,30 +267,31 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const std::size_t n = p.size();
   const bool track = surface_path.size() == n;
   hi = std::min(hi, n);
+  // Spheroids wait in lanes, one set per symmetry axis, and turn a full set at a time.
+  TurnLanes lanes[3];
   for (std::size_t i = lo; i < hi; ++i) {
     p.s[i] += step_map * p.v[i];  // moves x = h s by exactly dt v in the deformed cell
     if (track) surface_path[i] += dt * p.v[i].norm();
     if (p.shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
-    const Quat old = p.q[i];
-    const Vec3& inertia = p.inertia[i];
-    // The body turns at constant L; omega = R I^-1 R^T L then follows the new orientation
-    // (gyroscopic). Spheroid: I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis.
-    if (const int k = symmetry_axis(inertia); k >= 0) {
-      const double inv_s = p.inv_inertia[i][k], inv_perp = p.inv_inertia[i][(k + 1) % 3];
-      const Vec3& angmom = p.angmom[i];
-      p.q[i] = spheroid_rotation(old, k, inv_s, inv_perp, angmom, dt);
-      const Vec3 e = body_axis(p.q[i], k);
-      p.omega[i] = inv_perp * angmom + ((inv_s - inv_perp) * e.dot(angmom)) * e;
-    } else {
-      p.q[i] = free_rotation(old, inertia, p.angmom[i], dt);
-      p.omega[i] = angular_velocity(p.q[i], inertia, p.angmom[i]);
+    if (const int k = symmetry_axis(p.inertia[i]); k >= 0) {
+      TurnLanes& t = lanes[k];
+      load_lane(t, t.size++, p, static_cast<std::uint32_t>(i), k);
+      if (t.size == TurnLanes::capacity) turn_spheroids(k, t, p, surface_path, track, dt);
+      continue;
     }
+    // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the
+    // new orientation (gyroscopic).
+    const Quat old = p.q[i];
+    p.q[i] = free_rotation(old, p.inertia[i], p.angmom[i], dt);
+    p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
     if (track) {  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
       const double chord2 = std::min((p.q[i].coeffs() - old.coeffs()).squaredNorm(),
                                      (p.q[i].coeffs() + old.coeffs()).squaredNorm());
       surface_path[i] += 2 * p.bound_radius[i] * std::sqrt(chord2);
     }
   }
+  for (int k = 0; k < 3; ++k)
+    if (lanes[k].size > 0) turn_spheroids(k, lanes[k], p, surface_path, track, dt);
 }
 
 }  // namespace qsdem
