@@ -110,6 +110,37 @@ BENCHMARK(BM_EllipsoidContactWarm)->DenseRange(0, 3);
 BENCHMARK(BM_EllipsoidContactCold)->DenseRange(0, 3);
 BENCHMARK(BM_EllipsoidApartWarm)->DenseRange(0, 3);
 
+// The same warm pairs, a batch of 64 at a time (EllipsoidContactBatch, what the force stage runs),
+// from shapes computed once per particle and step as the force stage does: time per pair.
+void BM_EllipsoidContactBatchWarm(benchmark::State& bs) {
+  std::vector<BenchPair> pairs = make_pairs(static_cast<int>(bs.range(0)), 1e-3);
+  std::vector<std::array<EllipsoidShape, 2>> shape_i(kPairs), shape_j(kPairs);
+  for (std::size_t k = 0; k < kPairs; ++k)
+    for (int state = 0; state < 2; ++state) {
+      shape_i[k][state] = ellipsoid_shape(pairs[k].axes_i, pairs[k].q_i[state]);
+      shape_j[k][state] = ellipsoid_shape(pairs[k].axes_j, pairs[k].q_j[state]);
+    }
+  EllipsoidContactBatch batch;
+  std::size_t first = 0, state = 0, contacts = 0;
+  for (auto _ : bs) {
+    batch.size = 0;
+    for (std::size_t k = first; k < first + EllipsoidContactBatch::capacity; ++k)
+      batch.add(pairs[k].l[state], shape_i[k][state], shape_j[k][state], pairs[k].lambda);
+    ellipsoid_contacts(batch);
+    for (int a = 0; a < batch.size; ++a) {
+      pairs[first + static_cast<std::size_t>(a)].lambda = batch.lambda[a];
+      contacts += batch.touching[a];
+    }
+    benchmark::DoNotOptimize(batch.g[0]);
+    first += EllipsoidContactBatch::capacity;
+    if (first == kPairs) first = 0, state ^= 1;
+  }
+  const auto n = static_cast<double>(bs.iterations()) * EllipsoidContactBatch::capacity;
+  bs.SetItemsProcessed(static_cast<std::int64_t>(n));
+  bs.counters["contact_fraction"] = static_cast<double>(contacts) / n;
+}
+BENCHMARK(BM_EllipsoidContactBatchWarm)->DenseRange(0, 3);
+
 // Iterations per call (not a time): warm and cold averages over the pair set.
 void BM_EllipsoidIterations(benchmark::State& bs) {
   std::vector<BenchPair> pairs = make_pairs(static_cast<int>(bs.range(0)), 1e-3);
