@@ -163,7 +163,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   alignas(64) double dxx[cap], dyy[cap], dzz[cap], dxy[cap], dxz[cap], dyz[cap];
   int lane[cap];
   int na = 0;
-  // Lanes that end the iteration with F(lambda) < 1/|l|^2 candidates: s = Q^-1 e, F, lambda.
+  // Lanes done iterating (or with coincident centres), by lane: s = Q^-1 e, F, lambda, |l|.
   alignas(64) double sx[cap], sy[cap], sz[cap], Fs[cap], lam_end[cap], lns[cap];
   int done[cap];
   int nd = 0;
@@ -257,7 +257,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       // Newton step may round to lambda itself (or an ulp outside the new bracket), which would
       // otherwise send it bisecting from [lambda, 1] back to lambda (~50 iterations).
       const double h = -Fp / Fpp;
-      // (`&`, not `&&`, here and below: the loop must have no branch to run in vector lanes.)
+      // (Flags are 0/1 doubles combined by selects and products: the loop must have no branch to
+      // run in vector lanes.)
       const double small_step = h * h * (v_x * v_x + v_y * v_y + v_z * v_z) <=
                                         kStepTol * kStepTol * (s_x * s_x + s_y * s_y + s_z * s_z) ? 1.0 : 0.0;
       const double conv = Fpp < 0 ? small_step : 0.0;

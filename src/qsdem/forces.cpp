@@ -100,7 +100,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
       lane[nt] = spheres ? -1 : batch.add(branch[nt], in.shapes[i], in.shapes[j], pairs.pw_lambda[k]);
       ++nt;
     }
-    acc.narrow_tests += static_cast<std::uint64_t>(nt);
+    acc.narrow_tests += nt;
     // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
     ellipsoid_contacts(batch);
     for (int m = 0; m < nt; ++m) {
