@@ -163,8 +163,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   alignas(64) double dxx[cap], dyy[cap], dzz[cap], dxy[cap], dxz[cap], dyz[cap];
   int lane[cap];
   int na = 0;
-  // Lanes done iterating (or with coincident centres), by lane: s = Q^-1 e, F, lambda, |l|.
-  alignas(64) double sx[cap], sy[cap], sz[cap], Fs[cap], lam_end[cap], lns[cap];
+  // Lanes done iterating (or with coincident centres), by lane: s = Q^-1 e, F, lambda, |l|, |l|^2.
+  alignas(64) double sx[cap], sy[cap], sz[cap], Fs[cap], lam_end[cap], lns[cap], l2_lane[cap];
   int done[cap];
   int nd = 0;
 
@@ -186,6 +186,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     // |l|^2 underflows below ~1e-154 m: take the norm the slow, safe way there (l = 0 only is coincident).
     const double ln = l2 > 1e-200 ? std::sqrt(l2) : l.stableNorm();
     lns[k] = ln;
+    l2_lane[k] = l2;
     if (!(ln > 0)) {  // coincident centres: s = 0, F = 0 (lambda irrelevant and unchanged)
       sx[k] = sy[k] = sz[k] = Fs[k] = 0;
       lam_end[k] = 0.5;
@@ -227,6 +228,9 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   while (na > 0) {
 #pragma omp simd
     for (int a = 0; a < na; ++a) {
+      // Written out by components, the twins of Sym's adjugate, det_with and product: the same
+      // code through Sym and a struct of three doubles (tried) keeps GCC 12 from vectorising the
+      // loop ("no vectype"); the order of every sum is Sym's, hence the same bits.
       const double lam = lams[a], e_x = ex[a], e_y = ey[a], e_z = ez[a];
       // Q = Q_i + D lambda, its adjugate and determinant.
       const double Qxx = qxx[a] + dxx[a] * lam, Qyy = qyy[a] + dyy[a] * lam, Qzz = qzz[a] + dzz[a] * lam;
@@ -312,8 +316,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   for (int d = 0; d < nd; ++d) {
     const int k = done[d];
     EllipsoidContactStats& st = b.stats[k];
-    const double l2 = b.l[k].squaredNorm();
-    const double mu2 = l2 * Fs[k];
+    const double mu2 = l2_lane[k] * Fs[k];
     st.mu2 = mu2;
     if (!(mu2 < 1)) {
       const EllipsoidShape& si = *b.shape_i[k];
@@ -341,6 +344,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     const Sym Mj{c_Mj[0][a], c_Mj[1][a], c_Mj[2][a], c_Mj[3][a], c_Mj[4][a], c_Mj[5][a]};
     const double s_x = c_s[0][a], s_y = c_s[1][a], s_z = c_s[2][a], ln = c_ln[a], lam = c_lam[a];
     const double l_x = c_l[0][a], l_y = c_l[1][a], l_z = c_l[2][a];
+    // Products by components, as in the iteration loop above (and for the same reason).
     const double sn = std::sqrt(s_x * s_x + s_y * s_y + s_z * s_z);  // s = Q^-1 e: no underflow for tiny |l|
     const double inv_sn = 1 / sn;
     const double n_x = sn > 0 ? s_x * inv_sn : 0, n_y = sn > 0 ? s_y * inv_sn : 0, n_z = sn > 0 ? s_z * inv_sn : 1;
