@@ -66,10 +66,8 @@ struct HertzMindlin {
     const Vec3 vt = rel_velocity - rel_velocity.dot(n) * n;
     shear -= kt * dt * vt;
     const double cap = friction * fn;
-    // Sliding or not is close to a coin toss in a shaken packing: a select, not a branch (the
-    // factor 1 of a sticking contact changes no bit).
     const double mag2 = shear.squaredNorm();
-    shear *= mag2 > cap * cap ? cap / std::sqrt(mag2) : 1.0;
+    if (mag2 > cap * cap) shear *= cap / std::sqrt(mag2);
     return {fn * n + shear, kn, kt};
   }
 };
