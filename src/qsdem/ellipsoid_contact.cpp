@@ -113,11 +113,7 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
   body_axes(q, c0, c1);
   const Vec3 a2 = axes.cwiseAbs2();
   const Sym Q = shape_from_axes(c0, c1, a2.x(), a2.y(), a2.z());
-  // Through the adjugate of this very Q: the surfaces the overlap step cuts are those the PW
-  // iteration saw (to ~cond(Q) eps <= 9 eps); once per particle instead of once per contact.
-  const Sym adj = Q.adjugate();
-  const Sym M = adj * (1 / Q.det_with(adj));
-  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, M.xx, M.yy, M.zz, M.xy, M.xz, M.yz, axes.maxCoeff(), axes.minCoeff()};
+  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff(), axes.minCoeff()};
 }
 
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
@@ -310,7 +306,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   }
 
   // 3. Overlap (3. in the header comment) of the lanes with mu^2 < 1, gathered into slots.
-  alignas(64) double c_l[3][cap], c_s[3][cap], c_lam[cap], c_ln[cap], c_Q[6][cap], c_Mi[6][cap], c_Mj[6][cap];
+  alignas(64) double c_l[3][cap], c_s[3][cap], c_lam[cap], c_ln[cap], c_Qi[6][cap], c_Qj[6][cap];
   int ov[cap];
   int no = 0;
   for (int d = 0; d < nd; ++d) {
@@ -330,18 +326,21 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     for (int c = 0; c < 3; ++c) c_l[c][no] = b.l[k][c];
     c_s[0][no] = sx[k], c_s[1][no] = sy[k], c_s[2][no] = sz[k];
     c_lam[no] = lam_end[k], c_ln[no] = lns[k];
-    const double q[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
-    const double mi[6] = {si.mxx, si.myy, si.mzz, si.mxy, si.mxz, si.myz};
-    const double mj[6] = {sj.mxx, sj.myy, sj.mzz, sj.mxy, sj.mxz, sj.myz};
-    for (int c = 0; c < 6; ++c) c_Q[c][no] = q[c], c_Mi[c][no] = mi[c], c_Mj[c][no] = mj[c];
+    const double qi[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
+    const double qj[6] = {sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
+    for (int c = 0; c < 6; ++c) c_Qi[c][no] = qi[c], c_Qj[c][no] = qj[c];
     ++no;
   }
   alignas(64) double o_n[3][cap], o_arm[3][cap], o_delta[cap], o_radius[cap];
 #pragma omp simd
   for (int a = 0; a < no; ++a) {
-    const Sym Qi{c_Q[0][a], c_Q[1][a], c_Q[2][a], c_Q[3][a], c_Q[4][a], c_Q[5][a]};
-    const Sym Mi{c_Mi[0][a], c_Mi[1][a], c_Mi[2][a], c_Mi[3][a], c_Mi[4][a], c_Mi[5][a]};
-    const Sym Mj{c_Mj[0][a], c_Mj[1][a], c_Mj[2][a], c_Mj[3][a], c_Mj[4][a], c_Mj[5][a]};
+    const Sym Qi{c_Qi[0][a], c_Qi[1][a], c_Qi[2][a], c_Qi[3][a], c_Qi[4][a], c_Qi[5][a]};
+    const Sym Qj{c_Qj[0][a], c_Qj[1][a], c_Qj[2][a], c_Qj[3][a], c_Qj[4][a], c_Qj[5][a]};
+    // M = Q^-1 through the adjugate of this very Q: the surfaces cut here are those the PW
+    // iteration saw (to ~cond(Q) eps <= 9 eps).
+    const Sym adj_i = Qi.adjugate(), adj_j = Qj.adjugate();
+    const Sym Mi = adj_i * (1 / Qi.det_with(adj_i));
+    const Sym Mj = adj_j * (1 / Qj.det_with(adj_j));
     const double s_x = c_s[0][a], s_y = c_s[1][a], s_z = c_s[2][a], ln = c_ln[a], lam = c_lam[a];
     const double l_x = c_l[0][a], l_y = c_l[1][a], l_z = c_l[2][a];
     // Products by components, as in the iteration loop above (and for the same reason).
@@ -404,12 +403,8 @@ int EllipsoidContactBatch::add(const Vec3& branch, const EllipsoidShape& si, con
   l[size] = branch;
   shape_i[size] = &si;
   shape_j[size] = &sj;
-  // The shapes are read when the batch runs: j's (112 bytes, two or three cache lines) is often
-  // not in the cache.
-  const char* shape = reinterpret_cast<const char*>(&sj);
-  __builtin_prefetch(shape);
-  __builtin_prefetch(shape + 64);
-  __builtin_prefetch(shape + sizeof(EllipsoidShape) - 1);
+  // The shapes are read when the batch runs: j's (one cache line) is often not in the cache.
+  __builtin_prefetch(&sj);
   lambda[size] = warm_start;
   return size++;
 }

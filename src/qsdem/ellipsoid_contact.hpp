@@ -70,16 +70,12 @@ bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
                        double& lambda, ContactGeometry& g, EllipsoidContactStats& stats);
 
-// ---- Helper (tests, diagnostics) ----
-
-// F(lambda) = lambda (1 - lambda) l^T [(1 - lambda) Q_i + lambda Q_j]^-1 l by an LDLT solve
-// (independent of the adjugate path used by ellipsoid_contact; slow, for checks).
 // Shape matrix Q = R diag(a^2, b^2, c^2) R^T of an ellipsoid (SPEC 4) by its six entries, and its
 // bounding radius. Computed once per particle and step by the force stage (every particle has
-// several pairs), instead of once per pair.
-struct EllipsoidShape {
+// several pairs), instead of once per pair. One cache line: the batch reads j's at random, and
+// M = Q^-1 (the surface x^T M x = 1) is computed in the batch for the contacts only.
+struct alignas(64) EllipsoidShape {
   double xx, yy, zz, xy, xz, yz;
-  double mxx, myy, mzz, mxy, mxz, myz;  // M = Q^-1 = adj(Q) / det(Q), the surface x^T M x = 1
   double reach;  // largest semi-axis
   double minor;  // smallest semi-axis
 };
@@ -113,6 +109,10 @@ struct EllipsoidContactBatch {
 };
 void ellipsoid_contacts(EllipsoidContactBatch& batch);
 
+// ---- Helper (tests, diagnostics) ----
+
+// F(lambda) = lambda (1 - lambda) l^T [(1 - lambda) Q_i + lambda Q_j]^-1 l by an LDLT solve
+// (independent of the adjugate path used by ellipsoid_contact; slow, for checks).
 double pw_contact_function(const Vec3& l, const Mat3& Q_i, const Mat3& Q_j, double lambda);
 
 }  // namespace qsdem
