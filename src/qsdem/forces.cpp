@@ -94,7 +94,8 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
     for (; k < k1 && nt < capacity; ++k) {
       const std::uint32_t i = pairs.i[k], j = pairs.j[k];
       const bool spheres = (p.shape[i] == ShapeKind::sphere) & (p.shape[j] == ShapeKind::sphere);
-      const bool skip = (!spheres) & in.skip_apart & (in.ns.moved(i, j) < pairs.apart_until[k]);
+      // Without skip_apart the motion bounds and apart_until may not be sized: nothing is read.
+      const bool skip = in.skip_apart && ((!spheres) & (in.ns.moved(i, j) < pairs.apart_until[k]));
       tested[nt] = k;
       nt += skip ? 0 : 1;
     }
