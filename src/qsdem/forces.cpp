@@ -105,6 +105,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
       const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
       branch[m] = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[kt]);
       lane[m] = spheres ? -1 : batch.add(branch[m], in.shapes[i], in.shapes[j], pairs.pw_lambda[kt]);
+      __builtin_prefetch(&pairs.shear[kt], 1);  // the law's history: the listed pairs' overflow L2
     }
     acc.narrow_tests += nt;
     // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
