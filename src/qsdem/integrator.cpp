@@ -111,7 +111,9 @@ template <int K, bool taylor_only>
 [[gnu::always_inline]] inline QuatParts spheroid_rotation(const QuatParts& q, double inv_s, double inv_perp,
                                                           double lx, double ly, double lz, double dt, bool& outside) {
   const double l2 = lx * lx + ly * ly + lz * lz;
-  const double inv_l = 1 / std::sqrt(l2);
+  // No angular momentum, no turn (`still` below). Its half angles must be 0, not 0 * inf: a NaN
+  // would send the lane to the libm rerun (8 % of the spheroids of the paper-A bench: rattlers).
+  const double inv_l = l2 > 0 ? 1 / std::sqrt(l2) : 0.0;
   double ax, ay, az;
   body_axis<K>(q, ax, ay, az);
   const double pi_s = ax * lx + ay * ly + az * lz;               // body component on the symmetry axis
