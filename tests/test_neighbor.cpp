@@ -515,6 +515,62 @@ TEST(NeighborList, SampleASizesBoundedAndExact) {
 // SPEC 3: a particle must stay smaller than half the smallest perpendicular cell width; with the
 // Verlet skin the guard is 2 R_max + skin < w_min / 2. The width is the perpendicular one: a
 // strongly skewed cell with 10 mm cell vectors but 2 mm between faces is refused.
+// SPEC 4, the skin test of a run of spheres: the motion bound that spares the pass over the
+// particles restarts from each pass (twice the largest displacement it measured, plus the paths
+// since), not from the build. Particles oscillate (their path grows faster than their
+// displacement) and drift slowly, in a sheared triclinic cell, moved as step() moves them, until
+// the pass calls for a rebuild: the bound never rules out a rebuild the pass would call for, the
+// skin test answers as the pass does, and the bound still answers after the path since the build
+// alone would have stopped it.
+TEST(NeighborList, SkinTestBoundRestartsFromItsLastPass) {
+  State st = random_sample(600, 7.5, triclinic_shape(), 0.55, 4);
+  Particles& p = st.particles;
+  NeighborState& ns = st.neighbor;
+  build_pairs(p, st.cell, kSkin, st.pairs, ns);
+  const double dt = 1e-6;
+  Mat3 L;
+  L << -1, 0.5, 0, 0, -1, 0, 0.3, 0, -1.5;
+  st.cell.L = L * (1e-6 / dt);  // strain 1e-6 per step
+  Random rng(7);
+  const auto random_unit = [&] {
+    return Vec3(2 * rng.uniform() - 1, 2 * rng.uniform() - 1, 2 * rng.uniform() - 1).normalized();
+  };
+  std::vector<Vec3> swing(p.size()), drift(p.size());
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    swing[i] = (0.02 * kSkin / dt) * random_unit();  // 0.02 skin per step, turning back every 5 steps
+    drift[i] = (0.002 * kSkin / dt) * random_unit();
+  }
+  int ruled_out = 0, ruled_out_past_build_bound = 0, step_of_rebuild = -1;
+  for (int n = 0; n < 1000 && step_of_rebuild < 0; ++n) {
+    NeighborState unrecorded = ns;
+    const bool full = needs_rebuild(unrecorded, p, st.cell, false);
+    const double strain = (st.cell.h * ns.h_at_build.inverse() - Mat3::Identity()).norm();
+    const bool build_bound = std::exp(ns.strain_path) * ns.fluctuation_path * (1 + 1e-6) +
+                                 strain * (2 * ns.max_bound_radius + ns.skin) < ns.skin * (1 - 1e-6);
+    if (motion_bound_rules_out_rebuild(ns, st.cell)) {
+      ++ruled_out;
+      ruled_out_past_build_bound += build_bound ? 0 : 1;
+      ASSERT_FALSE(full) << "step " << n << ": the bound ruled out a rebuild the pass calls for";
+    }
+    ASSERT_EQ(needs_rebuild(ns, p, st.cell, true), full) << "step " << n;
+    if (full) step_of_rebuild = n;
+    // As step(): the cell moves, then the particles with the new cell.
+    deform(st.cell, dt);
+    ns.strain_path += dt * st.cell.L.norm();
+    const double sign = (n / 5) % 2 == 0 ? 1.0 : -1.0;
+    double vmax = 0;
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      const Vec3 v = sign * swing[i] + drift[i];
+      p.s[i] += dt * st.cell.h_inv * v;
+      vmax = std::max(vmax, v.norm());
+    }
+    ns.fluctuation_path += 2 * dt * vmax;
+  }
+  EXPECT_GT(step_of_rebuild, 100) << "the drift reaches the skin";
+  EXPECT_GT(ruled_out, step_of_rebuild / 2);
+  EXPECT_GT(ruled_out_past_build_bound, step_of_rebuild / 4) << "the bound restarts from the passes";
+}
+
 TEST(NeighborCellSize, RefusesTooSmallCell) {
   const double r = 1e-3, skin = 0.1e-3;
   Particles p;

@@ -72,6 +72,7 @@ void NeighborState::restart_motion(const Particles& p) {
     surface_path.clear();
   fluctuation_path = 0;
   strain_path = 0;
+  checked_displacement = checked_fluctuation = checked_strain = 0;
 }
 
 // Stretch of any listed branch by the cell deformation F = h h0^-1 (Frobenius bounds the 2-norm).
@@ -80,19 +81,23 @@ static double branch_stretch(const NeighborState& ns, const Cell& cell) {
   return strain * (2 * ns.max_bound_radius + ns.skin);
 }
 
-// Spheres only: no particle has moved by more than sum dt max|v| = fluctuation_path / 2 in the
-// frame of its step, which the cell has since turned and stretched by at most exp(strain_path)
-// (h_n h_m^-1 = prod (I + dt L)). The margins cover the round-off of the positions.
+// Spheres only: since the last pass over the particles (or the build), which measured twice the
+// largest displacement D_c, no particle has moved by more than sum dt max|v| = (fluctuation_path
+// - checked_fluctuation) / 2 in the frame of its step, which the cell has since turned and
+// stretched by at most exp(strain_path - checked_strain) (h_n h_m^-1 = prod (I + dt L)); D_c too.
+// So twice the displacement is below exp(strain since) (D_c + fluctuation since). The margins
+// cover the round-off of the positions.
 static bool bound_rules_out_rebuild(const NeighborState& ns, double stretch) {
+  const double moved = ns.checked_displacement + (ns.fluctuation_path - ns.checked_fluctuation);
   return ns.valid && ns.surface_path.empty() &&
-         std::exp(ns.strain_path) * ns.fluctuation_path * (1 + 1e-6) + stretch < ns.skin * (1 - 1e-6);
+         std::exp(ns.strain_path - ns.checked_strain) * moved * (1 + 1e-6) + stretch < ns.skin * (1 - 1e-6);
 }
 
 bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell) {
   return bound_rules_out_rebuild(ns, branch_stretch(ns, cell));
 }
 
-bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound) {
+bool needs_rebuild(NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound) {
   if (!ns.valid) return true;
   const double stretch = branch_stretch(ns, cell);
   if (use_motion_bound && bound_rules_out_rebuild(ns, stretch)) return false;  // no pass over particles
@@ -100,7 +105,13 @@ bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell
   const std::size_t n = p.size();
 #pragma omp parallel for reduction(max : d2max) schedule(static) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) d2max = std::max(d2max, (cell.h * (p.s[i] - ns.s_at_build[i])).squaredNorm());
-  return 2 * std::sqrt(d2max) + stretch > ns.skin;
+  const double displacement = 2 * std::sqrt(d2max);
+  if (use_motion_bound) {  // the bound restarts from here (the paths are kept by step())
+    ns.checked_displacement = displacement;
+    ns.checked_fluctuation = ns.fluctuation_path;
+    ns.checked_strain = ns.strain_path;
+  }
+  return displacement + stretch > ns.skin;
 }
 
 void build_incidence(PairList& pairs, std::size_t n) {

@@ -68,6 +68,11 @@ struct NeighborState {
   std::vector<double> surface_path;
   double fluctuation_path = 0;
   double strain_path = 0;
+  // The last pass of needs_rebuild over the particles (spheres only): twice the largest
+  // displacement it measured, and fluctuation_path and strain_path then. From there the motion
+  // bound grows by the paths since (motion_bound_rules_out_rebuild), not since the build. Zero: as
+  // at the build (also after a checkpoint, which does not keep them).
+  double checked_displacement = 0, checked_fluctuation = 0, checked_strain = 0;
 
   // A listed pair has |l| < r_i + r_j + skin at the build; until the next build, (1 + strain)
   // times that plus twice the largest displacement (needs_rebuild: each <= skin). Apart pairs keep
@@ -90,7 +95,8 @@ struct NeighborState {
 // largest fluctuation displacement plus the stretch of the longest listed branch exceeds the skin.
 // use_motion_bound: first try motion_bound_rules_out_rebuild, valid only when the particles moved
 // through step() since the build (which keeps the paths); the same answer, without the pass.
-bool needs_rebuild(const NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound);
+// The pass over the particles is recorded in ns (checked_displacement) when use_motion_bound.
+bool needs_rebuild(NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound);
 
 // True when the paths of a run of spheres (fluctuation_path, strain_path) prove that no particle
 // has moved far enough for needs_rebuild to be true.
