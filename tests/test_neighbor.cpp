@@ -566,6 +566,8 @@ TEST(NeighborList, SkinTestBoundRestartsFromItsLastPass) {
     }
     ns.fluctuation_path += 2 * dt * vmax;
   }
+  std::printf("[ info ] rebuild called for at step %d; %d skin tests answered by the bound, %d of them past the "
+              "bound from the build\n", step_of_rebuild, ruled_out, ruled_out_past_build_bound);
   EXPECT_GT(step_of_rebuild, 100) << "the drift reaches the skin";
   EXPECT_GT(ruled_out, step_of_rebuild / 2);
   EXPECT_GT(ruled_out_past_build_bound, step_of_rebuild / 4) << "the bound restarts from the passes";
