@@ -98,8 +98,8 @@ struct NeighborState {
 // The pass over the particles is recorded in ns (checked_displacement) when use_motion_bound.
 bool needs_rebuild(NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound);
 
-// True when the paths of a run of spheres (fluctuation_path, strain_path) prove that no particle
-// has moved far enough for needs_rebuild to be true.
+// True when the paths of a run of spheres (fluctuation_path, strain_path) since the last pass of
+// needs_rebuild (or the build) prove that no particle has moved far enough for it to be true.
 bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell);
 
 // Rebuilds `pairs` (keeping the history of pairs present before) and the incidence lists.
