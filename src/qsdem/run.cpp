@@ -28,7 +28,19 @@ nlohmann::json stage_json(const StageTimers& t, long steps) {
   return j;
 }
 
+// Peak resident set of this process (KiB): VmHWM of /proc/self/status, which starts afresh at
+// exec. getrusage's ru_maxrss does not: Linux carries the larger peak of the process image before
+// exec over, so when launched by a bigger parent (a Python harness: 75 MB measured against 15 MB
+// from a shell) it reported the parent's. getrusage only where /proc is not readable.
 long peak_rss_kib() {
+  if (std::FILE* f = std::fopen("/proc/self/status", "r")) {
+    char line[256];
+    long kib = -1;
+    while (std::fgets(line, sizeof line, f))
+      if (std::sscanf(line, "VmHWM: %ld kB", &kib) == 1) break;
+    std::fclose(f);
+    if (kib >= 0) return kib;
+  }
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
   return u.ru_maxrss;
