@@ -64,8 +64,8 @@ struct HertzMindlin {
       shear -= sn * n;
       // |shear|^2 is now old (1 - x), x = (s.n)^2 / old (n unit), so the magnitude comes back by
       // (1 - x)^-1/2 = 1 + x/2 + 3x^2/8 + O(x^3): below x = 1e-6 (a quasi-static contact turns by
-      // far less per step) the cut term is < 3e-19, under the rounding of the direct form, which
-      // takes a division and a square root in the chain of every contact.
+      // far less per step) the cut terms, 5x^3/16 + ..., are < 3.2e-19, under the rounding of the
+      // direct form, which takes a division and a square root in the chain of every contact.
       const double x = sn * sn * inv_old;
       if (x < 1e-6) {
         shear *= 1 + x * (0.5 + 0.375 * x);
