@@ -104,9 +104,9 @@ template <int K>
 
 // Free symmetric top, symmetry axis K, inverse moments inv_s (about K) and inv_perp, angular
 // momentum L: the orientation after dt. Divisions are few on purpose: they dominated this
-// function's profile. With `taylor_only` both half angles take the Taylor polynomials (no branch,
-// for vector lanes) and `outside` tells when one of them is beyond their range (the caller then
-// runs the lane again without it).
+// function's profile. With `taylor_only` both half angles take the Taylor polynomials and the
+// norm its Newton step (no branch, for vector lanes), and `outside` tells when one of them is
+// beyond its range (the caller then runs the lane again without it).
 template <int K, bool taylor_only>
 [[gnu::always_inline]] inline QuatParts spheroid_rotation(const QuatParts& q, double inv_s, double inv_perp,
                                                           double lx, double ly, double lz, double dt, bool& outside) {
@@ -137,7 +137,15 @@ template <int K, bool taylor_only>
   // round-off there and needs no square root or division (they led this function's profile).
   // (Summed as Eigen sums a 4-vector: (x^2 + z^2) + (y^2 + w^2).)
   const double n2 = (r.x * r.x + r.z * r.z) + (r.y * r.y + r.w * r.w);
-  const double scale = std::abs(n2 - 1) < 1e-8 ? 1.5 - 0.5 * n2 : 1 / std::sqrt(n2);
+  double scale;
+  if constexpr (taylor_only) {
+    // A select would compute the square root and division in every lane (a quarter of the lanes'
+    // time); a lane beyond the Newton step's range runs again instead.
+    outside = outside | !(std::abs(n2 - 1) < 1e-8);
+    scale = 1.5 - 0.5 * n2;
+  } else {
+    scale = std::abs(n2 - 1) < 1e-8 ? 1.5 - 0.5 * n2 : 1 / std::sqrt(n2);
+  }
   const bool still = l2 == 0;  // no angular momentum: no turn
   return {still ? q.w : r.w * scale, still ? q.x : r.x * scale, still ? q.y : r.y * scale, still ? q.z : r.z * scale};
 }
@@ -170,7 +178,8 @@ struct TurnLanes {
   double qw[capacity], qx[capacity], qy[capacity], qz[capacity];
   double lx[capacity], ly[capacity], lz[capacity], inv_s[capacity], inv_perp[capacity];
   double ox[capacity], oy[capacity], oz[capacity], chord2[capacity];
-  double outside[capacity];  // 1: a half angle beyond the Taylor range (lane to run again)
+  double outside[capacity];  // 1: a half angle beyond the Taylor range, or the norm beyond the
+                             // Newton step's (lane to run again)
 };
 
 // One lane: the turn, then omega = R I^-1 R^T L at the new orientation (gyroscopic; spheroid:
