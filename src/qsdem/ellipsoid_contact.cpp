@@ -116,6 +116,10 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
   return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff(), axes.minCoeff()};
 }
 
+void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out, std::size_t lo, std::size_t hi) {
+  for (std::size_t a = lo; a < hi; ++a) out[a] = ellipsoid_shape(axes[a], q[a]);
+}
+
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
                        double& lambda, ContactGeometry& g, EllipsoidContactStats& stats) {
   // Bounding spheres first: most calls of a sparse pair list end here, before any matrix.
