@@ -329,6 +329,30 @@ TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
   EXPECT_FALSE(fs::exists(d / "summary.json"));
 }
 
+// Format 3 summed fluctuation_path (the skin test's bound of the motion) in runs of spheres only:
+// read into a run with ellipsoids it is unknown, not zero (a zero would rule out every list
+// rebuild). Formats 3 and 4 have the same payload; only the header's version differs.
+TEST(CheckpointFile, Format3LeavesEllipsoidRunsWithoutAMotionBound) {
+  const auto reload_as = [](const State& st, std::uint32_t version, const char* name) {
+    const fs::path f = scratch(name);
+    save_checkpoint(f, "", "", st, RunProgress{});
+    std::fstream io(f, std::ios::in | std::ios::out | std::ios::binary);
+    io.seekp(8);  // the version, after the 8-byte magic (outside the checksum)
+    io.write(reinterpret_cast<const char*>(&version), 4);
+    io.close();
+    return load_checkpoint(f).state.neighbor.fluctuation_path;
+  };
+  const fs::path spheroid_case = fs::path(QSDEM_SOURCE_DIR) / "examples" / "paper-A-small.toml";
+  State spheroids = generate_loose_sample(parse_case(qsdem_test::slurp(spheroid_case), spheroid_case.string()));
+  ASSERT_TRUE(spheroids.particles.has_ellipsoids());
+  spheroids.neighbor.fluctuation_path = 3e-9;
+  EXPECT_TRUE(std::isinf(reload_as(spheroids, 3, "format3-spheroids.qsck")));
+  EXPECT_EQ(reload_as(spheroids, 4, "format4-spheroids.qsck"), 3e-9);
+  State spheres = generate_loose_sample(parse_case(small_case, "small.toml"));
+  spheres.neighbor.fluctuation_path = 3e-9;
+  EXPECT_EQ(reload_as(spheres, 3, "format3-spheres.qsck"), 3e-9);
+}
+
 // A prepared sample of checkpoint format 1 (written before apart pairs were skipped: no skip
 // state) still loads and shears, to the series the build that wrote it gives: 120 spheroids,
 // tests/golden/format1-sample (made by the build of 7240daa, see tests/golden/README.md).

@@ -291,6 +291,9 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   // Before format 3 a run of spheres did not keep its motion since the list build: unknown, so no
   // apart sphere pair is skipped and the skin test runs in full until the next build.
   if (version < 3) c.state.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
+  // Before format 4 a run with ellipsoids did not sum it (it was kept for spheres only).
+  if (version < 4 && c.state.particles.has_ellipsoids())
+    c.state.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
   return c;
 }
 

@@ -81,7 +81,7 @@ static double branch_stretch(const NeighborState& ns, const Cell& cell) {
   return strain * (2 * ns.max_bound_radius + ns.skin);
 }
 
-// Spheres only: since the last pass over the particles (or the build), which measured twice the
+// Since the last pass over the particles (or the build), which measured twice the
 // largest displacement D_c, no particle has moved by more than sum dt max|v| = (fluctuation_path
 // - checked_fluctuation) / 2 in the frame of its step, which the cell has since turned and
 // stretched by at most exp(strain_path - checked_strain) (h_n h_m^-1 = prod (I + dt L)); D_c too.
@@ -89,7 +89,7 @@ static double branch_stretch(const NeighborState& ns, const Cell& cell) {
 // cover the round-off of the positions.
 static bool bound_rules_out_rebuild(const NeighborState& ns, double stretch) {
   const double moved = ns.checked_displacement + (ns.fluctuation_path - ns.checked_fluctuation);
-  return ns.valid && ns.surface_path.empty() &&
+  return ns.valid &&
          std::exp(ns.strain_path - ns.checked_strain) * moved * (1 + 1e-6) + stretch < ns.skin * (1 - 1e-6);
 }
 

@@ -62,13 +62,15 @@ struct NeighborState {
   // 2 sin(theta/4) >= sin(theta/2)) and strain_path = sum of |dt L|_F bound how far the two
   // surfaces of a pair can have come closer: surface_path[i] + surface_path[j] + strain_path |l|,
   // with |l| <= branch_reach() for any listed pair that is still apart.
-  // A run of spheres only (rotation moves no sphere's surface) keeps one number instead:
-  // fluctuation_path = sum over steps of 2 dt max_k |v_k| bounds surface_path[i] + surface_path[j]
-  // for every pair, so skipping costs one sequential read per pair and nothing per particle.
+  // fluctuation_path = sum over steps of 2 dt max_k |v_k| bounds twice any centre's motion (the
+  // skin test's motion_bound_rules_out_rebuild, any shapes). A run of spheres only (rotation moves
+  // no sphere's surface) skips apart pairs by it instead of surface_path: it bounds
+  // surface_path[i] + surface_path[j] for every pair, so skipping costs one sequential read per
+  // pair and nothing per particle.
   std::vector<double> surface_path;
   double fluctuation_path = 0;
   double strain_path = 0;
-  // The last pass of needs_rebuild over the particles (spheres only): twice the largest
+  // The last pass of needs_rebuild over the particles: twice the largest
   // displacement it measured, and fluctuation_path and strain_path then. From there the motion
   // bound grows by the paths since (motion_bound_rules_out_rebuild), not since the build. Zero: as
   // at the build (also after a checkpoint, which does not keep them).
@@ -98,7 +100,7 @@ struct NeighborState {
 // The pass over the particles is recorded in ns (checked_displacement) when use_motion_bound.
 bool needs_rebuild(NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound);
 
-// True when the paths of a run of spheres (fluctuation_path, strain_path) since the last pass of
+// True when the paths (fluctuation_path, strain_path) since the last pass of
 // needs_rebuild (or the build) prove that no particle has moved far enough for it to be true.
 bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell);
 

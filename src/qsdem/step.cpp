@@ -101,8 +101,9 @@ void step(const Model& model, State& s) {
     s.neighbor.strain_path += model.dt * s.cell.L.norm();  // Frobenius >= 2-norm (neighbor.hpp)
   }
   const double v2max = update_particles(model, s);
-  // A run of spheres only skips apart pairs by the largest speed (NeighborState::moved_any).
-  if (s.neighbor.surface_path.empty()) s.neighbor.fluctuation_path += 2 * model.dt * std::sqrt(v2max);
+  // The skin test's bound of the motion (any shapes), by which a run of spheres only also skips
+  // apart pairs (NeighborState::moved_any).
+  s.neighbor.fluctuation_path += 2 * model.dt * std::sqrt(v2max);
   s.time += model.dt;
   ++s.step;
 }
