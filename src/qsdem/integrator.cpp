@@ -12,16 +12,27 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
   double v2max = 0;
   double damping = 0;  // the factors of the last damping seen (one value in most runs)
   DampedKick kick(damping, dt);
+  // The arrays through local pointers: through p, each store made GCC load the next array's
+  // address again (it cannot tell that a Vec3 store leaves p's vectors alone).
+  const double* const damping_of = p.damping.data();
+  const double* const inv_mass = p.inv_mass.data();
+  const Vec3* const inv_inertia = p.inv_inertia.data();
+  const Vec3* const force = p.force.data();
+  const Vec3* const torque = p.torque.data();
+  const ShapeKind* const shape = p.shape.data();
+  Vec3* const vel = p.v.data();
+  Vec3* const angmom = p.angmom.data();
+  Vec3* const omega = p.omega.data();
   for (std::size_t i = lo; i < hi; ++i) {
-    if (p.damping[i] != damping) kick = DampedKick(damping = p.damping[i], dt);  // A_i = B_i (SPEC 6)
-    const Vec3 v = kick(p.v[i], p.force[i] * p.inv_mass[i]);
-    p.v[i] = v;
+    if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i = B_i (SPEC 6)
+    const Vec3 v = kick(vel[i], force[i] * inv_mass[i]);
+    vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    p.angmom[i] = kick(p.angmom[i], p.torque[i]);
+    angmom[i] = kick(angmom[i], torque[i]);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
+    if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
   }
   return v2max;
 }
