@@ -291,11 +291,17 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   hi = std::min(hi, n);
   // Spheroids wait in lanes, one set per symmetry axis, and turn a full set at a time.
   TurnLanes lanes[3];
+  // Through local pointers, as in integrate_velocities.
+  Vec3* const pos = p.s.data();
+  const Vec3* const vel = p.v.data();
+  const ShapeKind* const shape = p.shape.data();
+  const Vec3* const inertia = p.inertia.data();
+  double* const path = surface_path.data();
   for (std::size_t i = lo; i < hi; ++i) {
-    p.s[i] += step_map * p.v[i];  // moves x = h s by exactly dt v in the deformed cell
-    if (track) surface_path[i] += dt * p.v[i].norm();
-    if (p.shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
-    if (const int k = symmetry_axis(p.inertia[i]); k >= 0) {
+    pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
+    if (track) path[i] += dt * vel[i].norm();
+    if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
+    if (const int k = symmetry_axis(inertia[i]); k >= 0) {
       TurnLanes& t = lanes[k];
       load_lane(t, t.size++, p, static_cast<std::uint32_t>(i), k);
       if (t.size == TurnLanes::capacity) turn_spheroids(k, t, p, surface_path, track, dt);
