@@ -136,8 +136,9 @@ TEST(Run, ThreadCountDoesNotChangeSeries) {
 // The tiny run is below parallel_threshold (every loop runs serially) and has a single block in
 // every blocked sum, so the test above cannot see an order-dependent sum. Here a packing of 5000
 // spheres with several thousand contacts (all loops parallel, several blocks of the force and
-// measure sums, several thread chunks of the broad phase) is stepped 30 times on 1 and on 2
-// threads: state, stress and measures must agree bit for bit.
+// measure sums, several thread chunks of the broad phase, contacts grouped by the thread owning
+// their j end) is stepped 30 times on 1, 2 and 3 threads: state, stress and measures must agree
+// bit for bit.
 TEST(Run, ThreadCountDoesNotChangeLargePacking) {
   const Params params = parse_case(tiny_case, "run-tiny.toml",
                                    {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
@@ -159,6 +160,11 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
   };
   const auto [s1, m1] = run(1);
   const auto [s2, m2] = run(2);
+  const auto [s3, m3] = run(3);
+  for (std::size_t i = 0; i < s1.particles.size(); ++i)
+    ASSERT_TRUE(s1.particles.v[i] == s3.particles.v[i] && s1.particles.angmom[i] == s3.particles.angmom[i])
+        << "3 threads, particle " << i;
+  EXPECT_TRUE(s1.stress == s3.stress);
   ASSERT_GT(s1.pairs.size(), parallel_threshold) << "the force loop must run in parallel";
   ASSERT_GT(s1.particles.size(), parallel_threshold) << "the per-particle loops must run in parallel";
   ASSERT_GT(m1.contacts, 2 * 1024) << "several force blocks with contacts";

@@ -20,7 +20,50 @@ struct ForceInputs {
   const EllipsoidShape* shapes;  // per particle, when some particle is an ellipsoid
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
+  std::span<const std::size_t> owner_first;  // State::owner_first
+  std::uint32_t* contact_owner_first;        // State::contact_owner_first
 };
+
+// Groups block b's contacts by the thread that owns their j end (State::contact_owner_first),
+// keeping the pair order within each group: a counting sort of the block's slots.
+void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const ForceBlock& acc, std::size_t b) {
+  const std::size_t owners = in.owner_first.size() - 1;
+  std::uint32_t* const row = in.contact_owner_first + b * (owners + 1);
+  const std::uint32_t first = acc.first_contact, count = acc.contacts;
+  const auto owner = [&](std::uint32_t j) {  // the last t with owner_first[t] <= j
+    std::size_t t = 0;
+    while (t + 1 < owners && in.owner_first[t + 1] <= j) ++t;
+    return t;
+  };
+  std::fill(row, row + owners + 1, 0u);
+  for (std::uint32_t m = first; m < first + count; ++m) ++row[owner(pairs.contact_j[m]) + 1];
+  row[0] = first;
+  for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
+  if (owners == 1 || row[1] == first + count) return;  // one group: already in place
+  // The block's slots hold ~1024 pairs' contacts at most, plus one particle's: a buffer on the
+  // stack, or on the heap for a block beyond it.
+  constexpr std::uint32_t on_stack = 4096;
+  std::uint32_t stack_k[on_stack], stack_j[on_stack];
+  std::vector<std::uint32_t> heap_k, heap_j;
+  std::uint32_t* k_copy = stack_k;
+  std::uint32_t* j_copy = stack_j;
+  if (count > on_stack) {
+    heap_k.assign(pairs.contact_pairs.begin() + first, pairs.contact_pairs.begin() + first + count);
+    heap_j.assign(pairs.contact_j.begin() + first, pairs.contact_j.begin() + first + count);
+    k_copy = heap_k.data(), j_copy = heap_j.data();
+  } else {
+    std::copy_n(pairs.contact_pairs.begin() + first, count, k_copy);
+    std::copy_n(pairs.contact_j.begin() + first, count, j_copy);
+  }
+  // row[t] serves as group t's next slot and ends at group t + 1's start: shifted back after.
+  for (std::uint32_t c = 0; c < count; ++c) {
+    const std::uint32_t slot = row[owner(j_copy[c])]++;
+    pairs.contact_pairs[slot] = k_copy[c];
+    pairs.contact_j[slot] = j_copy[c];
+  }
+  for (std::size_t t = owners; t > 0; --t) row[t] = row[t - 1];
+  row[0] = first;
+}
 
 // One contact (SPEC 4): the law, the pair's results for its j end, i's resultant, and the block's
 // stress and stiffness sums.
@@ -151,6 +194,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
         mark_apart(pairs, kt);
     }
   }
+  group_contacts_by_owner(in, pairs, acc, b);
   return acc;
 }
 
@@ -216,6 +260,7 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
         mark_apart(pairs, k);  // |l| rounded to r_i + r_j: not a contact
     }
   }
+  group_contacts_by_owner(in, pairs, acc, b);
   return acc;
 }
 
@@ -285,8 +330,6 @@ void compute_contact_forces(const Model& model, State& state) {
   // Skipping provably apart pairs needs the motion bounds of the current list (neighbor.hpp).
   const NeighborState& ns = state.neighbor;
   const bool motion_known = all_spheres ? ns.surface_path.empty() : ns.surface_path.size() == n;
-  const ForceInputs in{law, model.dt, state.cell, state.shapes.data(), ns,
-                       model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np};
 
   // Each block owns whole particles as the i end of their pairs (sorted by i): it writes their
   // i-side resultants itself; gather_resultants adds the j ends. Which thread runs a block changes
@@ -299,6 +342,26 @@ void compute_contact_forces(const Model& model, State& state) {
   const bool timed = state.blocks_build == state.neighbor.builds;  // the same blocks as last step
   share_blocks(state, nthreads, timed);
   const std::vector<std::size_t>& cut = state.block_cut;
+  // The update region's particle ranges (step.cpp), fixed here so that each block can group its
+  // contacts by the thread that owns their j end: with as many threads as this stage, a thread
+  // owns the particles of its blocks (their i-side sums are in its cache); else an even split.
+  const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
+  state.owner_first.resize(owners + 1);
+  for (std::size_t t = 0; t <= owners; ++t)
+    state.owner_first[t] = t == 0        ? 0
+                           : t == owners ? n
+                           : owners == static_cast<std::size_t>(nthreads)
+                               ? std::min<std::size_t>(n, pairs.block_first[cut[t]])
+                               : n * t / owners;
+  state.contact_owner_first.resize(nblocks * (owners + 1));
+  const ForceInputs in{law,
+                       model.dt,
+                       state.cell,
+                       state.shapes.data(),
+                       ns,
+                       model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np,
+                       state.owner_first,
+                       state.contact_owner_first.data()};
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();
@@ -367,6 +430,32 @@ void gather_resultants(const PairList& pairs, std::span<const ForceBlock> blocks
       const std::uint32_t j = contact_j[m];
       if (j < lo || j >= hi) continue;
       const std::uint32_t k = contact_pairs[m];
+      force[j] += pair_force[k];
+      torque[j] += pair_torque[k];
+    }
+  }
+}
+
+void gather_owned_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first,
+                             std::size_t owners, Particles& p, std::size_t t) {
+  constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
+  // Through local pointers (integrate_velocities says why).
+  const std::uint32_t* const contact_j = pairs.contact_j.data();
+  const std::uint32_t* const contact_pairs = pairs.contact_pairs.data();
+  const Vec3* const pair_force = pairs.force.data();
+  const Vec3* const pair_torque = pairs.torque_j.data();
+  Vec3* const force = p.force.data();
+  Vec3* const torque = p.torque.data();
+  for (std::size_t row = 0; row < contact_owner_first.size(); row += owners + 1) {
+    const std::uint32_t m0 = contact_owner_first[row + t], m1 = contact_owner_first[row + t + 1];
+    for (std::uint32_t m = m0; m < m1; ++m) {
+      if (m + ahead < m1) {
+        __builtin_prefetch(&force[contact_j[m + ahead]], 1);
+        __builtin_prefetch(&torque[contact_j[m + ahead]], 1);
+        __builtin_prefetch(&pair_force[contact_pairs[m + ahead]]);
+        __builtin_prefetch(&pair_torque[contact_pairs[m + ahead]]);
+      }
+      const std::uint32_t j = contact_j[m], k = contact_pairs[m];
       force[j] += pair_force[k];
       torque[j] += pair_torque[k];
     }

@@ -24,4 +24,10 @@ void gather_resultants(State& state);
 void gather_resultants(const PairList& pairs, std::span<const ForceBlock> blocks, Particles& p, std::uint32_t lo,
                        std::uint32_t hi);
 
+// The same for the particles thread t of `owners` owns (State::owner_first), after
+// compute_contact_forces: reads only their contacts, in pair order (contact_owner_first is
+// State's).
+void gather_owned_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first,
+                             std::size_t owners, Particles& p, std::size_t t);
+
 }  // namespace qsdem

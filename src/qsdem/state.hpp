@@ -20,7 +20,9 @@ struct ForceBlock {
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
   long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
-  // The block's contacts, in pair order: PairList::contact_pairs[first_contact, + contacts).
+  // The block's contacts: PairList::contact_pairs[first_contact, + contacts), grouped by the
+  // thread that owns their j end in the update region (State::owner_first), each group in pair
+  // order (State::contact_owner_first).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
   // The range of their j ends: a thread of the gather skips a block none of whose j is its own.
@@ -52,6 +54,12 @@ struct State {
   std::vector<ForceBlock> blocks;       // scratch for the force stage
   long blocks_build = -1;               // NeighborState::builds of the list the blocks were timed on
   std::vector<std::size_t> block_cut;   // scratch: thread t runs blocks [cut[t], cut[t + 1])
+  // The update region's particles: thread t owns [owner_first[t], owner_first[t + 1]), those of
+  // its blocks (set by the force stage with block_cut). contact_owner_first, (threads + 1) per
+  // block: block b's contacts whose j end thread t owns are the slots [row[t], row[t + 1]) of
+  // PairList::contact_pairs / contact_j, row = contact_owner_first + b (threads + 1).
+  std::vector<std::size_t> owner_first;
+  std::vector<std::uint32_t> contact_owner_first;
   std::vector<EllipsoidShape> shapes;   // scratch: per-particle shape matrices at time t
 };
 

@@ -45,15 +45,15 @@ double update_particles(const Model& model, State& s) {
   double v2max = 0;
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
   const double start = omp_get_wtime();
-  // Thread r takes the particles whose blocks it ran in the force stage (State::block_cut): their
-  // i-side sums are in its cache. (With the even split n r / nthreads, and the gather prefetching
-  // every contact, this region took longer on 2 threads than on 1; the two changes together:
-  // spheres-A gather 87 -> 68 us/step on 2 threads.)
-  const std::vector<std::size_t>& cut = s.block_cut;
-  const std::vector<std::uint32_t>& first = s.pairs.block_first;
-  const bool by_blocks = cut.size() == static_cast<std::size_t>(nthreads) + 1 && cut.back() + 1 == first.size() &&
-                         first.back() == n;
-  const auto range_start = [&](std::size_t r) { return by_blocks ? first[cut[r]] : n * r / nthreads; };
+  // Thread r takes the particles the force stage gave it (State::owner_first: those of its blocks,
+  // whose i-side sums are in its cache) and reads only their contacts, which the force stage
+  // grouped by owner. (With the even split n r / nthreads, and the gather prefetching every
+  // contact, this region took longer on 2 threads than on 1; the two changes together: spheres-A
+  // gather 87 -> 68 us/step on 2 threads.)
+  const std::size_t owners = static_cast<std::size_t>(nthreads);
+  const bool owned = s.owner_first.size() == owners + 1 &&
+                     s.contact_owner_first.size() == s.blocks.size() * (owners + 1);
+  const auto range_start = [&](std::size_t r) { return owned ? s.owner_first[r] : n * r / owners; };
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();
@@ -62,7 +62,10 @@ double update_particles(const Model& model, State& s) {
     for (int r = omp_get_thread_num(); r < nthreads; r += team) {
       const std::size_t lo = range_start(r), hi = range_start(r + 1);
       const double t0 = omp_get_wtime();
-      gather_resultants(s.pairs, s.blocks, p, static_cast<std::uint32_t>(lo), static_cast<std::uint32_t>(hi));
+      if (owned)
+        gather_owned_resultants(s.pairs, s.contact_owner_first, owners, p, static_cast<std::size_t>(r));
+      else
+        gather_resultants(s.pairs, s.blocks, p, static_cast<std::uint32_t>(lo), static_cast<std::uint32_t>(hi));
       const double t1 = omp_get_wtime();
       m = std::max(m, integrate_velocities(model, p, lo, hi));
       const double t2 = omp_get_wtime();
