@@ -30,6 +30,10 @@ void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const Force
   const std::size_t owners = in.owner_first.size() - 1;
   std::uint32_t* const row = in.contact_owner_first + b * (owners + 1);
   const std::uint32_t first = acc.first_contact, count = acc.contacts;
+  if (owners == 1) {  // one thread: one group, in place
+    row[0] = first, row[1] = first + count;
+    return;
+  }
   const auto owner = [&](std::uint32_t j) {  // the last t with owner_first[t] <= j
     std::size_t t = 0;
     while (t + 1 < owners && in.owner_first[t + 1] <= j) ++t;
@@ -39,7 +43,7 @@ void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const Force
   for (std::uint32_t m = first; m < first + count; ++m) ++row[owner(pairs.contact_j[m]) + 1];
   row[0] = first;
   for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
-  if (owners == 1 || row[1] == first + count) return;  // one group: already in place
+  if (row[1] == first + count) return;  // all in the first group: already in place
   // The block's slots hold ~1024 pairs' contacts at most, plus one particle's: a buffer on the
   // stack, or on the heap for a block beyond it.
   constexpr std::uint32_t on_stack = 4096;

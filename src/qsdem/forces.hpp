@@ -19,8 +19,8 @@ void compute_contact_forces(const Model& model, State& state);
 void gather_resultants(State& state);
 
 // The same for the particles [lo, hi) only: one thread's part of the step's particle pass
-// (step.cpp). Reads the contacts in pair order, so the sums do not depend on the threads; skips
-// the blocks none of whose contacts has its j end in [lo, hi).
+// (step.cpp). Reads each particle's contacts in pair order, so the sums do not depend on the
+// threads; skips the blocks none of whose contacts has its j end in [lo, hi).
 void gather_resultants(const PairList& pairs, std::span<const ForceBlock> blocks, Particles& p, std::uint32_t lo,
                        std::uint32_t hi);
 

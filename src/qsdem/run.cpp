@@ -339,7 +339,8 @@ nlohmann::json memory_kib(const State& st) {
   const double results = kib(q.force) + kib(q.torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
-  const double scratch = kib(st.blocks) + kib(st.shapes);
+  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(st.block_cut) + kib(st.owner_first) +
+                         kib(st.contact_owner_first);
   return {{"particles", particles},
           {"pair_keys_and_history", history},
           {"pair_results", results},
