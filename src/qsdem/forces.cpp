@@ -77,8 +77,6 @@ void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const Force
                                                const ContactGeometry& g, ForceBlock& acc) {
   pairs.overlap[k] = g.overlap;
   pairs.contact_j[acc.first_contact + acc.contacts] = j;
-  acc.lowest_j = std::min(acc.lowest_j, j);
-  acc.highest_j = std::max(acc.highest_j, j);
   pairs.contact_pairs[acc.first_contact + acc.contacts++] = k;
   const double r_min = std::min(p.equiv_radius[i], p.equiv_radius[j]);
   if (g.overlap > acc.max_overlap * r_min) {  // delta / R_min > max, without a division per contact
@@ -406,42 +404,8 @@ void compute_contact_forces(const Model& model, State& state) {
   state.stress_h = cell.h;
 }
 
-void gather_resultants(const PairList& pairs, std::span<const ForceBlock> blocks, Particles& p, std::uint32_t lo,
-                       std::uint32_t hi) {
-  constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
-  // Through local pointers (integrate_velocities says why).
-  const std::uint32_t* const contact_j = pairs.contact_j.data();
-  const std::uint32_t* const contact_pairs = pairs.contact_pairs.data();
-  const Vec3* const pair_force = pairs.force.data();
-  const Vec3* const pair_torque = pairs.torque_j.data();
-  Vec3* const force = p.force.data();
-  Vec3* const torque = p.torque.data();
-  for (const ForceBlock& b : blocks) {
-    if (b.highest_j < lo || b.lowest_j >= hi) continue;  // (also a block without contacts)
-    for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m) {
-      if (m + ahead < b.first_contact + b.contacts) {
-        // Only this thread's contacts: a line fetched for another's j end is pulled from, or taken
-        // away from, the other core. (A select, not a branch: it is ~50/50 on 2 threads.)
-        const std::uint32_t ja = contact_j[m + ahead];
-        const bool mine = ja >= lo && ja < hi;
-        const std::uint32_t jp = mine ? ja : lo;
-        const std::uint32_t kp = mine ? contact_pairs[m + ahead] : contact_pairs[m];
-        __builtin_prefetch(&force[jp], 1);
-        __builtin_prefetch(&torque[jp], 1);
-        __builtin_prefetch(&pair_force[kp]);
-        __builtin_prefetch(&pair_torque[kp]);
-      }
-      const std::uint32_t j = contact_j[m];
-      if (j < lo || j >= hi) continue;
-      const std::uint32_t k = contact_pairs[m];
-      force[j] += pair_force[k];
-      torque[j] += pair_torque[k];
-    }
-  }
-}
-
-void gather_owned_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first,
-                             std::size_t owners, Particles& p, std::size_t t) {
+void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first, std::size_t owners,
+                       Particles& p, std::size_t t) {
   constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
   // Through local pointers (integrate_velocities says why).
   const std::uint32_t* const contact_j = pairs.contact_j.data();
@@ -467,17 +431,17 @@ void gather_owned_resultants(const PairList& pairs, std::span<const std::uint32_
 }
 
 void gather_resultants(State& state) {
-  const std::size_t n = state.particles.size();
   // Adds the j ends of the contacts to the i-side sums the force stage wrote, in pair order (so
-  // for any thread count): each thread owns a range of particles and reads the contacts of every
-  // block that has one of its j ends, which costs less than reading every pair's overlap through
-  // the j incidence (measured, spheres-A: gather 97 -> 32 us/step, 1 thread).
-#pragma omp parallel if (n > parallel_threshold)
+  // for any thread count): each owner of a range of particles (State::owner_first) reads the
+  // contacts the force stage grouped for it, which costs less than reading every pair's overlap
+  // through the j incidence (measured, spheres-A: gather 97 -> 32 us/step, 1 thread).
+  const int owners = static_cast<int>(state.owner_first.size()) - 1;
+#pragma omp parallel num_threads(owners) if (owners > 1)
   {
-    const std::size_t nt = static_cast<std::size_t>(omp_get_num_threads());
-    const std::size_t t = static_cast<std::size_t>(omp_get_thread_num());
-    gather_resultants(state.pairs, state.blocks, state.particles, static_cast<std::uint32_t>(n * t / nt),
-                      static_cast<std::uint32_t>(n * (t + 1) / nt));
+    const int team = omp_get_num_threads();
+    for (int t = omp_get_thread_num(); t < owners; t += team)
+      gather_resultants(state.pairs, state.contact_owner_first, static_cast<std::size_t>(owners), state.particles,
+                        static_cast<std::size_t>(t));
   }
 }
 

@@ -14,20 +14,14 @@ namespace qsdem {
 // resultant over the pairs where it is the i end into Particles::force / torque.
 void compute_contact_forces(const Model& model, State& state);
 
-// Adds the pairs where each particle is the j end: Particles::force / torque are then the
-// contact resultants (SPEC 7: contact forces only).
+// Adds the pairs where each particle is the j end, after compute_contact_forces:
+// Particles::force / torque are then the contact resultants (SPEC 7: contact forces only).
 void gather_resultants(State& state);
 
-// The same for the particles [lo, hi) only: one thread's part of the step's particle pass
-// (step.cpp). Reads each particle's contacts in pair order, so the sums do not depend on the
-// threads; skips the blocks none of whose contacts has its j end in [lo, hi).
-void gather_resultants(const PairList& pairs, std::span<const ForceBlock> blocks, Particles& p, std::uint32_t lo,
-                       std::uint32_t hi);
-
-// The same for the particles thread t of `owners` owns (State::owner_first), after
-// compute_contact_forces: reads only their contacts, in pair order (contact_owner_first is
-// State's).
-void gather_owned_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first,
-                             std::size_t owners, Particles& p, std::size_t t);
+// The same for the particles that owner t of `owners` holds (State::owner_first): one thread's
+// part of the step's particle pass (step.cpp). Reads only their contacts (State's
+// contact_owner_first), each particle's in pair order, so the sums do not depend on the threads.
+void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first, std::size_t owners,
+                       Particles& p, std::size_t t);
 
 }  // namespace qsdem

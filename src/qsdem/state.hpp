@@ -25,8 +25,6 @@ struct ForceBlock {
   // order (State::contact_owner_first).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
-  // The range of their j ends: a thread of the gather skips a block none of whose j is its own.
-  std::uint32_t lowest_j = UINT32_MAX, highest_j = 0;
   double seconds = 0;  // time the block took
   double weight = 0;   // its recent times, smoothed: what the threads share in the next step
 };

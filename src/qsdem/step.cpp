@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <stdexcept>
 
 #include "qsdem/forces.hpp"
 #include "qsdem/integrator.hpp"
@@ -50,22 +51,19 @@ double update_particles(const Model& model, State& s) {
   // grouped by owner. (With the even split n r / nthreads, and the gather prefetching every
   // contact, this region took longer on 2 threads than on 1; the two changes together: spheres-A
   // gather 87 -> 68 us/step on 2 threads.)
+  // (The force stage sizes them for this same thread count: n > parallel_threshold.)
   const std::size_t owners = static_cast<std::size_t>(nthreads);
-  const bool owned = s.owner_first.size() == owners + 1 &&
-                     s.contact_owner_first.size() == s.blocks.size() * (owners + 1);
-  const auto range_start = [&](std::size_t r) { return owned ? s.owner_first[r] : n * r / owners; };
+  if (s.owner_first.size() != owners + 1 || s.contact_owner_first.size() != s.blocks.size() * (owners + 1))
+    throw std::logic_error("update_particles: the force stage's owner ranges are not for this thread count");
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();
     std::array<double, 3> mine{};
     double m = 0;
     for (int r = omp_get_thread_num(); r < nthreads; r += team) {
-      const std::size_t lo = range_start(r), hi = range_start(r + 1);
+      const std::size_t lo = s.owner_first[r], hi = s.owner_first[r + 1];
       const double t0 = omp_get_wtime();
-      if (owned)
-        gather_owned_resultants(s.pairs, s.contact_owner_first, owners, p, static_cast<std::size_t>(r));
-      else
-        gather_resultants(s.pairs, s.blocks, p, static_cast<std::uint32_t>(lo), static_cast<std::uint32_t>(hi));
+      gather_resultants(s.pairs, s.contact_owner_first, owners, p, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
       m = std::max(m, integrate_velocities(model, p, lo, hi));
       const double t2 = omp_get_wtime();
