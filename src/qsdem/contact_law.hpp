@@ -50,36 +50,52 @@ struct HertzMindlin {
   double friction;                 // mu
 
   ContactForce evaluate(const ContactGeometry& g, const Vec3& rel_velocity, double dt, Vec3& shear) const {
-    const Vec3& n = g.normal;
-    const double a = std::sqrt(g.radius * g.overlap);
-    const double fn = 4.0 / 3.0 * effective_modulus * a * g.overlap;
-    const double kn = 2.0 * effective_modulus * a;
-    const double kt = 8.0 * effective_shear_modulus * a;
+    ContactForce cf;
+    evaluate(g.normal.x(), g.normal.y(), g.normal.z(), g.overlap, g.radius, rel_velocity.x(), rel_velocity.y(),
+             rel_velocity.z(), dt, shear.x(), shear.y(), shear.z(), cf.force.x(), cf.force.y(), cf.force.z(),
+             cf.normal_stiffness, cf.tangential_stiffness);
+    return cf;
+  }
+
+  // The same law on components, its branches as selects: the pair loop (forces.cpp) runs it on a
+  // chunk of contacts in vector lanes (one contact's law is a long chain of dependent operations).
+  // Each sum is in the order of Eigen's for 3-vectors (left to right), so a lane gives the bits of
+  // a contact alone.
+  [[gnu::always_inline]] inline void evaluate(double nx, double ny, double nz, double overlap, double radius,
+                                              double vx, double vy, double vz, double dt, double& sx, double& sy,
+                                              double& sz, double& fx, double& fy, double& fz, double& kn,
+                                              double& kt) const {
+    const double a = std::sqrt(radius * overlap);
+    const double fn = 4.0 / 3.0 * effective_modulus * a * overlap;
+    kn = 2.0 * effective_modulus * a;
+    kt = 8.0 * effective_shear_modulus * a;
 
     // Turn the stored tangential force into the current tangent plane, keeping its magnitude.
-    const double old_mag2 = shear.squaredNorm();
-    if (old_mag2 > 0) {
-      const double inv_old = 1 / old_mag2;  // off the chain below: shear is known before n
-      const double sn = shear.dot(n);
-      shear -= sn * n;
-      // |shear|^2 is now old (1 - x), x = (s.n)^2 / old (n unit), so the magnitude comes back by
-      // (1 - x)^-1/2 = 1 + x/2 + 3x^2/8 + O(x^3): below x = 1e-6 (a quasi-static contact turns by
-      // far less per step) the cut terms, 5x^3/16 + ..., are < 3.2e-19, under the rounding of the
-      // direct form, which takes a division and a square root in the chain of every contact.
-      const double x = sn * sn * inv_old;
-      if (x < 1e-6) {
-        shear *= 1 + x * (0.5 + 0.375 * x);
-      } else {
-        const double new_mag2 = shear.squaredNorm();
-        if (new_mag2 > 0) shear *= std::sqrt(old_mag2 / new_mag2);
-      }
-    }
-    const Vec3 vt = rel_velocity - rel_velocity.dot(n) * n;
-    shear -= kt * dt * vt;
+    const double old_mag2 = (sx * sx + sy * sy) + sz * sz;
+    const double inv_old = 1 / old_mag2;  // off the chain below: shear is known before n
+    const double sn = (sx * nx + sy * ny) + sz * nz;
+    const double px = sx - sn * nx, py = sy - sn * ny, pz = sz - sn * nz;
+    // |shear|^2 is now old (1 - x), x = (s.n)^2 / old (n unit), so the magnitude comes back by
+    // (1 - x)^-1/2 = 1 + x/2 + 3x^2/8 + O(x^3): below x = 1e-6 (a quasi-static contact turns by
+    // far less per step) the cut terms, 5x^3/16 + ..., are < 3.2e-19, under the rounding of the
+    // direct form sqrt(old / new).
+    const double x = sn * sn * inv_old;
+    const double new_mag2 = (px * px + py * py) + pz * pz;
+    const double root = std::sqrt(old_mag2 / new_mag2);  // in every lane, then a select
+    const double direct = new_mag2 > 0 ? root : 1.0;
+    const double back = x < 1e-6 ? 1 + x * (0.5 + 0.375 * x) : direct;
+    const bool stored = old_mag2 > 0;  // no stored force: nothing to turn
+    const double tx = stored ? px * back : sx, ty = stored ? py * back : sy, tz = stored ? pz * back : sz;
+
+    const double vn = (vx * nx + vy * ny) + vz * nz;
+    const double kdt = kt * dt;
+    sx = tx - kdt * (vx - vn * nx), sy = ty - kdt * (vy - vn * ny), sz = tz - kdt * (vz - vn * nz);
     const double cap = friction * fn;
-    const double mag2 = shear.squaredNorm();
-    if (mag2 > cap * cap) shear *= cap / std::sqrt(mag2);
-    return {fn * n + shear, kn, kt};
+    const double mag2 = (sx * sx + sy * sy) + sz * sz;
+    const double slide = cap / std::sqrt(mag2);  // Coulomb: |F_t| <= mu F_n
+    const bool sliding = mag2 > cap * cap;
+    sx = sliding ? sx * slide : sx, sy = sliding ? sy * slide : sy, sz = sliding ? sz * slide : sz;
+    fx = fn * nx + sx, fy = fn * ny + sy, fz = fn * nz + sz;
   }
 };
 
