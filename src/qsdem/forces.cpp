@@ -70,59 +70,97 @@ void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const Force
 }
 
 // The contacts of a chunk of pairs (SPEC 4), in lanes (structure of arrays): `add` takes a
-// contact's geometry and relative velocity, `evaluate_contacts` runs the law and the contact's
-// torques on all lanes at once (vector lanes: one contact's law is a long chain of dependent
-// operations), `commit` writes the results in pair order (the order of every sum, as one contact
-// at a time: the same bits).
+// contact's pair, velocities and history, `set_geometry` its ellipsoid geometry or
+// `sphere_geometry` computes the spheres'; `evaluate_contacts` runs the relative velocity, the law
+// and the contact's torques and sum terms on all lanes at once (vector lanes: one contact is a long
+// chain of dependent operations); `commit_contacts` writes the results in pair order (the order of
+// every sum, as one contact at a time: the same bits).
 struct ContactLanes {
-  // 32 contacts at a time: the lanes' ~45 arrays stay within a third of the L1 cache (at 128 the
-  // simulated L1 misses of the sphere bench rose 1.7x, 1.5x with the arrays padded as below).
-  static constexpr int capacity = 32;
-  // Each array's length: 5 cache lines (an odd number), so that lane a of the arrays falls in
+  // 16 contacts at a time: the lanes' ~60 arrays stay within a third of the L1 cache (at 128
+  // contacts the simulated L1 misses of the sphere bench rose 1.7x).
+  static constexpr int capacity = 16;
+  // Each array's length: 3 cache lines (an odd number), so that lane a of the arrays falls in
   // different sets of the L1 cache (arrays a power of two apart share a few sets).
   static constexpr int stride = capacity + 8;
   int size = 0;
   std::uint32_t pair[stride], first[stride], second[stride];  // k, i, j
-  Vec3 branch[stride];
-  // In: normal, overlap, radius, arms, velocity of j's contact point relative to i's, shear.
+  // In: branch l, geometry (normal, overlap, radius, arms), the spheres' |l| and radii (for
+  // sphere_geometry), velocities and spins of i and j, the affine velocity L l, shear.
+  double lx[stride], ly[stride], lz[stride];
   double nx[stride], ny[stride], nz[stride], overlap[stride], radius[stride];
   double aix[stride], aiy[stride], aiz[stride], ajx[stride], ajy[stride], ajz[stride];
-  double vx[stride], vy[stride], vz[stride], sx[stride], sy[stride], sz[stride];
+  double distance[stride], ri[stride], rj[stride];
+  double vix[stride], viy[stride], viz[stride], vjx[stride], vjy[stride], vjz[stride];
+  double wix[stride], wiy[stride], wiz[stride], wjx[stride], wjy[stride], wjz[stride];
+  double ux[stride], uy[stride], uz[stride], sx[stride], sy[stride], sz[stride];
   // Out: the force on j, the torques about j's and i's centres (and the new shear), and the
   // contact's terms of the block's sums: f l^T by row, the stiffnesses of the servo (servo.hpp).
   double fx[stride], fy[stride], fz[stride], tjx[stride], tjy[stride], tjz[stride];
   double tix[stride], tiy[stride], tiz[stride];
   double stress[9][stride], stiffness[3][stride], shear_stiffness[3][stride];
 
-  // Appends the contact of pair k (i, j) with branch l and geometry g.
-  [[gnu::always_inline]] void add(const ForceInputs& in, const Particles& p, const PairList& pairs, std::uint32_t k,
-                                  std::uint32_t i, std::uint32_t j, const Vec3& l, const ContactGeometry& g) {
+  // Appends the contact of pair k (i, j) with branch l; returns its lane.
+  [[gnu::always_inline]] int add(const ForceInputs& in, const Particles& p, const PairList& pairs, std::uint32_t k,
+                                 std::uint32_t i, std::uint32_t j, const Vec3& l) {
     const int a = size++;
-    pair[a] = k, first[a] = i, second[a] = j, branch[a] = l;
+    pair[a] = k, first[a] = i, second[a] = j;
+    lx[a] = l.x(), ly[a] = l.y(), lz[a] = l.z();
+    const Vec3 &vi = p.v[i], &vj = p.v[j], &wi = p.omega[i], &wj = p.omega[j];
+    vix[a] = vi.x(), viy[a] = vi.y(), viz[a] = vi.z(), vjx[a] = vj.x(), vjy[a] = vj.y(), vjz[a] = vj.z();
+    wix[a] = wi.x(), wiy[a] = wi.y(), wiz[a] = wi.z(), wjx[a] = wj.x(), wjy[a] = wj.y(), wjz[a] = wj.z();
+    const Vec3 u = in.cell.L * l;  // the affine field's part (SPEC 3), in Eigen's order of sums
+    ux[a] = u.x(), uy[a] = u.y(), uz[a] = u.z();
+    const Vec3& s = pairs.shear[k];
+    sx[a] = s.x(), sy[a] = s.y(), sz[a] = s.z();
+    return a;
+  }
+  void set_geometry(int a, const ContactGeometry& g) {
     nx[a] = g.normal.x(), ny[a] = g.normal.y(), nz[a] = g.normal.z(), overlap[a] = g.overlap, radius[a] = g.radius;
     aix[a] = g.arm_i.x(), aiy[a] = g.arm_i.y(), aiz[a] = g.arm_i.z();
     ajx[a] = g.arm_j.x(), ajy[a] = g.arm_j.y(), ajz[a] = g.arm_j.z();
-    // Velocity of j's contact point relative to i's, with the affine part L l (SPEC 3).
-    const Vec3 vrel = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + in.cell.L * l;
-    vx[a] = vrel.x(), vy[a] = vrel.y(), vz[a] = vrel.z();
-    const Vec3& s = pairs.shear[k];
-    sx[a] = s.x(), sy[a] = s.y(), sz[a] = s.z();
+  }
+  void set_spheres(int a, double d, double radius_i, double radius_j) {
+    distance[a] = d, ri[a] = radius_i, rj[a] = radius_j;
   }
 };
 
-// The law on every lane, then the torques: (x_c - x_j) x F on j, (x_c - x_i) x (-F) on i (SPEC 4).
+// sphere_sphere (contact_law.hpp) on every lane, the same operations (coincident centres too).
+[[gnu::target_clones("avx2", "default")]] void sphere_geometry(ContactLanes& c) {
+#pragma omp simd
+  for (int a = 0; a < c.size; ++a) {
+    const double d = c.distance[a], radius_i = c.ri[a], radius_j = c.rj[a];
+    const double ov = radius_i + radius_j - d;
+    const double qx = c.lx[a] / d, qy = c.ly[a] / d, qz = c.lz[a] / d;
+    const bool apart_centres = d > 0;
+    const double nx = apart_centres ? qx : 0.0, ny = apart_centres ? qy : 0.0, nz = apart_centres ? qz : 1.0;
+    c.overlap[a] = ov;
+    c.nx[a] = nx, c.ny[a] = ny, c.nz[a] = nz;
+    const double arm_i = radius_i - 0.5 * ov, arm_j = -(radius_j - 0.5 * ov);
+    c.aix[a] = arm_i * nx, c.aiy[a] = arm_i * ny, c.aiz[a] = arm_i * nz;
+    c.ajx[a] = arm_j * nx, c.ajy[a] = arm_j * ny, c.ajz[a] = arm_j * nz;
+    c.radius[a] = radius_i * radius_j / (radius_i + radius_j);
+  }
+}
+
+// On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
+// (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4), and the contact's terms of the sums.
 // Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the same bits.
 [[gnu::target_clones("avx2", "default")]] void evaluate_contacts(const HertzMindlin& law, double dt,
                                                                  ContactLanes& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
-    double fx, fy, fz, kn, kt;
     const double nx = c.nx[a], ny = c.ny[a], nz = c.nz[a];
-    law.evaluate(nx, ny, nz, c.overlap[a], c.radius[a], c.vx[a], c.vy[a], c.vz[a], dt, c.sx[a], c.sy[a], c.sz[a], fx,
-                 fy, fz, kn, kt);
+    const double aix = c.aix[a], aiy = c.aiy[a], aiz = c.aiz[a], ajx = c.ajx[a], ajy = c.ajy[a], ajz = c.ajz[a];
+    // v_j + w_j x arm_j - v_i - w_i x arm_i + L l, summed left to right as Eigen does.
+    const double wjx = c.wjx[a], wjy = c.wjy[a], wjz = c.wjz[a], wix = c.wix[a], wiy = c.wiy[a], wiz = c.wiz[a];
+    const double vx = c.vjx[a] + (wjy * ajz - wjz * ajy) - c.vix[a] - (wiy * aiz - wiz * aiy) + c.ux[a];
+    const double vy = c.vjy[a] + (wjz * ajx - wjx * ajz) - c.viy[a] - (wiz * aix - wix * aiz) + c.uy[a];
+    const double vz = c.vjz[a] + (wjx * ajy - wjy * ajx) - c.viz[a] - (wix * aiy - wiy * aix) + c.uz[a];
+    double fx, fy, fz, kn, kt;
+    law.evaluate(nx, ny, nz, c.overlap[a], c.radius[a], vx, vy, vz, dt, c.sx[a], c.sy[a], c.sz[a], fx, fy, fz, kn, kt);
     c.fx[a] = fx, c.fy[a] = fy, c.fz[a] = fz;
     // Love-Weber f l^T (SPEC 7).
-    const double l[3] = {c.branch[a].x(), c.branch[a].y(), c.branch[a].z()}, f[3] = {fx, fy, fz};
+    const double l[3] = {c.lx[a], c.ly[a], c.lz[a]}, f[3] = {fx, fy, fz};
     for (int r = 0; r < 3; ++r)
       for (int q = 0; q < 3; ++q) c.stress[3 * r + q][a] = f[r] * l[q];
     // Affine stiffness: (k_n n_k^2 + k_t (1 - n_k^2)) l_k^2. Pure shear D_ab = D_ba (servo.hpp):
@@ -135,46 +173,68 @@ struct ContactLanes {
       const double nn = n2[u] * n2[w], half = 0.5 * (n2[u] + n2[w]);
       c.shear_stiffness[q][a] = l2 * (2 * kn * nn + kt * (half - 2 * nn));
     }
-    c.tjx[a] = c.ajy[a] * fz - c.ajz[a] * fy;  // as Eigen's cross
-    c.tjy[a] = c.ajz[a] * fx - c.ajx[a] * fz;
-    c.tjz[a] = c.ajx[a] * fy - c.ajy[a] * fx;
+    c.tjx[a] = ajy * fz - ajz * fy;  // as Eigen's cross
+    c.tjy[a] = ajz * fx - ajx * fz;
+    c.tjz[a] = ajx * fy - ajy * fx;
     const double mx = -fx, my = -fy, mz = -fz;
-    c.tix[a] = c.aiy[a] * mz - c.aiz[a] * my;
-    c.tiy[a] = c.aiz[a] * mx - c.aix[a] * mz;
-    c.tiz[a] = c.aix[a] * my - c.aiy[a] * mx;
+    c.tix[a] = aiy * mz - aiz * my;
+    c.tiy[a] = aiz * mx - aix * mz;
+    c.tiz[a] = aix * my - aiy * mx;
   }
 }
 
 // The lanes' contacts, in order: the pair's results for its j end and history, i's resultant,
 // the block's contact list, stress and stiffness sums.
 void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+  // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
+  // loaded and stored every sum at every contact (a store through a double* may alias them).
+  double stress[9], stiffness[3], shear_stiffness[3];
+  for (int r = 0; r < 3; ++r)
+    for (int q = 0; q < 3; ++q) stress[3 * r + q] = acc.stress_sum(r, q);
+  for (int q = 0; q < 3; ++q) stiffness[q] = acc.stiffness_sum[q], shear_stiffness[q] = acc.shear_stiffness_sum[q];
+  double max_overlap = acc.max_overlap;
+  std::size_t max_overlap_pair = acc.max_overlap_pair;
+  std::uint32_t* const contact_j = pairs.contact_j.data() + acc.first_contact + acc.contacts;
+  std::uint32_t* const contact_pairs = pairs.contact_pairs.data() + acc.first_contact + acc.contacts;
+  double* const overlap = pairs.overlap.data();
+  Vec3* const shear = pairs.shear.data();
+  Vec3* const pair_force = pairs.force.data();
+  Vec3* const pair_torque = pairs.torque_j.data();
+  Vec3* const force = p.force.data();
+  Vec3* const torque = p.torque.data();
+  const double* const equiv_radius = p.equiv_radius.data();
   for (int a = 0; a < c.size; ++a) {
     const std::uint32_t k = c.pair[a], i = c.first[a], j = c.second[a];
-    pairs.overlap[k] = c.overlap[a];
-    pairs.contact_j[acc.first_contact + acc.contacts] = j;
-    pairs.contact_pairs[acc.first_contact + acc.contacts++] = k;
-    const double r_min = std::min(p.equiv_radius[i], p.equiv_radius[j]);
-    if (c.overlap[a] > acc.max_overlap * r_min) {  // delta / R_min > max, without a division per contact
-      acc.max_overlap = c.overlap[a] / r_min;
-      acc.max_overlap_pair = k;
+    overlap[k] = c.overlap[a];
+    contact_j[a] = j;
+    contact_pairs[a] = k;
+    const double r_min = std::min(equiv_radius[i], equiv_radius[j]);
+    if (c.overlap[a] > max_overlap * r_min) {  // delta / R_min > max, without a division per contact
+      max_overlap = c.overlap[a] / r_min;
+      max_overlap_pair = k;
     }
-    pairs.shear[k] = Vec3(c.sx[a], c.sy[a], c.sz[a]);
+    shear[k] = Vec3(c.sx[a], c.sy[a], c.sz[a]);
     const Vec3 f(c.fx[a], c.fy[a], c.fz[a]);
-    pairs.force[k] = f;
-    pairs.torque_j[k] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
-    p.force[i] -= f;
-    p.torque[i] += Vec3(c.tix[a], c.tiy[a], c.tiz[a]);
-    for (int r = 0; r < 3; ++r)
-      for (int q = 0; q < 3; ++q) acc.stress_sum(r, q) += c.stress[3 * r + q][a];
-    for (int q = 0; q < 3; ++q) {
-      acc.stiffness_sum[q] += c.stiffness[q][a];
-      acc.shear_stiffness_sum[q] += c.shear_stiffness[q][a];
-    }
+    pair_force[k] = f;
+    pair_torque[k] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
+    force[i] -= f;
+    torque[i] += Vec3(c.tix[a], c.tiy[a], c.tiz[a]);
+    for (int m = 0; m < 9; ++m) stress[m] += c.stress[m][a];
+    for (int q = 0; q < 3; ++q) stiffness[q] += c.stiffness[q][a], shear_stiffness[q] += c.shear_stiffness[q][a];
   }
+  acc.contacts += static_cast<std::uint32_t>(c.size);
+  for (int r = 0; r < 3; ++r)
+    for (int q = 0; q < 3; ++q) acc.stress_sum(r, q) = stress[3 * r + q];
+  for (int q = 0; q < 3; ++q) acc.stiffness_sum[q] = stiffness[q], acc.shear_stiffness_sum[q] = shear_stiffness[q];
+  acc.max_overlap = max_overlap;
+  acc.max_overlap_pair = max_overlap_pair;
 }
 
-// Evaluates and commits the lanes' contacts, and empties them.
-inline void flush_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+// Evaluates and commits the lanes' contacts, and empties them; `spheres`: their geometry is
+// still to compute (ContactLanes::set_spheres).
+inline void flush_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc,
+                           bool spheres = false) {
+  if (spheres) sphere_geometry(c);
   evaluate_contacts(in.law, in.dt, c);
   commit_contacts(c, p, pairs, acc);
   c.size = 0;
@@ -274,13 +334,32 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
         mark_apart(pairs, kt);
         continue;
       }
-      contacts.add(in, p, pairs, kt, i, j, l, g);
+      contacts.set_geometry(contacts.add(in, p, pairs, kt, i, j, l), g);
       if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc);
     }
   }
   flush_contacts(in, contacts, p, pairs, acc);
   group_contacts_by_owner(in, pairs, acc, b);
   return acc;
+}
+
+// The test of n sphere pairs by their branches l and reach r = r_i + r_j: |l|, touching (1: |l|^2 <
+// r^2, else 0), and for an apart pair the motion `moved` + gap (|l| - r, less a margin for its
+// round-off) below which it is not tested again (-1: tested at the next step).
+[[gnu::target_clones("avx2", "default")]] void sphere_tests(const double* lx, const double* ly, const double* lz,
+                                                            const double* reach, std::uint32_t n, double moved,
+                                                            double* distance, double* touch, double* until) {
+#pragma omp simd
+  for (std::uint32_t m = 0; m < n; ++m) {
+    const double r = reach[m];
+    const double d2 = (lx[m] * lx[m] + ly[m] * ly[m]) + lz[m] * lz[m];
+    const double d = std::sqrt(d2);
+    const bool t = d2 < r * r;
+    const double gap = d - r * (1 + 1e-9);
+    distance[m] = d;
+    touch[m] = t ? 1.0 : 0.0;
+    until[m] = !t && gap > 0 ? moved + gap : -1.0;
+  }
 }
 
 // The same for a run of spheres only, where most listed pairs are apart (~88 % in spheres-A).
@@ -293,8 +372,7 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
   clear_block_resultants(p, pairs, b);
   constexpr std::uint32_t chunk = 128;
   std::uint32_t tested[chunk], touching[chunk];
-  Vec3 branch[chunk];
-  double distance[chunk];
+  alignas(64) double lx[chunk], ly[chunk], lz[chunk], reach[chunk], distance[chunk], touch[chunk], until[chunk];
   ContactLanes contacts;
   const std::uint32_t k0 = pairs.first_i[pairs.block_first[b]], k1 = pairs.first_i[pairs.block_first[b + 1]];
   const bool overlap_known = pairs.overlap_known;
@@ -309,17 +387,20 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
       nk += in.skip_apart && moved < pairs.apart_until[k] ? 0 : 1;
     }
     acc.narrow_tests += nk;
-    std::uint32_t nt = 0;
+    // Their branch vectors and radii; then |l| and the outcome in vector lanes (a square root per
+    // pair, in a loop without loads that miss); then the touching are listed.
     for (std::uint32_t m = 0; m < nk; ++m) {
       const std::uint32_t k = tested[m], i = pairs.i[k], j = pairs.j[k];
       const Vec3 l = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[k]);
-      const double r = p.bound_radius[i] + p.bound_radius[j];
-      const double d2 = l.squaredNorm();
-      const double d = std::sqrt(d2);  // |l|, for the gap of an apart pair or a contact's geometry
-      const bool t = d2 < r * r;
-      branch[nt] = l;
-      distance[nt] = d;
-      touching[nt] = k;
+      lx[m] = l.x(), ly[m] = l.y(), lz[m] = l.z();
+      reach[m] = p.bound_radius[i] + p.bound_radius[j];
+    }
+    sphere_tests(lx, ly, lz, reach, nk, moved, distance, touch, until);
+    std::uint32_t nt = 0;
+    for (std::uint32_t m = 0; m < nk; ++m) {
+      const std::uint32_t k = tested[m];
+      const bool t = touch[m] != 0;
+      touching[nt] = m;
       nt += t ? 1 : 0;
       // The law's history, for a contact (a select, not a branch: t mispredicts); the contacts are
       // every ~9th listed pair, too sparse for the hardware prefetcher.
@@ -328,27 +409,20 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
       // `&&`: a branch on t itself mispredicts, and cost this stage 11 %).
       const bool lost = (!t) & ((pairs.overlap[k] != 0) | !overlap_known);
       if (lost) mark_apart(pairs, k);
-      if (in.skip_apart) {
-        // Not tested again until the spheres may have closed the gap |l| - r_i - r_j; the margin
-        // covers its round-off. Touching pairs: -1 (always tested).
-        // (`&` and a select: `!t && ...` compiled to a branch on t, which mispredicts.)
-        const double gap = d - r * (1 + 1e-9);
-        const bool apart = (!t) & (gap > 0);
-        pairs.apart_until[k] = apart ? moved + gap : -1.0;
-      }
+      if (in.skip_apart) pairs.apart_until[k] = until[m];
     }
-    for (std::uint32_t m = 0; m < nt; ++m) {
-      const std::uint32_t k = touching[m], i = pairs.i[k], j = pairs.j[k];
-      const ContactGeometry g = sphere_sphere(branch[m], distance[m], p.bound_radius[i], p.bound_radius[j]);
-      if (!(g.overlap > 0)) {
+    for (std::uint32_t n = 0; n < nt; ++n) {
+      const std::uint32_t m = touching[n], k = tested[m], i = pairs.i[k], j = pairs.j[k];
+      const double ri = p.bound_radius[i], rj = p.bound_radius[j];
+      if (!(ri + rj - distance[m] > 0)) {  // sphere_sphere's overlap
         mark_apart(pairs, k);  // |l| rounded to r_i + r_j: not a contact
         continue;
       }
-      contacts.add(in, p, pairs, k, i, j, branch[m], g);
-      if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc);
+      contacts.set_spheres(contacts.add(in, p, pairs, k, i, j, Vec3(lx[m], ly[m], lz[m])), distance[m], ri, rj);
+      if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc, true);
     }
   }
-  flush_contacts(in, contacts, p, pairs, acc);
+  flush_contacts(in, contacts, p, pairs, acc, true);
   group_contacts_by_owner(in, pairs, acc, b);
   return acc;
 }
