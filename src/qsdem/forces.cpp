@@ -254,6 +254,16 @@ inline void clear_block_resultants(Particles& p, const PairList& pairs, std::siz
   }
 }
 
+// Which of n listed pairs to test: keep[m] = 0 while pair m is still provably apart
+// (NeighborState::moved(i, j), the same sum, below its apart_until), else 1. In vector lanes (AVX2
+// gathers the paths).
+[[gnu::target_clones("avx2", "default")]] void to_test(const double* path, const std::uint32_t* pair_i,
+                                                       const std::uint32_t* pair_j, const double* apart_until,
+                                                       double strain, std::uint32_t n, double* keep) {
+#pragma omp simd
+  for (std::uint32_t m = 0; m < n; ++m) keep[m] = path[pair_i[m]] + path[pair_j[m]] + strain < apart_until[m] ? 0.0 : 1.0;
+}
+
 // The pairs of block b (whole particles as i ends), any shapes: spheres exactly, pairs with an
 // ellipsoid by Perram-Wertheim, skipped while provably apart. The pairs to test are taken a batch
 // at a time: the ellipsoid pairs' narrow phase runs on the whole batch at once (EllipsoidContactBatch),
@@ -264,7 +274,6 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
   clear_block_resultants(p, pairs, b);
   constexpr int capacity = EllipsoidContactBatch::capacity;
   EllipsoidContactBatch batch;
-  std::uint32_t tested[capacity];
   int lane[capacity];  // the pair's lane in the batch, -1 for two spheres
   Vec3 branch[capacity];
   ContactLanes contacts;
@@ -279,63 +288,72 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
   const double* const apart_until = in.skip_apart ? pairs.apart_until.data() : nullptr;
   const double* const path = in.skip_apart ? in.ns.surface_path.data() : nullptr;
   const double strain = in.skip_apart ? in.ns.strain_path * in.ns.branch_reach() : 0;
-  for (std::uint32_t k = pairs.first_i[pairs.block_first[b]]; k < k1;) {
+  constexpr std::uint32_t window = 256;
+  std::uint32_t listed[window];
+  alignas(64) double keep[window];
+  for (std::uint32_t w0 = pairs.first_i[pairs.block_first[b]]; w0 < k1; w0 += window) {
     // The pairs to test: not still provably apart (its overlap is 0 and its spring released since
-    // the test that proved it). Listed without a branch on the outcome (it mispredicts). Two
-    // spheres are always tested (their direct test is as cheap as the skip test): only ellipsoid
-    // lanes set apart_until, so theirs stays -1 from the list build, below any motion.
-    int nt = 0;
+    // the test that proved it). First each pair's outcome, in vector lanes, then the list, without
+    // a branch on the outcome (it mispredicts). Two spheres are always tested (their direct test is
+    // as cheap as the skip test): only ellipsoid lanes set apart_until, so theirs stays -1 from the
+    // list build, below any motion.
+    const std::uint32_t w1 = std::min(k1, w0 + window);
+    std::uint32_t nl = 0;
     if (in.skip_apart) {
-      for (; k < k1 && nt < capacity; ++k) {
-        tested[nt] = k;
-        // NeighborState::moved(i, j), the same sum.
-        nt += path[pair_i[k]] + path[pair_j[k]] + strain < apart_until[k] ? 0 : 1;
+      to_test(path, pair_i + w0, pair_j + w0, apart_until + w0, strain, w1 - w0, keep);
+      for (std::uint32_t k = w0; k < w1; ++k) {
+        listed[nl] = k;
+        nl += keep[k - w0] != 0 ? 1 : 0;
       }
     } else {
-      for (; k < k1 && nt < capacity; ++k) tested[nt++] = k;
+      for (std::uint32_t k = w0; k < w1; ++k) listed[nl++] = k;
     }
-    batch.size = 0;
-    for (int m = 0; m < nt; ++m) {
-      const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
-      const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
-      branch[m] = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[kt]);
-      lane[m] = spheres ? -1 : batch.add(branch[m], in.shapes[i], in.shapes[j], pairs.pw_lambda[kt]);
-      __builtin_prefetch(&pairs.shear[kt], 1);  // the law's history: the listed pairs' overflow L2
-    }
-    acc.narrow_tests += nt;
-    // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
-    ellipsoid_contacts(batch);
-    for (int m = 0; m < nt; ++m) {
-      const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
-      const Vec3& l = branch[m];
-      ContactGeometry g;
-      bool touching;
-      if (lane[m] < 0) {
-        const double ri = p.bound_radius[i], rj = p.bound_radius[j];
-        touching = l.squaredNorm() < (ri + rj) * (ri + rj);
-        if (touching) {
-          g = sphere_sphere(l, ri, rj);
-          touching = g.overlap > 0;  // a contact always has overlap > 0 (PairList::overlap)
-        }
-      } else {
-        const int a = lane[m];
-        pairs.pw_lambda[kt] = batch.lambda[a];
-        touching = batch.touching[a];
-        if (touching) {
-          g = batch.g[a];
+    for (std::uint32_t m0 = 0; m0 < nl; m0 += capacity) {
+      const int nt = static_cast<int>(std::min<std::uint32_t>(capacity, nl - m0));
+      const std::uint32_t* const tested = listed + m0;
+      batch.size = 0;
+      for (int m = 0; m < nt; ++m) {
+        const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
+        const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
+        branch[m] = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[kt]);
+        lane[m] = spheres ? -1 : batch.add(branch[m], in.shapes[i], in.shapes[j], pairs.pw_lambda[kt]);
+        __builtin_prefetch(&pairs.shear[kt], 1);  // the law's history: the listed pairs' overflow L2
+      }
+      acc.narrow_tests += nt;
+      // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
+      ellipsoid_contacts(batch);
+      for (int m = 0; m < nt; ++m) {
+        const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
+        const Vec3& l = branch[m];
+        ContactGeometry g;
+        bool touching;
+        if (lane[m] < 0) {
+          const double ri = p.bound_radius[i], rj = p.bound_radius[j];
+          touching = l.squaredNorm() < (ri + rj) * (ri + rj);
+          if (touching) {
+            g = sphere_sphere(l, ri, rj);
+            touching = g.overlap > 0;  // a contact always has overlap > 0 (PairList::overlap)
+          }
         } else {
-          // Not tested again until the surfaces may have closed the proven gap; the margin covers
-          // the round-off of mu (1e-9 of the minor axes, far above it).
-          const double gap = batch.stats[a].gap_bound - 1e-9 * (in.shapes[i].minor + in.shapes[j].minor);
-          if (in.skip_apart && gap > 0) pairs.apart_until[kt] = in.ns.moved(i, j) + gap;
+          const int a = lane[m];
+          pairs.pw_lambda[kt] = batch.lambda[a];
+          touching = batch.touching[a];
+          if (touching) {
+            g = batch.g[a];
+          } else {
+            // Not tested again until the surfaces may have closed the proven gap; the margin covers
+            // the round-off of mu (1e-9 of the minor axes, far above it).
+            const double gap = batch.stats[a].gap_bound - 1e-9 * (in.shapes[i].minor + in.shapes[j].minor);
+            if (in.skip_apart && gap > 0) pairs.apart_until[kt] = in.ns.moved(i, j) + gap;
+          }
         }
+        if (!touching) {
+          mark_apart(pairs, kt);
+          continue;
+        }
+        contacts.set_geometry(contacts.add(in, p, pairs, kt, i, j, l), g);
+        if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc);
       }
-      if (!touching) {
-        mark_apart(pairs, kt);
-        continue;
-      }
-      contacts.set_geometry(contacts.add(in, p, pairs, kt, i, j, l), g);
-      if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc);
     }
   }
   flush_contacts(in, contacts, p, pairs, acc);
