@@ -90,6 +90,7 @@ struct ContactLanes {
   double nx[stride], ny[stride], nz[stride], overlap[stride], radius[stride];
   double aix[stride], aiy[stride], aiz[stride], ajx[stride], ajy[stride], ajz[stride];
   double distance[stride], ri[stride], rj[stride];
+  double r_min[stride];  // min(R_i, R_j), for the largest overlap ratio
   double vix[stride], viy[stride], viz[stride], vjx[stride], vjy[stride], vjz[stride];
   double wix[stride], wiy[stride], wiz[stride], wjx[stride], wjy[stride], wjz[stride];
   double ux[stride], uy[stride], uz[stride], sx[stride], sy[stride], sz[stride];
@@ -112,6 +113,7 @@ struct ContactLanes {
     ux[a] = u.x(), uy[a] = u.y(), uz[a] = u.z();
     const Vec3& s = pairs.shear[k];
     sx[a] = s.x(), sy[a] = s.y(), sz[a] = s.z();
+    r_min[a] = std::min(p.equiv_radius[i], p.equiv_radius[j]);
     return a;
   }
   void set_geometry(int a, const ContactGeometry& g) {
@@ -202,15 +204,13 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
   Vec3* const pair_torque = pairs.torque_j.data();
   Vec3* const force = p.force.data();
   Vec3* const torque = p.torque.data();
-  const double* const equiv_radius = p.equiv_radius.data();
   for (int a = 0; a < c.size; ++a) {
     const std::uint32_t k = c.pair[a], i = c.first[a], j = c.second[a];
     overlap[k] = c.overlap[a];
     contact_j[a] = j;
     contact_pairs[a] = k;
-    const double r_min = std::min(equiv_radius[i], equiv_radius[j]);
-    if (c.overlap[a] > max_overlap * r_min) {  // delta / R_min > max, without a division per contact
-      max_overlap = c.overlap[a] / r_min;
+    if (c.overlap[a] > max_overlap * c.r_min[a]) {  // delta / R_min > max, without a division per contact
+      max_overlap = c.overlap[a] / c.r_min[a];
       max_overlap_pair = k;
     }
     shear[k] = Vec3(c.sx[a], c.sy[a], c.sz[a]);
