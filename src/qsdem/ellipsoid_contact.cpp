@@ -75,21 +75,22 @@ struct Sym {
   double det_with(const Sym& adj) const { return xx * adj.xx + xy * adj.xy + xz * adj.xz; }
 };
 
-// First two columns of the rotation matrix of a unit quaternion (body axes 1 and 2 in the world).
-void body_axes(const Quat& q, Vec3& c0, Vec3& c1) {
-  const double w = q.w(), x = q.x(), y = q.y(), z = q.z();
-  c0 = {1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)};
-  c1 = {2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)};
-}
-
-// R diag(d0, d1, d2) R^T = d2 I + (d0 - d2) c0 c0^T + (d1 - d2) c1 c1^T (columns orthonormal):
-// two rank-one updates, exact d I for spheres.
-Sym shape_from_axes(const Vec3& c0, const Vec3& c1, double d0, double d1, double d2) {
+// Shape matrix of semi-axes (a0, a1, a2) turned by the unit quaternion (w, x, y, z), by components:
+// R diag(d0, d1, d2) R^T = d2 I + (d0 - d2) c0 c0^T + (d1 - d2) c1 c1^T, d = a^2, with c0, c1 the
+// first two columns of R (the body axes 1 and 2 in the world; orthonormal): two rank-one updates,
+// exact d I for spheres. On components (not Vec3 and Quat) so that a loop of particles runs in
+// vector lanes (ellipsoid_shapes).
+[[gnu::always_inline]] inline void shape_of(double w, double x, double y, double z, double a0, double a1, double a2,
+                                            EllipsoidShape& out) {
+  const double c0x = 1 - 2 * (y * y + z * z), c0y = 2 * (x * y + w * z), c0z = 2 * (x * z - w * y);
+  const double c1x = 2 * (x * y - w * z), c1y = 1 - 2 * (x * x + z * z), c1z = 2 * (y * z + w * x);
+  const double d0 = a0 * a0, d1 = a1 * a1, d2 = a2 * a2;
   const double k0 = d0 - d2, k1 = d1 - d2;
-  const Vec3 u = k0 * c0, v = k1 * c1;
-  return {d2 + u.x() * c0.x() + v.x() * c1.x(), d2 + u.y() * c0.y() + v.y() * c1.y(),
-          d2 + u.z() * c0.z() + v.z() * c1.z(), u.x() * c0.y() + v.x() * c1.y(),
-          u.x() * c0.z() + v.x() * c1.z(),      u.y() * c0.z() + v.y() * c1.z()};
+  const double ux = k0 * c0x, uy = k0 * c0y, uz = k0 * c0z, vx = k1 * c1x, vy = k1 * c1y, vz = k1 * c1z;
+  out.xx = d2 + ux * c0x + vx * c1x, out.yy = d2 + uy * c0y + vy * c1y, out.zz = d2 + uz * c0z + vz * c1z;
+  out.xy = ux * c0y + vx * c1y, out.xz = ux * c0z + vx * c1z, out.yz = uy * c0z + vy * c1z;
+  out.reach = std::max(std::max(a0, a1), a2);
+  out.minor = std::min(std::min(a0, a1), a2);
 }
 
 // Larger root of A t^2 + 2 B t + C = 0 (A > 0), without cancellation; a negative discriminant
@@ -109,15 +110,20 @@ double pw_contact_function(const Vec3& l, const Mat3& Q_i, const Mat3& Q_j, doub
 }
 
 EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
-  Vec3 c0, c1;
-  body_axes(q, c0, c1);
-  const Vec3 a2 = axes.cwiseAbs2();
-  const Sym Q = shape_from_axes(c0, c1, a2.x(), a2.y(), a2.z());
-  return {Q.xx, Q.yy, Q.zz, Q.xy, Q.xz, Q.yz, axes.maxCoeff(), axes.minCoeff()};
+  EllipsoidShape out;
+  shape_of(q.w(), q.x(), q.y(), q.z(), axes.x(), axes.y(), axes.z(), out);
+  return out;
 }
 
-void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out, std::size_t lo, std::size_t hi) {
-  for (std::size_t a = lo; a < hi; ++a) out[a] = ellipsoid_shape(axes[a], q[a]);
+// In vector lanes where the CPU has AVX2 (chosen at load time; no FMA, so the same bits). The
+// arrays as doubles: through Vec3 and Quat GCC 12 does not vectorise the loop ("no vectype").
+[[gnu::target_clones("avx2", "default")]] void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
+                                                                std::size_t lo, std::size_t hi) {
+  const double* const ad = axes[0].data();      // a0 a1 a2 per particle
+  const double* const qd = q[0].coeffs().data();  // x y z w per particle
+#pragma omp simd
+  for (std::size_t a = lo; a < hi; ++a)
+    shape_of(qd[4 * a + 3], qd[4 * a], qd[4 * a + 1], qd[4 * a + 2], ad[3 * a], ad[3 * a + 1], ad[3 * a + 2], out[a]);
 }
 
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,
