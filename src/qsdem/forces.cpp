@@ -126,22 +126,12 @@ struct ContactLanes {
   }
 };
 
-// sphere_sphere (contact_law.hpp) on every lane, the same operations (coincident centres too).
+// sphere_sphere (contact_law.hpp) on every lane.
 [[gnu::target_clones("avx2", "default")]] void sphere_geometry(ContactLanes& c) {
 #pragma omp simd
-  for (int a = 0; a < c.size; ++a) {
-    const double d = c.distance[a], radius_i = c.ri[a], radius_j = c.rj[a];
-    const double ov = radius_i + radius_j - d;
-    const double qx = c.lx[a] / d, qy = c.ly[a] / d, qz = c.lz[a] / d;
-    const bool apart_centres = d > 0;
-    const double nx = apart_centres ? qx : 0.0, ny = apart_centres ? qy : 0.0, nz = apart_centres ? qz : 1.0;
-    c.overlap[a] = ov;
-    c.nx[a] = nx, c.ny[a] = ny, c.nz[a] = nz;
-    const double arm_i = radius_i - 0.5 * ov, arm_j = -(radius_j - 0.5 * ov);
-    c.aix[a] = arm_i * nx, c.aiy[a] = arm_i * ny, c.aiz[a] = arm_i * nz;
-    c.ajx[a] = arm_j * nx, c.ajy[a] = arm_j * ny, c.ajz[a] = arm_j * nz;
-    c.radius[a] = radius_i * radius_j / (radius_i + radius_j);
-  }
+  for (int a = 0; a < c.size; ++a)
+    sphere_sphere(c.lx[a], c.ly[a], c.lz[a], c.distance[a], c.ri[a], c.rj[a], c.nx[a], c.ny[a], c.nz[a], c.overlap[a],
+                  c.aix[a], c.aiy[a], c.aiz[a], c.ajx[a], c.ajy[a], c.ajz[a], c.radius[a]);
 }
 
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
@@ -254,20 +244,6 @@ inline void clear_block_resultants(Particles& p, const PairList& pairs, std::siz
   }
 }
 
-// The cell matrix h by its entries, for branch vectors l = h (s_j - s_i + image) in vector lanes
-// (branch_vector), summed in the order Eigen 3.4 sums a 3x3 matrix times a vector here (rows 1 and 2
-// left to right, row 3 right to left; checked bit for bit on 300 000 random sheared cells when
-// written), so that a lane gives branch_vector's bits; another order would differ by rounding only.
-struct CellMap {
-  double h00, h01, h02, h10, h11, h12, h20, h21, h22;
-  explicit CellMap(const Mat3& h)
-      : h00(h(0, 0)), h01(h(0, 1)), h02(h(0, 2)), h10(h(1, 0)), h11(h(1, 1)), h12(h(1, 2)), h20(h(2, 0)),
-        h21(h(2, 1)), h22(h(2, 2)) {}
-  [[gnu::always_inline]] void apply(double fx, double fy, double fz, double& x, double& y, double& z) const {
-    x = (h00 * fx + h01 * fy) + h02 * fz, y = (h10 * fx + h11 * fy) + h12 * fz, z = h20 * fx + (h21 * fy + h22 * fz);
-  }
-};
-
 // Which of n listed pairs to test: keep[m] = 0 while pair m is still provably apart
 // (NeighborState::moved(i, j), the same sum, below its apart_until), else 1. In vector lanes (AVX2
 // gathers the paths).
@@ -375,11 +351,10 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
   return acc;
 }
 
-// The test of n sphere pairs by their fractional branches (in: h^-1 l = s_j - s_i + image; out:
-// the branch l) and reach
-// r = r_i + r_j: |l|, touching (1: |l|^2 < r^2, else 0), and for an apart pair the motion `moved` +
-// gap (|l| - r, less a margin for its round-off) below which it is not tested again (-1: tested at
-// the next step).
+// The test of n sphere pairs by their fractional branches (in: s_j - s_i + image; out: the branch l,
+// as branch_vector gives it) and reach r = r_i + r_j: |l|, touching (1: |l|^2 < r^2, else 0), and
+// for an apart pair the motion `moved` + gap (|l| - r, less a margin for its round-off) below which
+// it is not tested again (-1: tested at the next step).
 [[gnu::target_clones("avx2", "default")]] void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
                                                             const double* reach, std::uint32_t n, double moved,
                                                             double* distance, double* touch, double* until) {
@@ -429,7 +404,7 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
     // pair, in a loop without loads that miss); then the touching are listed.
     for (std::uint32_t m = 0; m < nk; ++m) {
       const std::uint32_t k = tested[m], i = pairs.i[k], j = pairs.j[k];
-      const Vec3 d = p.s[j] - p.s[i] + pairs.image[k].cast<double>();  // branch_vector's h^-1 l
+      const Vec3 d = p.s[j] - p.s[i] + pairs.image[k].cast<double>();  // as in branch_vector
       lx[m] = d.x(), ly[m] = d.y(), lz[m] = d.z();
       reach[m] = p.bound_radius[i] + p.bound_radius[j];
     }
