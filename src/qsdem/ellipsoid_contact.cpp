@@ -119,8 +119,9 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
 // arrays as doubles: through Vec3 and Quat GCC 12 does not vectorise the loop ("no vectype").
 [[gnu::target_clones("avx2", "default")]] void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
                                                                 std::size_t lo, std::size_t hi) {
-  const double* const ad = axes[0].data();      // a0 a1 a2 per particle
-  const double* const qd = q[0].coeffs().data();  // x y z w per particle
+  static_assert(sizeof(Vec3) == 3 * sizeof(double) && sizeof(Quat) == 4 * sizeof(double), "packed arrays");
+  const double* const ad = reinterpret_cast<const double*>(axes);  // a0 a1 a2 per particle
+  const double* const qd = reinterpret_cast<const double*>(q);     // x y z w per particle (Eigen's order)
 #pragma omp simd
   for (std::size_t a = lo; a < hi; ++a)
     shape_of(qd[4 * a + 3], qd[4 * a], qd[4 * a + 1], qd[4 * a + 2], ad[3 * a], ad[3 * a + 1], ad[3 * a + 2], out[a]);
