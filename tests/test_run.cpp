@@ -325,7 +325,8 @@ TEST(Run, BenchPrintsOneMachineReadableLine) {
     if (!line.empty()) last = line;
   const auto b = nlohmann::json::parse(last);
   for (const char* key : {"particles", "ellipsoids", "contacts", "pairs", "steps", "threads", "wall_s",
-                          "particle_steps_per_s", "peak_rss_kib", "narrow_tests_per_step", "state_kib", "stages"})
+                          "particle_steps_per_s", "peak_rss_kib", "narrow_tests_per_step", "pw_iterations_per_step", "state_kib",
+                          "stages"})
     EXPECT_TRUE(b.contains(key)) << key << " in " << last;
   EXPECT_EQ(b["particles"].get<int>(), 2001);
   EXPECT_EQ(b["ellipsoids"].get<int>(), 2001);
@@ -336,6 +337,9 @@ TEST(Run, BenchPrintsOneMachineReadableLine) {
               1e-9 * b["particle_steps_per_s"].get<double>());
   EXPECT_LT(b["narrow_tests_per_step"].get<double>(), 0.8 * b["pairs"].get<double>());
   EXPECT_GE(b["narrow_tests_per_step"].get<double>(), 0.5 * b["contacts"].get<double>());
+  // Warm-started Perram-Wertheim: every contact takes an iteration, few take a second.
+  EXPECT_GE(b["pw_iterations_per_step"].get<double>(), b["contacts"].get<double>());
+  EXPECT_LT(b["pw_iterations_per_step"].get<double>(), 1.5 * b["narrow_tests_per_step"].get<double>());
   const auto& kib = b["state_kib"];
   EXPECT_NEAR(kib["total"].get<double>(),
               kib["particles"].get<double>() + kib["pair_keys_and_history"].get<double>() +

@@ -3,21 +3,26 @@
 // Derivations (all lengths in metres, no scaling needed: F is dimensionless and the iteration
 // runs on the unit direction e = l/|l|, so F(lambda; l) = |l|^2 F(lambda; e)).
 //
-// 1. Derivatives. With s = Q(lambda)^-1 e, D = Q_j - Q_i, u = D s, v = Q^-1 u and E = e.s:
-//      dQ^-1/dlambda = -Q^-1 D Q^-1  =>  E' = -s.u,  E'' = 2 u.v,  ds/dlambda = -v
-//      F   = w E,                  w = lambda (1 - lambda)
-//      F'  = (1 - 2 lambda) E - w s.u
-//      F'' = -2 E - 2 (1 - 2 lambda) s.u + 2 w u.v     (< 0: F is concave, see the header)
-//    One adjugate of Q(lambda) per iteration serves both solves (s and v).
+// 1. Derivatives. With s = Q(lambda)^-1 e, D = Q_j - Q_i, u = D s, v = Q^-1 u, z = Q^-1 D v, E = e.s:
+//      d^n Q^-1/dlambda^n = (-1)^n n! (Q^-1 D)^n Q^-1  =>
+//      E' = -s.u,  E'' = 2 u.v,  E''' = -6 v.D v,  s' = -v,  s'' = 2 z
+//      F    = w E,                  w = lambda (1 - lambda)
+//      F'   = (1 - 2 lambda) E - w s.u
+//      F''  = -2 E - 2 (1 - 2 lambda) s.u + 2 w u.v     (< 0: F is concave, see the header)
+//      F''' = 6 s.u + 6 (1 - 2 lambda) u.v - 6 w v.D v
+//    One adjugate of Q(lambda) per iteration serves the three solves (s, v and z).
 //
 // 2. Iteration. Bracket [lo, hi] = [0, 1] (F'(0) = e^T M_i e > 0, F'(1) = -e^T M_j e < 0).
-//    Each iterate moves lo or hi by the sign of F'; the Newton step lambda - F'/F'' is taken when it
-//    stays strictly inside the bracket (and F'' < 0), otherwise the bracket is bisected. The
-//    iteration stops after a Newton step h whose relative effect on s, |h| |v| / |s|, is below
-//    kStepTol = 1e-7: the step is then taken to first order, s <- s - h v, F <- F + F' h / 2,
-//    whose error is O((|h| |v|/|s|)^2) ~ 1e-14 relative; Newton's quadratic convergence puts the
-//    new lambda at the same order. This saves the final re-factorisation: a warm start
-//    (lambda of the previous time step) usually converges in one iteration.
+//    Each iterate moves lo or hi by the sign of F'; the Halley step h = -2 F' F'' / (2 F''^2 - F' F''')
+//    (Newton's -F'/F'' where Halley's would be more than twice as long) is taken when it stays
+//    strictly inside the bracket (and F'' < 0), otherwise the bracket is bisected. The iteration
+//    stops after a step h whose relative effect on s, r = |h| |v| / |s|, is below kStepTol = 1e-5:
+//    the step is then taken by Taylor series, s <- s - h v + h^2 z, F <- F + h (F' + h (F''/2 +
+//    h F'''/6)), whose error is O(r^3) ~ 1e-15 relative; Halley's cubic convergence puts the new
+//    lambda at the same order. This saves the final re-factorisation: a warm start (lambda of the
+//    previous time step) usually converges in one iteration. (Newton steps taken to first order
+//    err by O(r^2), so they had to stop at r < 1e-7, and 27 % of paper-A's warm starts then took
+//    a second factorisation.)
 //    Cold start: at the maximiser lambda = h_i(n) / (h_i(n) + h_j(n)) exactly (x0 - c_i =
 //    (1 - lambda) Q_i s lies on the mu-scaled surface of i, whose support value along n is
 //    mu h_i(n); same for j); with n ~ e this gives lambda0 = h_i(e) / (h_i(e) + h_j(e)), exact for
@@ -53,7 +58,7 @@ namespace qsdem {
 
 namespace {
 
-constexpr double kStepTol = 1e-7;  // see 2. above
+constexpr double kStepTol = 1e-5;  // see 2. above
 constexpr int kMaxIterations = 100;
 
 // Symmetric 3x3 matrix by its six entries (cheaper than Mat3 in the inner loop).
@@ -260,29 +265,43 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       const double v_x = (Axx * u_x + Axy * u_y + Axz * u_z) * inv_det;
       const double v_y = (Axy * u_x + Ayy * u_y + Ayz * u_z) * inv_det;
       const double v_z = (Axz * u_x + Ayz * u_y + Azz * u_z) * inv_det;
+      // D v, v.D v and z = Q^-1 D v: F''' and s'' for the Halley step and the Taylor series.
+      const double Dv_x = dxx[a] * v_x + dxy[a] * v_y + dxz[a] * v_z;
+      const double Dv_y = dxy[a] * v_x + dyy[a] * v_y + dyz[a] * v_z;
+      const double Dv_z = dxz[a] * v_x + dyz[a] * v_y + dzz[a] * v_z;
+      const double z_x = (Axx * Dv_x + Axy * Dv_y + Axz * Dv_z) * inv_det;
+      const double z_y = (Axy * Dv_x + Ayy * Dv_y + Ayz * Dv_z) * inv_det;
+      const double z_z = (Axz * Dv_x + Ayz * Dv_y + Azz * Dv_z) * inv_det;
+      const double uv = u_x * v_x + u_y * v_y + u_z * v_z;
+      const double vDv = v_x * Dv_x + v_y * Dv_y + v_z * Dv_z;
       const double Fp = (1 - 2 * lam) * E - w * su;
-      const double Fpp = -2 * E - 2 * (1 - 2 * lam) * su + 2 * w * (u_x * v_x + u_y * v_y + u_z * v_z);
+      const double Fpp = -2 * E - 2 * (1 - 2 * lam) * su + 2 * w * uv;
+      const double Fppp = 6 * su + 6 * (1 - 2 * lam) * uv - 6 * w * vDv;
       const double lo_old = los[a], hi_old = his[a];  // loaded in every lane (no conditional load)
       const double lo = Fp > 0 ? lam : lo_old, hi = Fp > 0 ? hi_old : lam;
       // Converged: tested before the bracket, since a warm start sits on the maximiser and its
-      // Newton step may round to lambda itself (or an ulp outside the new bracket), which would
+      // step may round to lambda itself (or an ulp outside the new bracket), which would
       // otherwise send it bisecting from [lambda, 1] back to lambda (~50 iterations).
-      const double h = -Fp / Fpp;
+      // Halley's step, or Newton's (the denominator 2 F''^2) where Halley's would be more than
+      // twice as long: 2 F''^2 - F' F''' < F''^2.
+      const double Fpp2 = Fpp * Fpp, halley = 2 * Fpp2 - Fp * Fppp;
+      const double h = -2 * Fp * Fpp / (halley >= Fpp2 ? halley : 2 * Fpp2);
       // (Flags are 0/1 doubles combined by selects and products: the loop must have no branch to
       // run in vector lanes.)
       const double small_step = h * h * (v_x * v_x + v_y * v_y + v_z * v_z) <=
                                         kStepTol * kStepTol * (s_x * s_x + s_y * s_y + s_z * s_z) ? 1.0 : 0.0;
       const double conv = Fpp < 0 ? small_step : 0.0;
-      double step = Fpp < 0 ? lam + h : lo - 1;  // lam + h = lam - Fp / Fpp; lo - 1 forces bisection
+      double step = Fpp < 0 ? lam + h : lo - 1;  // lo - 1 forces bisection
       const double inside = step > lo ? (step < hi ? 1.0 : 0.0) : 0.0;
       step = inside != 0 ? step : 0.5 * (lo + hi);
-      // A converged step is taken to first order (2. in the header comment).
+      // A converged step is taken by Taylor series (2. in the header comment).
       const bool take = conv * (1 - apart) != 0;
+      const double hh = h * h;
       lam_out[a] = take ? lam + h : lam;
-      isx[a] = take ? s_x - h * v_x : s_x;
-      isy[a] = take ? s_y - h * v_y : s_y;
-      isz[a] = take ? s_z - h * v_z : s_z;
-      Fo[a] = take ? F + 0.5 * Fp * h : F;
+      isx[a] = take ? s_x - h * v_x + hh * z_x : s_x;
+      isy[a] = take ? s_y - h * v_y + hh * z_y : s_y;
+      isz[a] = take ? s_z - h * v_z + hh * z_z : s_z;
+      Fo[a] = take ? F + h * (Fp + h * (0.5 * Fpp + h * (Fppp / 6))) : F;
       status[a] = apart != 0 ? separated : conv != 0 ? converged : iterate;
       bisected[a] = (1 - apart) * (1 - conv) * (1 - inside);
       exhausted[a] = hi - lo <= 4 * std::numeric_limits<double>::epsilon() ? 1.0 : 0.0;
@@ -329,7 +348,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       const EllipsoidShape& si = *b.shape_i[k];
       const EllipsoidShape& sj = *b.shape_j[k];
       if (mu2 > 1) st.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
-      continue;                                                                  // a first-order step
+      continue;                                                                  // a Taylor step
     }
     const EllipsoidShape& si = *b.shape_i[k];
     const EllipsoidShape& sj = *b.shape_j[k];

@@ -8,8 +8,8 @@
 // Method (derivations in ellipsoid_contact.cpp):
 //   F(lambda) = lambda (1 - lambda) l^T Q(lambda)^-1 l = min_x [lambda F_i(x) + (1 - lambda) F_j(x)]
 //   is a minimum of functions affine in lambda, hence concave on [0, 1], with F(0) = F(1) = 0,
-//   F'(0) > 0 > F'(1): the maximiser is unique and bracketed. Safeguarded Newton on F' keeps a
-//   bracket [lo, hi] and bisects whenever a Newton step would leave it. mu^2 = max F; the
+//   F'(0) > 0 > F'(1): the maximiser is unique and bracketed. Safeguarded Halley (Newton with
+//   F''') on F' keeps a bracket [lo, hi] and bisects whenever a step would leave it. mu^2 = max F; the
 //   ellipsoids overlap iff mu^2 < 1 (touch at mu = 1). Any iterate with |l|^2 F(lambda) >= 1
 //   already proves separation (F <= mu^2) and ends the call early.
 //   At the maximiser x0 = c_i + (1 - lambda) Q_i s (s = Q(lambda)^-1 l) satisfies
@@ -45,7 +45,7 @@ struct EllipsoidContactStats {
 
 // Exact contact of two ellipsoids (SPEC 4): Perram-Wertheim contact function
 //   F(lambda) = lambda (1 - lambda) l^T [(1 - lambda) Q_i + lambda Q_j]^-1 l,  Q = R diag(a^2, b^2, c^2) R^T,
-// maximised over lambda in [0, 1] by a safeguarded Newton iteration (bracketed root of F'),
+// maximised over lambda in [0, 1] by a safeguarded Halley iteration (bracketed root of F'),
 // warm-started from `lambda` (in/out; a value outside the open interval (0, 1), or NaN, means cold start).
 // l = c_j - c_i is the branch vector from centre i to centre j (through the periodic image).
 // q_i, q_j must be unit quaternions (body to world).

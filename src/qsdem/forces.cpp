@@ -312,6 +312,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
       acc.narrow_tests += nt;
       // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
       ellipsoid_contacts(batch);
+      for (int a = 0; a < batch.size; ++a) acc.pw_iterations += batch.stats[a].iterations;
       for (int m = 0; m < nt; ++m) {
         const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
         const Vec3& l = branch[m];
@@ -559,11 +560,13 @@ void compute_contact_forces(const Model& model, State& state) {
   Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
   state.max_overlap = 0;
   state.narrow_tests = 0;
+  state.pw_iterations = 0;
   for (const ForceBlock& b : state.blocks) {
     sum += b.stress_sum;
     stiff += b.stiffness_sum;
     shear_stiff += b.shear_stiffness_sum;
     state.narrow_tests += b.narrow_tests;
+    state.pw_iterations += b.pw_iterations;
     if (b.max_overlap > state.max_overlap) {
       state.max_overlap = b.max_overlap;
       state.max_overlap_pair = b.max_overlap_pair;

@@ -373,10 +373,11 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
   evaluate_forces(model, st);
   st.timers = {};
   const auto t0 = std::chrono::steady_clock::now();
-  long narrow_tests = 0;
+  long narrow_tests = 0, pw_iterations = 0;
   for (long n = 0; n < steps; ++n) {
     step(model, st);
     narrow_tests += st.narrow_tests;
+    pw_iterations += st.pw_iterations;
   }
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const Measures m = measure(st);
@@ -386,6 +387,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"contacts", m.contacts},
           {"pairs", st.pairs.size()},
           {"narrow_tests_per_step", static_cast<double>(narrow_tests) / static_cast<double>(std::max(1L, steps))},
+          {"pw_iterations_per_step", static_cast<double>(pw_iterations) / static_cast<double>(std::max(1L, steps))},
           {"ekin_J", m.ekin_trans + m.ekin_rot},
           {"ekin_trans_J", m.ekin_trans},
           {"steps", steps},

@@ -20,6 +20,7 @@ struct ForceBlock {
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
   long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
+  long pw_iterations = 0;  // their Perram-Wertheim iterations (3x3 factorisations)
   // The block's contacts: PairList::contact_pairs[first_contact, + contacts), grouped by the
   // thread that owns their j end in the update region (State::owner_first), each group in pair
   // order (State::contact_owner_first).
@@ -47,6 +48,7 @@ struct State {
   double max_overlap = 0;               // largest delta / min(R_i, R_j) over the contacts
   std::size_t max_overlap_pair = 0;     // the pair where it is
   long narrow_tests = 0;                // pairs tested by the narrow phase in the last step
+  long pw_iterations = 0;               // their Perram-Wertheim iterations
 
   StageTimers timers;
   std::vector<ForceBlock> blocks;       // scratch for the force stage
