@@ -278,8 +278,6 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);
   const std::size_t np = c.state.pairs.size();
-  c.state.pairs.force.assign(np, Vec3::Zero());
-  c.state.pairs.torque_j.assign(np, Vec3::Zero());
   c.state.pairs.overlap.assign(np, 0.0);
   build_incidence(c.state.pairs, c.state.particles.size());
   if (version < 2) {

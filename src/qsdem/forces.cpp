@@ -25,7 +25,8 @@ struct ForceInputs {
 };
 
 // Groups block b's contacts by the thread that owns their j end (State::contact_owner_first),
-// keeping the pair order within each group: a counting sort of the block's slots.
+// keeping the pair order within each group: a counting sort of the block's slots (all four
+// contact arrays).
 void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const ForceBlock& acc, std::size_t b) {
   const std::size_t owners = in.owner_first.size() - 1;
   std::uint32_t* const row = in.contact_owner_first + b * (owners + 1);
@@ -44,29 +45,23 @@ void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const Force
   row[0] = first;
   for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
   if (row[1] == first + count) return;  // all in the first group: already in place
-  // The block's slots hold ~1024 pairs' contacts at most, plus one particle's: a buffer on the
-  // stack, or on the heap for a block beyond it.
-  constexpr std::uint32_t on_stack = 4096;
-  std::uint32_t stack_k[on_stack], stack_j[on_stack];
-  std::vector<std::uint32_t> heap_k, heap_j;
-  std::uint32_t* k_copy = stack_k;
-  std::uint32_t* j_copy = stack_j;
-  if (count > on_stack) {
-    heap_k.assign(pairs.contact_pairs.begin() + first, pairs.contact_pairs.begin() + first + count);
-    heap_j.assign(pairs.contact_j.begin() + first, pairs.contact_j.begin() + first + count);
-    k_copy = heap_k.data(), j_copy = heap_j.data();
-  } else {
-    std::copy_n(pairs.contact_pairs.begin() + first, count, k_copy);
-    std::copy_n(pairs.contact_j.begin() + first, count, j_copy);
-  }
-  // row[t] serves as group t's next slot and ends at group t + 1's start: shifted back after.
-  for (std::uint32_t c = 0; c < count; ++c) {
-    const std::uint32_t slot = row[owner(j_copy[c])]++;
-    pairs.contact_pairs[slot] = k_copy[c];
-    pairs.contact_j[slot] = j_copy[c];
-  }
+  // Each contact's new slot (row[t] serves as group t's next slot and ends at group t + 1's
+  // start: shifted back after), then the four arrays moved through a copy. The copies are the
+  // thread's own, kept from block to block (no allocation once grown).
+  thread_local std::vector<std::uint32_t> slot, copy_u32;
+  thread_local std::vector<Vec3> copy_vec;
+  slot.resize(count);
+  for (std::uint32_t c = 0; c < count; ++c) slot[c] = row[owner(pairs.contact_j[first + c])]++;
   for (std::size_t t = owners; t > 0; --t) row[t] = row[t - 1];
   row[0] = first;
+  const auto move = [&](auto& array, auto& copy) {
+    copy.assign(array.begin() + first, array.begin() + first + count);
+    for (std::uint32_t c = 0; c < count; ++c) array[slot[c]] = copy[c];
+  };
+  move(pairs.contact_pairs, copy_u32);
+  move(pairs.contact_j, copy_u32);
+  move(pairs.contact_force, copy_vec);
+  move(pairs.contact_torque_j, copy_vec);
 }
 
 // The contacts of a chunk of pairs (SPEC 4), in lanes (structure of arrays): `add` takes a
@@ -175,8 +170,8 @@ struct ContactLanes {
   }
 }
 
-// The lanes' contacts, in order: the pair's results for its j end and history, i's resultant,
-// the block's contact list, stress and stiffness sums.
+// The lanes' contacts, in order: the contact's results for its j end, the pair's history, i's
+// resultant, the block's contact list, stress and stiffness sums.
 void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
   // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
   // loaded and stored every sum at every contact (a store through a double* may alias them).
@@ -186,12 +181,13 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
   for (int q = 0; q < 3; ++q) stiffness[q] = acc.stiffness_sum[q], shear_stiffness[q] = acc.shear_stiffness_sum[q];
   double max_overlap = acc.max_overlap;
   std::size_t max_overlap_pair = acc.max_overlap_pair;
-  std::uint32_t* const contact_j = pairs.contact_j.data() + acc.first_contact + acc.contacts;
-  std::uint32_t* const contact_pairs = pairs.contact_pairs.data() + acc.first_contact + acc.contacts;
+  const std::uint32_t slot = acc.first_contact + acc.contacts;  // the lanes' first contact slot
+  std::uint32_t* const contact_j = pairs.contact_j.data() + slot;
+  std::uint32_t* const contact_pairs = pairs.contact_pairs.data() + slot;
+  Vec3* const contact_force = pairs.contact_force.data() + slot;
+  Vec3* const contact_torque = pairs.contact_torque_j.data() + slot;
   double* const overlap = pairs.overlap.data();
   Vec3* const shear = pairs.shear.data();
-  Vec3* const pair_force = pairs.force.data();
-  Vec3* const pair_torque = pairs.torque_j.data();
   Vec3* const force = p.force.data();
   Vec3* const torque = p.torque.data();
   for (int a = 0; a < c.size; ++a) {
@@ -205,8 +201,8 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
     }
     shear[k] = Vec3(c.sx[a], c.sy[a], c.sz[a]);
     const Vec3 f(c.fx[a], c.fy[a], c.fz[a]);
-    pair_force[k] = f;
-    pair_torque[k] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
+    contact_force[a] = f;
+    contact_torque[a] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
     force[i] -= f;
     torque[i] += Vec3(c.tix[a], c.tiy[a], c.tiz[a]);
     for (int m = 0; m < 9; ++m) stress[m] += c.stress[m][a];
@@ -492,6 +488,8 @@ void compute_contact_forces(const Model& model, State& state) {
   state.blocks.resize(nblocks);
   pairs.contact_pairs.resize(np);
   pairs.contact_j.resize(np);
+  pairs.contact_force.resize(np);
+  pairs.contact_torque_j.resize(np);
   // Shape matrices once per particle (each takes part in several pairs); only when some particle
   // is an ellipsoid, so a sphere run pays nothing.
   const bool all_spheres = !p.has_ellipsoids();
@@ -586,9 +584,8 @@ void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> con
   constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
   // Through local pointers (integrate_velocities says why).
   const std::uint32_t* const contact_j = pairs.contact_j.data();
-  const std::uint32_t* const contact_pairs = pairs.contact_pairs.data();
-  const Vec3* const pair_force = pairs.force.data();
-  const Vec3* const pair_torque = pairs.torque_j.data();
+  const Vec3* const contact_force = pairs.contact_force.data();
+  const Vec3* const contact_torque = pairs.contact_torque_j.data();
   Vec3* const force = p.force.data();
   Vec3* const torque = p.torque.data();
   for (std::size_t row = 0; row < contact_owner_first.size(); row += owners + 1) {
@@ -597,14 +594,21 @@ void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> con
       if (m + ahead < m1) {
         __builtin_prefetch(&force[contact_j[m + ahead]], 1);
         __builtin_prefetch(&torque[contact_j[m + ahead]], 1);
-        __builtin_prefetch(&pair_force[contact_pairs[m + ahead]]);
-        __builtin_prefetch(&pair_torque[contact_pairs[m + ahead]]);
       }
-      const std::uint32_t j = contact_j[m], k = contact_pairs[m];
-      force[j] += pair_force[k];
-      torque[j] += pair_torque[k];
+      const std::uint32_t j = contact_j[m];
+      force[j] += contact_force[m];
+      torque[j] += contact_torque[m];
     }
   }
+}
+
+std::vector<Vec3> contact_forces_by_pair(const State& state) {
+  const PairList& pairs = state.pairs;
+  std::vector<Vec3> by_pair(pairs.size(), Vec3::Zero());
+  for (const ForceBlock& b : state.blocks)
+    for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m)
+      by_pair[pairs.contact_pairs[m]] = pairs.contact_force[m];
+  return by_pair;
 }
 
 void gather_resultants(State& state) {

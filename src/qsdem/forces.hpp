@@ -3,6 +3,7 @@
 #pragma once
 #include <cstdint>
 #include <span>
+#include <vector>
 
 #include "qsdem/model.hpp"
 #include "qsdem/state.hpp"
@@ -13,6 +14,10 @@ namespace qsdem {
 // tangential history, and State::stress / affine_stiffness (SPEC 4, 7). Writes each particle's
 // resultant over the pairs where it is the i end into Particles::force / torque.
 void compute_contact_forces(const Model& model, State& state);
+
+// The contact forces on the j ends of the last evaluation by pair (PairList keeps them by
+// contact), zero for a pair that is not a contact. For measures and checks; it allocates.
+std::vector<Vec3> contact_forces_by_pair(const State& state);
 
 // Adds the pairs where each particle is the j end, after compute_contact_forces:
 // Particles::force / torque are then the contact resultants (SPEC 7: contact forces only).

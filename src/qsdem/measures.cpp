@@ -3,6 +3,8 @@
 #include <Eigen/Eigenvalues>
 #include <cmath>
 
+#include "qsdem/forces.hpp"
+
 namespace qsdem {
 
 Measures measure(const State& state) {
@@ -21,10 +23,11 @@ Measures measure(const State& state) {
   m.octahedral = m.principal.norm() / std::sqrt(3.0);  // paper Eq. 5
   m.friction_angle_deg = (s1 + s3) > 0 ? std::asin((s1 - s3) / (s1 + s3)) * 180 / pi : 0;
 
-  // Contact sums: n_c, sum |f_c|, sum |f_c|^2.
+  // Contact sums: n_c, sum |f_c|, sum |f_c|^2, in pair order (for any thread count).
+  const std::vector<Vec3> force = contact_forces_by_pair(state);
   const Vec3 c = blocked_sum<Vec3>(pairs.size(), Vec3::Zero(), [&](std::size_t k) {
     if (pairs.overlap[k] <= 0) return Vec3(Vec3::Zero());
-    const double f2 = pairs.force[k].squaredNorm();
+    const double f2 = force[k].squaredNorm();
     return Vec3(1.0, std::sqrt(f2), f2);
   });
   // Particle sums: |f_p|, |f_p|^2, |M_p|, kinetic energies, solid volume.

@@ -227,8 +227,6 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   next.shear.assign(np, Vec3::Zero());
   next.pw_lambda.assign(np, -1.0);
   next.apart_until.assign(np, -1.0);  // the motion bounds restart at this build: test every pair
-  next.force.assign(np, Vec3::Zero());
-  next.torque_j.assign(np, Vec3::Zero());
   next.overlap.assign(np, 0.0);
   std::size_t o = 0;
   for (std::size_t k = 0; k < np; ++k) {

@@ -24,20 +24,21 @@ struct PairList {
   // Pairs proved apart are not tested again while they provably stay apart (ellipsoid pairs): the
   // pair is skipped while NeighborState::moved(i, j) < apart_until (see there). -1: test it.
   std::vector<double> apart_until;
-  // Results of the last force evaluation (at time t), for the j end of each pair (the force
-  // stage sums the i ends at once). Valid only where overlap > 0 (non-contacts are not written,
-  // to save memory traffic).
-  std::vector<Vec3> force;         // contact force on j (N); i receives -force
-  std::vector<Vec3> torque_j;      // torque of the contact force about j's centre (N m)
+  // Result of the last force evaluation (at time t); the forces are kept by contact (below).
   std::vector<double> overlap;     // delta (m) > 0 when the pair is a contact, 0 when apart
   // overlap is that of the last force evaluation, so a pair with overlap 0 has no tangential
   // history. False until a force evaluation has run on this list (a checkpoint restores shear,
   // not overlap): then every apart pair's history is checked.
   bool overlap_known = false;
-  // The contacts' pair indices, block by block (slots from the block's first pair on; see
-  // ForceBlock): the gather reads only these, not every pair's overlap.
+  // The contacts of the last force evaluation, block by block (slots from the block's first pair
+  // on; see ForceBlock): their pair indices, j ends, and the force results for the j end (the
+  // force stage sums the i ends at once). Stored by contact, not by pair: the force stage writes
+  // them in sequence and the gather reads them in sequence (by pair, they were sparse stores and
+  // loads that missed the cache). contact_forces_by_pair (forces.hpp) gives them by pair.
   std::vector<std::uint32_t> contact_pairs;
-  std::vector<std::uint32_t> contact_j;  // their j ends, read in sequence by the gather's threads
+  std::vector<std::uint32_t> contact_j;
+  std::vector<Vec3> contact_force;     // contact force on j (N); i receives -force
+  std::vector<Vec3> contact_torque_j;  // torque of the contact force about j's centre (N m)
   // Layout for the deterministic per-particle sums (build_incidence).
   std::vector<std::uint32_t> first_i;     // size n + 1: pairs [first_i[a], first_i[a+1]) have i = a
   std::vector<std::uint32_t> block_first; // particle ranges of the force stage's blocks (~1024

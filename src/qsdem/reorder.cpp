@@ -100,8 +100,6 @@ bool sort_particles(State& st) {
   permute(pairs.shear, by_key);
   permute(pairs.pw_lambda, by_key);
   if (pairs.apart_until.size() == np) permute(pairs.apart_until, by_key);
-  permute(pairs.force, by_key);
-  permute(pairs.torque_j, by_key);
   permute(pairs.overlap, by_key);
   build_incidence(pairs, n);
   return true;

@@ -336,7 +336,7 @@ nlohmann::json memory_kib(const State& st) {
                            kib(p.mass) + kib(p.inertia) + kib(p.inv_mass) + kib(p.inv_inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
                            kib(p.angmom) + kib(p.omega) + kib(p.force) + kib(p.torque);
   const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
-  const double results = kib(q.force) + kib(q.torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
+  const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
   const double scratch = kib(st.blocks) + kib(st.shapes) + kib(st.block_cut) + kib(st.owner_first) +
