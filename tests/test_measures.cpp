@@ -7,11 +7,13 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <stdexcept>
 #include <vector>
 
 #include "qsdem/forces.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
+#include "qsdem/neighbor.hpp"
 #include "qsdem/state.hpp"
 #include "qsdem/step.hpp"
 
@@ -420,4 +422,36 @@ TEST(Measures, AfterAStepUsesTheLastForceEvaluation) {
   EXPECT_NEAR(m.imom, imom, 1e-10 * imom);
   EXPECT_NEAR(m.ekin_trans, et, 1e-13 * et);
   EXPECT_NEAR(m.ekin_rot, er, 1e-13 * er);
+}
+
+// The forces are kept by contact slot (PairList::contact_force); contact_forces_by_pair gives them
+// by pair: each contact's force on j once, zero elsewhere, so that the pairs' forces summed on
+// both ends are the particles' resultants. On a list built since the evaluation it refuses.
+TEST(Measures, ContactForcesByPairAreTheLastEvaluationsContacts) {
+  const Vec3 box = Vec3(10, 11, 12) * mm;
+  State st = make_state(box, corner_cluster(box));
+  const Model model = make_model(1.0 * mm);
+  evaluate_forces(model, st);
+  const std::vector<Vec3> by_pair = contact_forces_by_pair(st);
+  ASSERT_EQ(by_pair.size(), st.pairs.size());
+  const std::size_t n = st.particles.size();
+  std::vector<Vec3> resultant(n, Vec3::Zero());
+  int contacts = 0;
+  double scale = 0;
+  for (std::size_t k = 0; k < st.pairs.size(); ++k) {
+    if (st.pairs.overlap[k] <= 0) {
+      EXPECT_TRUE(by_pair[k].isZero()) << "pair " << k;
+      continue;
+    }
+    ++contacts;
+    EXPECT_GT(by_pair[k].norm(), 0) << "pair " << k;
+    resultant[st.pairs.j[k]] += by_pair[k];
+    resultant[st.pairs.i[k]] -= by_pair[k];
+    scale += by_pair[k].norm();
+  }
+  ASSERT_EQ(contacts, 3);
+  for (std::size_t a = 0; a < n; ++a)
+    EXPECT_LE((resultant[a] - st.particles.force[a]).norm(), 1e-14 * scale) << "particle " << a;
+  build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
+  EXPECT_THROW(contact_forces_by_pair(st), std::logic_error);
 }

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <stdexcept>
 
 #include "qsdem/contact_law.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
@@ -605,6 +606,9 @@ void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> con
 std::vector<Vec3> contact_forces_by_pair(const State& state) {
   const PairList& pairs = state.pairs;
   std::vector<Vec3> by_pair(pairs.size(), Vec3::Zero());
+  // The contact slots are those of the last force evaluation: on a list built since, they are stale.
+  if (!state.blocks.empty() && state.blocks_build != state.neighbor.builds)
+    throw std::logic_error("contact_forces_by_pair: the pair list changed since the last force evaluation");
   for (const ForceBlock& b : state.blocks)
     for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m)
       by_pair[pairs.contact_pairs[m]] = pairs.contact_force[m];
