@@ -163,8 +163,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
 
 // The batch: 1. per lane, the quick rejections and the start of the iteration; 2. one PW iteration
 // of every lane still iterating, in one loop without branches (selects), the lanes that are done
-// then leave the working set (compacted); 3. the overlap and radius of every lane with mu^2 < 1,
-// again in one loop. Each lane's arithmetic is the same sequence as for a lone pair.
+// then leave the working set (compacted), those with mu^2 < 1 straight into 3.'s slots; 3. the
+// overlap and radius of those lanes, again in one loop. Each lane's arithmetic is the same sequence as for a lone pair.
 // Two builds of the batch, chosen at load time by the CPU: four lanes per instruction with AVX2,
 // two with the x86-64 baseline (SSE2). Neither uses FMA, so both give the same bits.
 [[gnu::target_clones("avx2", "default")]] void ellipsoid_contacts(EllipsoidContactBatch& b) {
@@ -175,10 +175,31 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   alignas(64) double dxx[cap], dyy[cap], dzz[cap], dxy[cap], dxz[cap], dyz[cap];
   int lane[cap];
   int na = 0;
-  // Lanes done iterating (or with coincident centres), by lane: s = Q^-1 e, F, lambda, |l|, |l|^2.
-  alignas(64) double sx[cap], sy[cap], sz[cap], Fs[cap], lam_end[cap], lns[cap], l2_lane[cap];
-  int done[cap];
-  int nd = 0;
+  alignas(64) double lns[cap];  // |l|, by lane
+  // 3.'s inputs (header comment, 3.): the lanes done iterating with mu^2 < 1, slot a -> lane ov[a].
+  alignas(64) double c_l[3][cap], c_s[3][cap], c_lam[cap], c_ln[cap], c_Qi[6][cap], c_Qj[6][cap];
+  int ov[cap];
+  int no = 0;
+  // A lane done iterating at lambda with s = Q^-1 e and F: mu^2, then 3.'s slot or the gap bound.
+  const auto finish = [&](int k, double lambda, double s_x, double s_y, double s_z, double F, double l2) {
+    EllipsoidContactStats& st = b.stats[k];
+    const double mu2 = l2 * F;
+    st.mu2 = mu2;
+    const EllipsoidShape& si = *b.shape_i[k];
+    const EllipsoidShape& sj = *b.shape_j[k];
+    if (!(mu2 < 1)) {
+      if (mu2 > 1) st.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
+      return;                                                                    // a Taylor step
+    }
+    ov[no] = k;
+    for (int c = 0; c < 3; ++c) c_l[c][no] = b.l[k][c];
+    c_s[0][no] = s_x, c_s[1][no] = s_y, c_s[2][no] = s_z;
+    c_lam[no] = lambda, c_ln[no] = lns[k];
+    const double qi[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
+    const double qj[6] = {sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
+    for (int c = 0; c < 6; ++c) c_Qi[c][no] = qi[c], c_Qj[c][no] = qj[c];
+    ++no;
+  };
 
   // 1. Quick rejections, start of the iteration.
   for (int k = 0; k < b.size; ++k) {
@@ -198,11 +219,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     // |l|^2 underflows below ~1e-154 m: take the norm the slow, safe way there (l = 0 only is coincident).
     const double ln = l2 > 1e-200 ? std::sqrt(l2) : l.stableNorm();
     lns[k] = ln;
-    l2_lane[k] = l2;
     if (!(ln > 0)) {  // coincident centres: s = 0, F = 0 (lambda irrelevant and unchanged)
-      sx[k] = sy[k] = sz[k] = Fs[k] = 0;
-      lam_end[k] = 0.5;
-      done[nd++] = k;
+      finish(k, 0.5, 0, 0, 0, 0, l2);
       continue;
     }
     const Vec3 e = l * (1 / ln);
@@ -320,9 +338,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
         st.gap_bound = (std::sqrt(st.mu2) - 1) * (b.shape_i[k]->minor + b.shape_j[k]->minor);
         b.lambda[k] = lams[a];
       } else if (status[a] == converged || exhausted[a] != 0 || st.iterations >= kMaxIterations) {
-        b.lambda[k] = lam_end[k] = lam_out[a];
-        sx[k] = isx[a], sy[k] = isy[a], sz[k] = isz[a], Fs[k] = Fo[a];
-        done[nd++] = k;
+        b.lambda[k] = lam_out[a];
+        finish(k, lam_out[a], isx[a], isy[a], isz[a], Fo[a], l2s[a]);
       } else {
         lane[m] = k;
         ex[m] = ex[a], ey[m] = ey[a], ez[m] = ez[a], l2s[m] = l2s[a];
@@ -335,32 +352,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     na = m;
   }
 
-  // 3. Overlap (3. in the header comment) of the lanes with mu^2 < 1, gathered into slots.
-  alignas(64) double c_l[3][cap], c_s[3][cap], c_lam[cap], c_ln[cap], c_Qi[6][cap], c_Qj[6][cap];
-  int ov[cap];
-  int no = 0;
-  for (int d = 0; d < nd; ++d) {
-    const int k = done[d];
-    EllipsoidContactStats& st = b.stats[k];
-    const double mu2 = l2_lane[k] * Fs[k];
-    st.mu2 = mu2;
-    if (!(mu2 < 1)) {
-      const EllipsoidShape& si = *b.shape_i[k];
-      const EllipsoidShape& sj = *b.shape_j[k];
-      if (mu2 > 1) st.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
-      continue;                                                                  // a Taylor step
-    }
-    const EllipsoidShape& si = *b.shape_i[k];
-    const EllipsoidShape& sj = *b.shape_j[k];
-    ov[no] = k;
-    for (int c = 0; c < 3; ++c) c_l[c][no] = b.l[k][c];
-    c_s[0][no] = sx[k], c_s[1][no] = sy[k], c_s[2][no] = sz[k];
-    c_lam[no] = lam_end[k], c_ln[no] = lns[k];
-    const double qi[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
-    const double qj[6] = {sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
-    for (int c = 0; c < 6; ++c) c_Qi[c][no] = qi[c], c_Qj[c][no] = qj[c];
-    ++no;
-  }
+  // 3. Overlap (3. in the header comment) of the lanes with mu^2 < 1 (their slots, filled by finish).
   alignas(64) double o_n[3][cap], o_arm[3][cap], o_delta[cap], o_radius[cap];
 #pragma omp simd
   for (int a = 0; a < no; ++a) {
