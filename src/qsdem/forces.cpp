@@ -217,14 +217,18 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
   acc.max_overlap_pair = max_overlap_pair;
 }
 
-// Evaluates and commits the lanes' contacts, and empties them; `spheres`: their geometry is
-// still to compute (ContactLanes::set_spheres).
-inline void flush_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc,
-                           bool spheres = false) {
-  if (spheres) sphere_geometry(c);
+// Evaluates and commits the lanes' contacts (their geometry set), and empties them.
+inline void flush_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
   evaluate_contacts(in.law, in.dt, c);
   commit_contacts(c, p, pairs, acc);
   c.size = 0;
+}
+
+// The same for sphere contacts, whose geometry is computed here (ContactLanes::set_spheres).
+inline void flush_sphere_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs,
+                                  ForceBlock& acc) {
+  sphere_geometry(c);
+  flush_contacts(in, c, p, pairs, acc);
 }
 
 // A pair that is apart: no force; a contact just lost releases its spring.
@@ -430,10 +434,10 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
         continue;
       }
       contacts.set_spheres(contacts.add(in, p, pairs, k, i, j, Vec3(lx[m], ly[m], lz[m])), distance[m], ri, rj);
-      if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc, true);
+      if (contacts.size == ContactLanes::capacity) flush_sphere_contacts(in, contacts, p, pairs, acc);
     }
   }
-  flush_contacts(in, contacts, p, pairs, acc, true);
+  flush_sphere_contacts(in, contacts, p, pairs, acc);
   group_contacts_by_owner(in, pairs, acc, b);
   return acc;
 }
