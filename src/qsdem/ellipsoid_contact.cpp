@@ -98,6 +98,12 @@ struct Sym {
   out.minor = std::min(std::min(a0, a1), a2);
 }
 
+// The gap proved by F(lambda) |l|^2 = mu^2 > 1 (EllipsoidContactStats::gap_bound): the mu-scaled
+// pair only touches, and mu E_k contains E_k grown by (mu - 1) times its smallest semi-axis.
+double contact_function_gap(double mu2, const EllipsoidShape& si, const EllipsoidShape& sj) {
+  return (std::sqrt(mu2) - 1) * (si.minor + sj.minor);
+}
+
 // Larger root of A t^2 + 2 B t + C = 0 (A > 0), without cancellation; a negative discriminant
 // (line missing the ellipsoid, impossible when it is needed) is clamped to the tangent point.
 // Both forms are computed, so that a loop of calls has no branch (vector lanes).
@@ -188,8 +194,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     const EllipsoidShape& si = *b.shape_i[k];
     const EllipsoidShape& sj = *b.shape_j[k];
     if (!(mu2 < 1)) {
-      if (mu2 > 1) st.gap_bound = (std::sqrt(mu2) - 1) * (si.minor + sj.minor);  // F may be refined by
-      return;                                                                    // a Taylor step
+      if (mu2 > 1) st.gap_bound = contact_function_gap(mu2, si, sj);  // F may be refined by a Taylor step
+      return;
     }
     ov[no] = k;
     for (int c = 0; c < 3; ++c) c_l[c][no] = b.l[k][c];
@@ -335,7 +341,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       if (status[a] == separated) {
         st.early_exit = true;
         st.mu2 = l2s[a] * Fo[a];
-        st.gap_bound = (std::sqrt(st.mu2) - 1) * (b.shape_i[k]->minor + b.shape_j[k]->minor);
+        st.gap_bound = contact_function_gap(st.mu2, *b.shape_i[k], *b.shape_j[k]);
         b.lambda[k] = lams[a];
       } else if (status[a] == converged || exhausted[a] != 0 || st.iterations >= kMaxIterations) {
         b.lambda[k] = lam_out[a];
