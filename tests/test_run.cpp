@@ -186,6 +186,58 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
   EXPECT_EQ(m1.solid_volume, m2.solid_volume);
 }
 
+// A thread done with its blocks takes those left at the end of another thread's range
+// (compute_contact_forces). Here every step's cut gives all the blocks to thread 1 (the smoothed
+// block times are overwritten: the first block seems to cost everything), so thread 0 can only
+// work by taking blocks from the back of thread 1's range while thread 1 works from the front.
+// The state must stay bit for bit that of one thread, and thread 0 must have taken blocks.
+TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
+  const Params params = parse_case(tiny_case, "run-tiny.toml",
+                                   {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
+  State start = generate_loose_sample(params);
+  set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);  // as in the test above
+  Model model = base_model(params, start.particles);
+  model.friction = 0.5;
+  assign_damping(model, start.particles);
+  constexpr int steps = 20;
+  State one = start;
+  {
+    Threads t(1);
+    for (int k = 0; k < steps; ++k) step(model, one);
+  }
+  State two = start;
+  int uneven = 0;     // steps with that cut (not those that rebuild the list: pair counts cut them)
+  double taken = 0;  // seconds thread 0 spent in blocks of thread 1's range
+  {
+    Threads t(2);
+    for (int k = 0; k < steps; ++k) {
+      // The step's blocks are those of the last step unless it rebuilds the list.
+      const long builds = two.neighbor.builds;
+      const bool skew = two.blocks_build == builds && !two.blocks.empty();
+      if (skew) {
+        for (ForceBlock& b : two.blocks) b.weight = 0;
+        two.blocks.front().weight = 1;  // cut: thread 0 starts with no block, thread 1 with all
+      }
+      step(model, two);
+      if (!skew || two.neighbor.builds != builds) continue;
+      ++uneven;
+      EXPECT_EQ(two.block_cut, (std::vector<std::size_t>{0, 0, two.blocks.size()})) << "step " << k;
+      ASSERT_EQ(two.thread_busy.size(), 2u);
+      taken += two.thread_busy[0];
+    }
+  }
+  ASSERT_GT(two.blocks.size(), 4u) << "several blocks to share";
+  ASSERT_GE(uneven, 5) << "steps without a list build";
+  EXPECT_GT(taken, 0.0) << "thread 0 took no block from thread 1's range in " << uneven << " steps";
+  EXPECT_TRUE(one.stress == two.stress);
+  std::size_t differ = 0;
+  for (std::size_t i = 0; i < one.particles.size(); ++i)
+    if (one.particles.s[i] != two.particles.s[i] || one.particles.v[i] != two.particles.v[i] ||
+        one.particles.angmom[i] != two.particles.angmom[i])
+      ++differ;
+  EXPECT_EQ(differ, 0u);
+}
+
 // SPEC 10 files, and their consistency with SPEC 1, 7 and 8.
 TEST(Run, SeriesAndSummaryFollowSpec10) {
   const fs::path dir = run_tiny("files", 1);

@@ -4,6 +4,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <stdexcept>
 
@@ -470,9 +471,7 @@ void share_blocks(State& state, int nthreads, bool timed) {
 // Adds this step's mean and largest thread time in the force stage to the timers (balance).
 void record_thread_balance(State& state, int nthreads) {
   double busiest = 0, sum = 0;
-  for (int t = 0; t < nthreads; ++t) {
-    double busy = 0;
-    for (std::size_t b = state.block_cut[t]; b < state.block_cut[t + 1]; ++b) busy += state.blocks[b].seconds;
+  for (const double busy : state.thread_busy) {
     busiest = std::max(busiest, busy);
     sum += busy;
   }
@@ -513,11 +512,12 @@ void compute_contact_forces(const Model& model, State& state) {
 
   // Each block owns whole particles as the i end of their pairs (sorted by i): it writes their
   // i-side resultants itself; gather_resultants adds the j ends. Which thread runs a block changes
-  // no result. Each thread runs a contiguous range of blocks, so it keeps the same particles (and
-  // their data in its cache) from step to step (dynamic scheduling was measured slower on spheres:
-  // 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' smoothed times of the last
-  // steps are equal (with an equal number of blocks the slowest thread took 1.06-1.20x the mean:
-  // blocks differ in contacts and narrow tests). Right after a list build pair counts stand in.
+  // no result. Each thread starts with a contiguous range of blocks, so it keeps the same particles
+  // (and their data in its cache) from step to step (dynamic scheduling was measured slower on
+  // spheres: 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' smoothed times of
+  // the last steps are equal (with an equal number of blocks the slowest thread took 1.06-1.20x the
+  // mean: blocks differ in contacts and narrow tests). Right after a list build pair counts stand
+  // in. What the cut misses, the threads share at the ranges' ends (below).
   const int nthreads = np > parallel_threshold ? omp_get_max_threads() : 1;
   const bool timed = state.blocks_build == state.neighbor.builds;  // the same blocks as last step
   share_blocks(state, nthreads, timed);
@@ -542,18 +542,37 @@ void compute_contact_forces(const Model& model, State& state) {
                        model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np,
                        state.owner_first,
                        state.contact_owner_first.data()};
+  // A thread done with its own range takes the blocks left at the end of the others' ranges, one
+  // at a time, from the back: the owner works from the front, so the two meet where the range's
+  // work is shared as it happens (the smoothed cut misses by the noise of the last steps; measured
+  // balance 0.87-0.93 with the cut alone). A block is claimed once, by an atomic exchange of its
+  // flag; the owner stops at the first block a thief has claimed, and a thief at the first one
+  // claimed by anyone, so each range is a prefix of its owner's and a suffix of one thief's.
+  state.block_claimed.assign(nblocks, 0);
+  state.thread_busy.assign(static_cast<std::size_t>(nthreads), 0.0);
+  const auto claim = [&](std::size_t b) {
+    return std::atomic_ref<std::uint8_t>(state.block_claimed[b]).exchange(1, std::memory_order_relaxed) == 0;
+  };
+  const auto run_block = [&](std::size_t b) {
+    const double t0 = omp_get_wtime();
+    ForceBlock fb = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
+    fb.seconds = omp_get_wtime() - t0;
+    // Smoothed: one step's times carry the machine's noise (measured balance 0.88-0.94 with them).
+    fb.weight = timed ? 0.8 * state.blocks[b].weight + 0.2 * fb.seconds : fb.seconds;
+    state.blocks[b] = fb;
+    return fb.seconds;
+  };
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
-    const int team = omp_get_num_threads();
-    for (int r = omp_get_thread_num(); r < nthreads; r += team)
-      for (std::size_t b = cut[r]; b < cut[r + 1]; ++b) {
-        const double t0 = omp_get_wtime();
-        ForceBlock fb = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
-        fb.seconds = omp_get_wtime() - t0;
-        // Smoothed: one step's times carry the machine's noise (measured balance 0.88-0.94 with them).
-        fb.weight = timed ? 0.8 * state.blocks[b].weight + 0.2 * fb.seconds : fb.seconds;
-        state.blocks[b] = fb;
-      }
+    const int team = omp_get_num_threads(), me = omp_get_thread_num();
+    double busy = 0;
+    for (int r = me; r < nthreads; r += team)
+      for (std::size_t b = cut[r]; b < cut[r + 1] && claim(b); ++b) busy += run_block(b);
+    for (int d = 1; d < nthreads; ++d) {
+      const int r = (me + d) % nthreads;
+      for (std::size_t b = cut[r + 1]; b-- > cut[r] && claim(b);) busy += run_block(b);
+    }
+    state.thread_busy[static_cast<std::size_t>(me)] = busy;
   }
   state.blocks_build = state.neighbor.builds;
   pairs.overlap_known = true;

@@ -339,8 +339,8 @@ nlohmann::json memory_kib(const State& st) {
   const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
-  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(st.block_cut) + kib(st.owner_first) +
-                         kib(st.contact_owner_first);
+  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(st.block_cut) + kib(st.block_claimed) +
+                         kib(st.thread_busy) + kib(st.owner_first) + kib(st.contact_owner_first);
   return {{"particles", particles},
           {"pair_keys_and_history", history},
           {"pair_results", results},

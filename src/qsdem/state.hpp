@@ -53,7 +53,9 @@ struct State {
   StageTimers timers;
   std::vector<ForceBlock> blocks;       // scratch for the force stage
   long blocks_build = -1;               // NeighborState::builds of the list the blocks were timed on
-  std::vector<std::size_t> block_cut;   // scratch: thread t runs blocks [cut[t], cut[t + 1])
+  std::vector<std::size_t> block_cut;   // scratch: thread t starts with blocks [cut[t], cut[t + 1])
+  std::vector<std::uint8_t> block_claimed;  // scratch: 1 once a thread has taken the block this step
+  std::vector<double> thread_busy;      // scratch: each thread's seconds in its blocks this step
   // The update region's particles: thread t owns [owner_first[t], owner_first[t + 1]), those of
   // its blocks (set by the force stage with block_cut). contact_owner_first, (threads + 1) per
   // block: block b's contacts whose j end thread t owns are the slots [row[t], row[t + 1]) of
