@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <omp.h>
 
+#include <charconv>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -26,6 +27,20 @@ void set_threads(int threads) {
   if (threads > 0) omp_set_num_threads(threads);
 }
 
+// A whole number >= lo, refused with a message that says so (CLI11's PositiveNumber and
+// NonNegativeNumber print their range up to 1.8e308).
+CLI::Validator whole_number_at_least(long lo, const std::string& meaning = "") {
+  return CLI::Validator(
+      [lo, meaning](std::string& text) -> std::string {
+        long value = 0;
+        const char* const end = text.data() + text.size();
+        const auto [stop, ec] = std::from_chars(text.data(), end, value);
+        if (ec == std::errc() && stop == end && value >= lo) return {};
+        return fmt::format("'{}' is not allowed: give a whole number >= {}{}", text, lo, meaning);
+      },
+      fmt::format("INT>={}", lo));
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -36,6 +51,7 @@ int main(int argc, char** argv) {
   app.require_subcommand(1);
   app.set_version_flag("--version", QSDEM_VERSION);
 
+  const CLI::Validator all_cores_or_count = whole_number_at_least(0, " (0: all cores)");
   std::string case_path;
   std::string out_dir;
   std::vector<std::string> overrides;
@@ -53,7 +69,7 @@ int main(int argc, char** argv) {
   run->add_option("--set,-s", overrides,
                   "Override a case key, e.g. --set damping.ratio=\"0.3 %\" --set triaxial.strain_rate=1e-6 "
                   "--set sample.total_particles=2000 --set damping.model=od (repeatable)");
-  run->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  run->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   run->add_flag("--quiet,-q", quiet, "No progress line");
   bool force = false;
   run->add_flag("--force,-f", force, "Overwrite a directory that holds a finished or unfinished run");
@@ -65,7 +81,7 @@ int main(int argc, char** argv) {
   prepare->add_option("case", case_path, "Case file (TOML). Without it, the built-in default case.");
   prepare->add_option("--out,-o", out_dir, "Directory for the results (created if needed)")->default_val("runs/prepared");
   prepare->add_option("--set,-s", overrides, "Override a case key (as for run)");
-  prepare->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  prepare->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   prepare->add_flag("--quiet,-q", quiet, "No progress line");
   prepare->add_flag("--force,-f", force, "Overwrite a directory that holds a finished or unfinished run");
 
@@ -76,7 +92,7 @@ int main(int argc, char** argv) {
       "in its directory (DIR/checkpoint.qsck, or DIR/checkpoint.qsck.prev when the newest is damaged). The "
       "resumed series.csv is identical to that of an uninterrupted run.");
   resume->add_option("dir", resume_dir, "Directory of the run")->required();
-  resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   resume->add_flag("--quiet,-q", quiet, "No progress line");
 
   std::string packing;
@@ -88,9 +104,9 @@ int main(int argc, char** argv) {
       "wall seconds, particle-steps per second, peak memory.");
   bench->add_option("packing", packing, "Packing file")->required()->check(CLI::ExistingFile);
   bench->add_option("--case,-c", case_path, "Case file giving material, friction and time step")->required();
-  bench->add_option("--steps,-n", steps, "Steps to run")->check(CLI::PositiveNumber);
+  bench->add_option("--steps,-n", steps, "Steps to run")->check(whole_number_at_least(1));
   bench->add_option("--set,-s", overrides, "Override a case key (as for run)");
-  bench->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(CLI::NonNegativeNumber);
+  bench->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   bool as_spheres = false;
   bench->add_flag("--as-spheres", as_spheres,
                   "Replace every ellipsoid by its equal-volume sphere at the same centre first (the sphere "
@@ -108,7 +124,7 @@ int main(int argc, char** argv) {
   study->add_option("--out,-o", out_dir, "Study directory (created if needed)")->required();
   study->add_option("--parallel,-j", parallel,
                     "Child processes at once (per MPI rank); default: execution.parallel_runs of the study file")
-      ->check(CLI::PositiveNumber);
+      ->check(whole_number_at_least(1));
   study->add_flag("--quiet,-q", quiet, "No progress display");
 
   std::string analyze_dir;
@@ -116,7 +132,11 @@ int main(int argc, char** argv) {
       "analyze", "Analyse a study directory (written by `qsdem study`) again: DIR/analysis/ (docs/analysis.md).");
   analyze->add_option("dir", analyze_dir, "Study directory")->required();
 
-  CLI11_PARSE(app, argc, argv);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e) == 0 ? 0 : 1;  // --help and --version exit 0; a bad command line 1 (CLI11's codes vary)
+  }
 
   try {
     set_threads(threads);

@@ -341,6 +341,21 @@ TEST(Run, CommandLine) {
   EXPECT_NE(err.find("damping.model"), std::string::npos) << err;
   EXPECT_EQ(shell("'" + binary + "' run '" + (dir / "missing.toml").string() + "' -q", dir, out, err), 2);
   EXPECT_NE(err.find("missing.toml"), std::string::npos) << err;
+  // A bad command line: exit code 1 and a message naming the option, the value and what is allowed.
+  const std::string source = QSDEM_SOURCE_DIR;
+  for (const std::string steps : {"0", "-5", "2.5", "many"}) {
+    EXPECT_EQ(shell("'" + binary + "' bench '" + source + "/tests/golden/paper-A-small.packing' -c x.toml --steps " +
+                        steps,
+                    dir, out, err),
+              1)
+        << steps;
+    EXPECT_NE(err.find("--steps: '" + steps + "' is not allowed: give a whole number >= 1"), std::string::npos) << err;
+  }
+  EXPECT_EQ(shell("'" + binary + "' run -q --threads -1", dir, out, err), 1);
+  EXPECT_NE(err.find("--threads: '-1' is not allowed: give a whole number >= 0 (0: all cores)"), std::string::npos)
+      << err;
+  EXPECT_EQ(shell("'" + binary + "' run -q --no-such-option", dir, out, err), 1);
+  EXPECT_NE(err.find("--no-such-option"), std::string::npos) << err;
 
   // A good case: exit 0, and the CLI's series.csv is the library's, byte for byte.
   {
