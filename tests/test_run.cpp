@@ -104,6 +104,31 @@ int shell(const std::string& cmd, const fs::path& dir, std::string& out, std::st
   return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
 }
 
+// 5000 spheres in a loose cell shrunk affinely from solid fraction 0.2 to 0.35 (pairs closer than
+// 17 % of their distance now overlap), with friction and nd damping: several thousand contacts.
+std::pair<State, Model> large_packing() {
+  const Params params = parse_case(tiny_case, "run-tiny.toml",
+                                   {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
+  State start = generate_loose_sample(params);
+  set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);
+  Model model = base_model(params, start.particles);
+  model.friction = 0.5;
+  model.damping = DampingModel::nd;
+  model.damping_ratio = 0.005;
+  assign_damping(model, start.particles);
+  return {start, model};
+}
+
+// Particles whose position, velocity or angular momentum differ by any bit between a and b.
+std::size_t particles_differing(const State& a, const State& b) {
+  std::size_t differ = 0;
+  for (std::size_t i = 0; i < a.particles.size(); ++i)
+    if (a.particles.s[i] != b.particles.s[i] || a.particles.v[i] != b.particles.v[i] ||
+        a.particles.angmom[i] != b.particles.angmom[i])
+      ++differ;
+  return differ;
+}
+
 const std::string binary = QSDEM_BINARY;
 
 }  // namespace
@@ -140,17 +165,7 @@ TEST(Run, ThreadCountDoesNotChangeSeries) {
 // their j end) is stepped 30 times on 1, 2 and 3 threads: state, stress and measures must agree
 // bit for bit.
 TEST(Run, ThreadCountDoesNotChangeLargePacking) {
-  const Params params = parse_case(tiny_case, "run-tiny.toml",
-                                   {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
-  State start = generate_loose_sample(params);
-  // Shrink the loose cell affinely from solid fraction 0.2 to 0.35: pairs closer than 17 % of
-  // their distance now overlap.
-  set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);
-  Model model = base_model(params, start.particles);
-  model.friction = 0.5;
-  model.damping = DampingModel::nd;
-  model.damping_ratio = 0.005;
-  assign_damping(model, start.particles);
+  const auto [start, model] = large_packing();
 
   auto run = [&](int threads) {
     Threads t(threads);
@@ -172,12 +187,7 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
   EXPECT_EQ(s1.pairs.size(), s2.pairs.size());
   EXPECT_TRUE(s1.stress == s2.stress);
   EXPECT_TRUE(s1.affine_stiffness == s2.affine_stiffness);
-  std::size_t differ = 0;
-  for (std::size_t i = 0; i < s1.particles.size(); ++i)
-    if (s1.particles.s[i] != s2.particles.s[i] || s1.particles.v[i] != s2.particles.v[i] ||
-        s1.particles.angmom[i] != s2.particles.angmom[i])
-      ++differ;
-  EXPECT_EQ(differ, 0u);
+  EXPECT_EQ(particles_differing(s1, s2), 0u);
   EXPECT_EQ(m1.ufr, m2.ufr);
   EXPECT_EQ(m1.iuf, m2.iuf);
   EXPECT_EQ(m1.imom, m2.imom);
@@ -192,13 +202,7 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
 // work by taking blocks from the back of thread 1's range while thread 1 works from the front.
 // The state must stay bit for bit that of one thread, and thread 0 must have taken blocks.
 TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
-  const Params params = parse_case(tiny_case, "run-tiny.toml",
-                                   {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
-  State start = generate_loose_sample(params);
-  set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);  // as in the test above
-  Model model = base_model(params, start.particles);
-  model.friction = 0.5;
-  assign_damping(model, start.particles);
+  const auto [start, model] = large_packing();
   constexpr int steps = 20;
   State one = start;
   {
@@ -230,12 +234,7 @@ TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
   ASSERT_GE(uneven, 5) << "steps without a list build";
   EXPECT_GT(taken, 0.0) << "thread 0 took no block from thread 1's range in " << uneven << " steps";
   EXPECT_TRUE(one.stress == two.stress);
-  std::size_t differ = 0;
-  for (std::size_t i = 0; i < one.particles.size(); ++i)
-    if (one.particles.s[i] != two.particles.s[i] || one.particles.v[i] != two.particles.v[i] ||
-        one.particles.angmom[i] != two.particles.angmom[i])
-      ++differ;
-  EXPECT_EQ(differ, 0u);
+  EXPECT_EQ(particles_differing(one, two), 0u);
 }
 
 // SPEC 10 files, and their consistency with SPEC 1, 7 and 8.
