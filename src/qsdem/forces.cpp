@@ -469,13 +469,13 @@ void share_blocks(State& state, int nthreads, bool timed) {
 }
 
 // Adds this step's mean and largest thread time in the force stage to the timers (balance).
-void record_thread_balance(State& state, int nthreads) {
+void record_thread_balance(State& state) {
   double busiest = 0, sum = 0;
   for (const double busy : state.thread_busy) {
     busiest = std::max(busiest, busy);
     sum += busy;
   }
-  state.timers.force_thread_mean += sum / nthreads;
+  state.timers.force_thread_mean += sum / static_cast<double>(state.thread_busy.size());
   state.timers.force_thread_max += busiest;
 }
 
@@ -576,7 +576,7 @@ void compute_contact_forces(const Model& model, State& state) {
   }
   state.blocks_build = state.neighbor.builds;
   pairs.overlap_known = true;
-  if (nthreads > 1) record_thread_balance(state, nthreads);
+  if (nthreads > 1) record_thread_balance(state);
 
   Mat3 sum = Mat3::Zero();
   Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
