@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <cctype>
 #include <cmath>
 #include <fstream>
 #include <functional>
@@ -149,9 +150,13 @@ class Reader {
       }
       fail(path, nullptr, why);
     }
+    asked_.insert(path);
     if (n) used_.insert(path);
     return n;
   }
+
+  // Every key some reader asked for, found or not (case_keys).
+  const std::set<std::string>& asked() const { return asked_; }
 
   using Check = std::function<bool(double)>;
 
@@ -270,6 +275,7 @@ class Reader {
   const toml::table& root_;
   std::string source_;
   std::set<std::string> used_;
+  std::set<std::string> asked_;
 };
 
 const auto positive = [](double v) { return v > 0; };
@@ -325,8 +331,11 @@ nlohmann::json to_json(const toml::table& tbl) {
 
 }  // namespace
 
-Params parse_case(const std::string& toml_text, const std::string& source,
-                  const std::vector<std::string>& overrides) {
+namespace {
+
+// parse_case; `asked`, when given, receives every key the parser asked for.
+Params parse(const std::string& toml_text, const std::string& source, const std::vector<std::string>& overrides,
+             std::set<std::string>* asked) {
   toml::table root;
   try {
     root = toml::parse(toml_text, source);
@@ -408,11 +417,50 @@ Params parse_case(const std::string& toml_text, const std::string& source,
   p.limits.max_kinetic_ratio = r.number("limits.max_kinetic_ratio", 1.0, positive, "must be > 0");
 
   r.reject_unknown();
+  if (asked) *asked = r.asked();
   p.as_written = to_json(root);
   std::ostringstream text;
   text << root;
   p.case_text = text.str();
   return p;
+}
+
+}  // namespace
+
+Params parse_case(const std::string& toml_text, const std::string& source,
+                  const std::vector<std::string>& overrides) {
+  return parse(toml_text, source, overrides, nullptr);
+}
+
+std::vector<std::string> case_keys() {
+  // A case with one size-table row of each shape: the parser then asks for every key it knows.
+  static const char* const every_shape = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    shape = "sphere"
+    diameter = "1 m"
+    count = 1
+    [[sample.particles]]
+    shape = "spheroid"
+    major_semi_axis = "1 m"
+    minor_semi_axis = "1 m"
+    count = 1
+    [[sample.particles]]
+    shape = "ellipsoid"
+    semi_axes = ["1 m", "1 m", "1 m"]
+    count = 1
+  )";
+  std::set<std::string> asked;
+  parse(every_shape, "<case_keys>", {}, &asked);
+  std::set<std::string> keys;
+  const std::string row = "sample.particles.";
+  for (const std::string& k : asked) {
+    if (k.rfind(row, 0) == 0 && k.size() > row.size() && std::isdigit(static_cast<unsigned char>(k[row.size()])))
+      keys.insert(row + k.substr(k.find('.', row.size()) + 1));  // sample.particles.2.count -> sample.particles.count
+    else
+      keys.insert(k);
+  }
+  return {keys.begin(), keys.end()};
 }
 
 nlohmann::json to_json(const Params& p) {

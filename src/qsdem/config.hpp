@@ -108,4 +108,9 @@ Params parse_case(const std::string& toml_text, const std::string& source,
                   const std::vector<std::string>& overrides = {});
 Params load_case(const std::string& path, const std::vector<std::string>& overrides = {});
 
+// Every key the parser reads, dotted, sorted ("material.density", ...; the keys of a
+// [[sample.particles]] row as "sample.particles.count"), from the parser itself: docs/config.md
+// documents each of them (tests/test_docs.cpp).
+std::vector<std::string> case_keys();
+
 }  // namespace qsdem
