@@ -1,4 +1,4 @@
-// qsdem command line: run a case, benchmark a packing.
+// qsdem command line: run a case, prepare a sample, resume, study, analyse, benchmark.
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 #include <omp.h>
@@ -50,6 +50,11 @@ int main(int argc, char** argv) {
       "indices UFR, Iuf and IMom of Yousefi (2018). Cases are TOML files (docs/config.md)."};
   app.require_subcommand(1);
   app.set_version_flag("--version", QSDEM_VERSION);
+  bool dry_run = false;
+  app.add_flag("--dry-run", dry_run,
+               "Check the command line, and the case or study file it names when that file exists (with its --set "
+               "overrides), then exit without running anything (exit code 0, 1 or 2)");
+  app.fallthrough();  // --dry-run may follow the subcommand
 
   const CLI::Validator all_cores_or_count = whole_number_at_least(0, " (0: all cores)");
   std::string case_path;
@@ -95,22 +100,29 @@ int main(int argc, char** argv) {
   resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   resume->add_flag("--quiet,-q", quiet, "No progress line");
 
-  std::string packing;
+  std::string bench_source;
   long steps = 1000;
   auto* bench = app.add_subcommand(
       "bench",
-      "Step a packing (qsdem packing format, e.g. DIR/compacted.packing of a run) in a fixed cell with the "
-      "triaxial friction and damping of a case, with no output, and print one JSON line: particles, contacts, steps, threads, "
-      "wall seconds, particle-steps per second, peak memory.");
-  bench->add_option("packing", packing, "Packing file")->required()->check(CLI::ExistingFile);
-  bench->add_option("--case,-c", case_path, "Case file giving material, friction and time step")->required();
-  bench->add_option("--steps,-n", steps, "Steps to run")->check(whole_number_at_least(1));
+      "Step a state in a fixed cell with no output and print one JSON line (docs/benchmarks.md): particles, "
+      "contacts at the first and the last step, steps, threads, wall seconds, particle-steps per second, memory, "
+      "time per stage. The state is a packing (at rest, no contact history; the triaxial friction and damping of "
+      "--case), or a checkpoint: DIR/sample.qsck of `qsdem prepare`, DIR/checkpoint.qsck of an unfinished run "
+      "(velocities and contact history as the run left them; the friction and damping of its phase).");
+  bench->add_option("source", bench_source,
+                    "A packing file, a checkpoint file (*.qsck), or a run directory (its sample.qsck, else its "
+                    "checkpoint.qsck)")
+      ->required();
+  bench->add_option("--case,-c", case_path,
+                    "Case file: material, friction, damping and time step. Required for a packing; for a checkpoint "
+                    "it replaces the checkpoint's own case (material and time.step_ratio must be equal)");
+  bench->add_option("--steps,-n", steps, "Steps to time (default 1000)")->check(whole_number_at_least(1));
   bench->add_option("--set,-s", overrides, "Override a case key (as for run)");
   bench->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   bool as_spheres = false;
   bench->add_flag("--as-spheres", as_spheres,
-                  "Replace every ellipsoid by its equal-volume sphere at the same centre first (the sphere "
-                  "path on the same packing)");
+                  "Replace every ellipsoid by its equal-volume sphere at the same centre first, at rest and without "
+                  "contact history (the sphere path on the same packing)");
 
   std::string study_file;
   int parallel = 0;
@@ -140,6 +152,23 @@ int main(int argc, char** argv) {
 
   try {
     set_threads(threads);
+    if (dry_run) {
+      namespace fs = std::filesystem;
+      std::string checked;
+      if ((*run || *prepare) && case_path.empty()) {
+        qsdem::parse_case(qsdem::default_case_toml, qsdem::default_case_name, overrides);
+        checked = "the built-in case";
+      } else if ((*run || *prepare || *bench) && fs::is_regular_file(case_path)) {
+        qsdem::load_case(case_path, overrides);
+        checked = "case " + case_path;
+      } else if (*study && fs::is_regular_file(study_file)) {
+        qsdem::load_study(study_file);
+        checked = "study " + study_file;
+      }
+      std::cout << "qsdem: dry run: the command line is valid"
+                << (checked.empty() ? std::string() : "; " + checked + " is valid") << "\n";
+      return 0;
+    }
     if (*run || *prepare) {
       const qsdem::Params params =
           case_path.empty() ? qsdem::parse_case(qsdem::default_case_toml, qsdem::default_case_name, overrides)
@@ -161,8 +190,7 @@ int main(int argc, char** argv) {
       qsdem::analyze_study(analyze_dir);
       std::cout << "Analysis written to " << analyze_dir << "/analysis/\n";
     } else if (*bench) {
-      const qsdem::Params params = qsdem::load_case(case_path, overrides);
-      std::cout << qsdem::bench_packing(params, packing, steps, as_spheres).dump() << std::endl;
+      std::cout << qsdem::bench_packing(bench_source, case_path, overrides, steps, as_spheres).dump() << std::endl;
     }
   } catch (const qsdem::Interrupted& e) {
     std::fprintf(stderr, "\nqsdem: %s\n", e.what());

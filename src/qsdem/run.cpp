@@ -351,9 +351,72 @@ nlohmann::json memory_kib(const State& st) {
 
 }  // namespace
 
-nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps,
-                             bool as_spheres) {
-  State st = read_packing(packing, params.material.density);
+namespace {
+
+// What `qsdem bench` steps: the state, the case, and which phase's friction and damping apply.
+struct BenchInput {
+  State state;
+  Params params;
+  std::string source;  // "packing" or "checkpoint"
+  std::string phase;   // "compaction" or "triaxial"
+  std::filesystem::path file;
+};
+
+BenchInput bench_input(const std::filesystem::path& source, const std::string& case_path,
+                       const std::vector<std::string>& overrides) {
+  namespace fs = std::filesystem;
+  fs::path file = source;
+  if (fs::is_directory(source)) {
+    file = source / prepared_sample_file;
+    if (!fs::exists(file)) file = source / checkpoint_file;
+    if (!fs::exists(file))
+      throw InputError(fmt::format("'{}' holds neither {} (a prepared sample) nor {} (an unfinished run)",
+                                   source.string(), prepared_sample_file, checkpoint_file));
+  } else if (!fs::is_regular_file(source)) {
+    throw InputError(fmt::format("'{}': no such packing file, checkpoint or run directory", source.string()));
+  }
+  BenchInput in;
+  in.file = file;
+  if (file.extension() != ".qsck") {
+    if (case_path.empty())
+      throw InputError(fmt::format("'{}' is a packing: give the case it is stepped with (--case)", file.string()));
+    in.params = load_case(case_path, overrides);
+    in.state = read_packing(file, in.params.material.density);
+    in.source = "packing";
+    in.phase = "triaxial";
+    return in;
+  }
+  Checkpoint c = load_checkpoint(file);
+  const Params own = parse_case(c.case_text, c.case_source, case_path.empty() ? overrides : std::vector<std::string>{});
+  in.params = case_path.empty() ? own : load_case(case_path, overrides);
+  const auto& a = own.material;
+  const auto& b = in.params.material;
+  // The masses and contacts of the state were made with the checkpoint's material and time step.
+  if (a.density != b.density || a.young_modulus != b.young_modulus || a.poisson_ratio != b.poisson_ratio ||
+      own.step_ratio != in.params.step_ratio)
+    throw InputError(fmt::format("'{}' was made with density {} kg/m^3, E {} Pa, nu {}, time.step_ratio {}; the case "
+                                 "has {}, {}, {}, {}: they must be equal",
+                                 file.string(), a.density, a.young_modulus, a.poisson_ratio, own.step_ratio, b.density,
+                                 b.young_modulus, b.poisson_ratio, in.params.step_ratio));
+  in.state = std::move(c.state);
+  in.source = "checkpoint";
+  in.phase = c.run.phase == RunProgress::Phase::compaction ? "compaction" : "triaxial";
+  return in;
+}
+
+long contact_count(const State& st) {
+  long n = 0;
+  for (const ForceBlock& b : st.blocks) n += b.contacts;
+  return n;
+}
+
+}  // namespace
+
+nlohmann::json bench_packing(const std::filesystem::path& source, const std::string& case_path,
+                             const std::vector<std::string>& overrides, long steps, bool as_spheres) {
+  BenchInput in = bench_input(source, case_path, overrides);
+  State& st = in.state;
+  const Params& params = in.params;
   if (as_spheres) {
     State spheres;
     spheres.cell = st.cell;
@@ -362,29 +425,40 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
       spheres.particles.add(p.id[i], ShapeKind::sphere, Vec3::Constant(p.equiv_radius[i]), params.material.density,
                             p.s[i], Quat::Identity());
     st = std::move(spheres);
+    in.source = "packing";
   }
   long ellipsoids = 0;
   for (ShapeKind k : st.particles.shape) ellipsoids += k == ShapeKind::ellipsoid;
-  // The triaxial phase's friction and damping in a fixed cell: the same physics a peer code runs
-  // on the same packing in a fixed periodic box.
-  Model model = triaxial_model(params, st);
+  // The phase's friction and damping in a fixed cell: a peer code runs the same physics on the
+  // same packing in a fixed periodic box.
+  Model model = in.phase == "compaction" ? compaction_model(params, st) : triaxial_model(params, st);
   for (auto& c : model.control) c = {};
+  model.servo.zero_shear_stress = false;
   assign_damping(model, st.particles);
-  evaluate_forces(model, st);
+  // A packing's first list build is set-up, not stepping (LIGGGHTS' loop time leaves its own
+  // out); at rest it changes no history. A checkpoint's list and history are stepped as they are.
+  if (in.source == "packing") evaluate_forces(model, st);
   st.timers = {};
-  const auto t0 = std::chrono::steady_clock::now();
-  long narrow_tests = 0, pw_iterations = 0;
+  const long builds_before = st.neighbor.builds;
+  long narrow_tests = 0, pw_iterations = 0, contacts_start = 0;
+  double wall = 0;
   for (long n = 0; n < steps; ++n) {
+    const auto t0 = std::chrono::steady_clock::now();
     step(model, st);
+    wall += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (n == 0) contacts_start = contact_count(st);  // at the first step's force evaluation
     narrow_tests += st.narrow_tests;
     pw_iterations += st.pw_iterations;
   }
-  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const Measures m = measure(st);
   const double np = static_cast<double>(st.particles.size());
-  return {{"particles", st.particles.size()},
+  return {{"source", in.source},
+          {"file", in.file.string()},
+          {"phase", in.phase},
+          {"particles", st.particles.size()},
           {"ellipsoids", ellipsoids},
-          {"contacts", m.contacts},
+          {"contacts_start", contacts_start},
+          {"contacts_end", m.contacts},
           {"pairs", st.pairs.size()},
           {"narrow_tests_per_step", static_cast<double>(narrow_tests) / static_cast<double>(std::max(1L, steps))},
           {"pw_iterations_per_step", static_cast<double>(pw_iterations) / static_cast<double>(std::max(1L, steps))},
@@ -405,7 +479,9 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"young_modulus_Pa", model.material.young_modulus},
           {"poisson_ratio", model.material.poisson_ratio},
           {"friction", model.friction},
-          {"neighbor_builds", st.neighbor.builds},
+          {"damping_model", to_string(model.damping)},
+          {"damping_ratio", model.damping_ratio},
+          {"neighbor_builds", st.neighbor.builds - builds_before},
           {"stages", stage_json(st.timers, steps)}};
 }
 
