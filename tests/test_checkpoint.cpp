@@ -10,6 +10,8 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstddef>
+#include <cstring>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -331,15 +333,11 @@ TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
 
 // Format 3 summed fluctuation_path (the skin test's bound of the motion) in runs of spheres only:
 // read into a run with ellipsoids it is unknown, not zero (a zero would rule out every list
-// rebuild). Formats 3 and 4 have the same payload; only the header's version differs.
+// rebuild).
 TEST(CheckpointFile, Format3LeavesEllipsoidRunsWithoutAMotionBound) {
   const auto reload_as = [](const State& st, std::uint32_t version, const char* name) {
     const fs::path f = scratch(name);
-    save_checkpoint(f, "", "", st, RunProgress{});
-    std::fstream io(f, std::ios::in | std::ios::out | std::ios::binary);
-    io.seekp(8);  // the version, after the 8-byte magic (outside the checksum)
-    io.write(reinterpret_cast<const char*>(&version), 4);
-    io.close();
+    save_checkpoint(f, "", "", st, RunProgress{}, version);
     return load_checkpoint(f).state.neighbor.fluctuation_path;
   };
   const fs::path spheroid_case = fs::path(QSDEM_SOURCE_DIR) / "examples" / "paper-A-small.toml";
@@ -398,4 +396,43 @@ TEST(CheckpointFile, Format1PreparedSampleStillShears) {
     for (std::size_t k = 0; k < want.size(); ++k)
       EXPECT_NEAR(got[k][c], want[k][c], 1e-6 * scale + 1e-300) << "row " << k << " column " << c;
   }
+}
+
+// The triaxial sums are written field by field: the bytes of a checkpoint do not depend on the
+// padding of TriaxialSums (format 4 wrote the struct's raw bytes, padding included); a format-4
+// file's sums still read back.
+TEST(CheckpointFile, TriaxialSumsAreWrittenFieldByField) {
+  const State st = generate_loose_sample(parse_case(small_case, "small.toml"));
+  const auto save_with_padding = [&](unsigned char fill, const fs::path& f, std::uint32_t format) {
+    RunProgress run;
+    run.phase = RunProgress::Phase::triaxial;
+    // the bytes between `rows` and `ufr`: indeterminate in a real run, set here
+    auto* sums = reinterpret_cast<unsigned char*>(&run.sums);
+    std::memset(sums + sizeof(int), fill, offsetof(TriaxialSums, ufr) - sizeof(int));
+    run.sums.rows = 7;
+    run.sums.ufr = 0.25;
+    run.sums.peak_phi_deg = 31.5;
+    run.sums.final_e1 = 0.02;
+    run.sums.wall_s = 12.5;
+    run.changes = "triaxial step 4: limits.max_kinetic_ratio=2\n";
+    save_checkpoint(f, "", "", st, run, format);
+  };
+  ASSERT_GT(offsetof(TriaxialSums, ufr), sizeof(int)) << "no padding to test on this platform";
+  const fs::path a = scratch("sums-a.qsck"), b = scratch("sums-b.qsck"), v4 = scratch("sums-v4.qsck");
+  save_with_padding(0x00, a, checkpoint_format_version);
+  save_with_padding(0xff, b, checkpoint_format_version);
+  EXPECT_EQ(read(a), read(b));
+  const Checkpoint c = load_checkpoint(b);
+  EXPECT_EQ(c.run.sums.rows, 7);
+  EXPECT_EQ(c.run.sums.ufr, 0.25);
+  EXPECT_EQ(c.run.sums.peak_phi_deg, 31.5);
+  EXPECT_EQ(c.run.sums.final_e1, 0.02);
+  EXPECT_EQ(c.run.sums.wall_s, 12.5);
+  EXPECT_EQ(c.run.changes, "triaxial step 4: limits.max_kinetic_ratio=2\n");
+  save_with_padding(0xff, v4, 4);
+  const Checkpoint old = load_checkpoint(v4);
+  EXPECT_EQ(old.run.sums.rows, 7);
+  EXPECT_EQ(old.run.sums.ufr, 0.25);
+  EXPECT_EQ(old.run.sums.final_e1, 0.02);
+  EXPECT_EQ(old.run.sums.wall_s, 0) << "format 4 kept no triaxial wall time";
 }

@@ -4,6 +4,7 @@
 #pragma once
 #include <cstdint>
 #include <functional>
+#include <string>
 
 #include "qsdem/config.hpp"
 #include "qsdem/measures.hpp"
@@ -32,11 +33,12 @@ struct TriaxialResult {
   double mean_lateral_stress_error = 0;
 };
 
-// Running sums over the rows of series.csv.
+// Running sums over the rows of series.csv, and the phase's wall time over all sessions.
 struct TriaxialSums {
   int rows = 0;
   double ufr = 0, iuf = 0, imom = 0, lateral_error = 0, max_lateral_error = 0;
   double peak_phi_deg = 0, peak_phi_e1 = 0, final_ev = 0, final_e1 = 0;
+  double wall_s = 0;
 };
 
 // Where a run is.
@@ -53,6 +55,8 @@ struct RunProgress {
   double wall_s = 0;           // wall time of the run's earlier sessions (s)
   long first_step = 0;         // State::step when this run's own work began (a prepared
                                // sample's compaction steps are not this run's)
+  bool prepare_only = false;   // `qsdem prepare`: the run ends with the compacted sample
+  std::string changes;         // `resume --set` changes, one "from triaxial step N: key=value" a line
 };
 
 // Called after every step; `sample_point` is true when a CSV row was just written. It may save a
