@@ -23,9 +23,11 @@
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/model.hpp"
 #include "qsdem/neighbor.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/step.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -329,6 +331,88 @@ TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
   EXPECT_NE(err.find("overlap"), std::string::npos) << err;
   EXPECT_NE(err.find("particles id"), std::string::npos) << err;
   EXPECT_FALSE(fs::exists(d / "summary.json"));
+}
+
+namespace {
+
+// Three fine spheres (R = 0.2 mm) each pinched between two big ones (R = 2 mm) along a line
+// through a fixed periodic cell, overlapping by 8 % of the fine radius (~50 N each): a steady
+// force chain. The fine spheres start with 1 m/s along the chain.
+std::pair<State, Model> pinched_chain(double dt_factor) {
+  const Params params = parse_case(small_case, "small.toml");
+  const double rb = 2e-3, rs = 2e-4, overlap = 0.08 * rs, d = rb + rs - overlap, side = 6 * d;
+  State st;
+  st.cell = make_cell(side * Mat3::Identity());
+  for (int k = 0; k < 6; ++k) {
+    const double r = k % 2 == 0 ? rb : rs;
+    st.particles.add(static_cast<std::uint32_t>(k), ShapeKind::sphere, Vec3::Constant(r), 2650,
+                     Vec3(0.5, 0.5, k * d / side), Quat::Identity());
+    if (k % 2 == 1) st.particles.v.back() = Vec3(0, 0, 1.0);
+  }
+  Model m = triaxial_model(params, st);
+  for (auto& c : m.control) c = {};  // a fixed cell
+  m.dt *= dt_factor;
+  assign_damping(m, st.particles);
+  return {std::move(st), m};
+}
+
+}  // namespace
+
+// A fine particle pinched by a large force (overlap above the old 5 % stop, steady) runs on.
+TEST(BlowUp, PinchedFineParticleRunsOn) {
+  auto [st, model] = pinched_chain(1.0);
+  const Params params = parse_case(small_case, "small.toml");
+  BlowUpWatch watch;
+  double low = 1, high = 0;
+  for (long n = 0; n < 3000; ++n) {
+    step(model, st);
+    ASSERT_NO_THROW(watch.check(st, params, "test", n)) << "step " << n;
+    low = std::min(low, st.max_overlap);
+    high = std::max(high, st.max_overlap);
+  }
+  EXPECT_GT(low, BlowUpWatch::watch_level) << "the old 5 % limit would have stopped this healthy chain";
+  EXPECT_LT(high - low, 0.01) << "steady: " << low << " to " << high;
+}
+
+// A time step far too large (10 times the stable one) on the same chain: the overlap grows
+// geometrically and the watch stops it, saying that the time step is too large.
+TEST(BlowUp, TimeStepFarTooLargeIsStopped) {
+  auto [st, model] = pinched_chain(10.0);
+  const Params params = parse_case(small_case, "small.toml");
+  BlowUpWatch watch;
+  try {
+    for (long n = 0; n < 3000; ++n) {
+      step(model, st);
+      watch.check(st, params, "test", n);
+    }
+    ADD_FAILURE() << "no blow-up detected";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("numerical instability"), std::string::npos) << what;
+    EXPECT_NE(what.find("time step is too large"), std::string::npos) << what;
+    EXPECT_NE(what.find("time.step_ratio"), std::string::npos) << what;
+  }
+}
+
+// A whole run with time.step_ratio twenty times the largest the case file allows stops as a
+// blow-up at run time (exit 3 in the CLI), naming the time step.
+TEST(BlowUp, RunWithAFarTooLargeTimeStepIsStopped) {
+  Params params = parse_case(small_case, "small.toml");
+  params.step_ratio = 10;  // the case file refuses > 0.5
+  const fs::path d = scratch("dt-too-large");
+  RunOptions o;
+  o.out = d;
+  o.quiet = true;
+  try {
+    run_case(params, o);
+    ADD_FAILURE() << "no blow-up detected";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    std::printf("[ info ] %s\n", what.c_str());
+    EXPECT_NE(what.find("blow-up"), std::string::npos) << what;
+    EXPECT_NE(what.find("numerical instability"), std::string::npos) << what;
+    EXPECT_NE(what.find("time.step_ratio"), std::string::npos) << what;
+  }
 }
 
 // Format 3 summed fluctuation_path (the skin test's bound of the motion) in runs of spheres only:

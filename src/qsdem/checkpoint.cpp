@@ -232,7 +232,10 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   std::filesystem::path tmp = path;
   tmp += ".tmp";
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  if (fd < 0) throw RunError(fmt::format("cannot write checkpoint '{}': {}", tmp.string(), std::strerror(errno)));
+  const bool has_previous = std::filesystem::exists(path);
+  const char* kept = has_previous ? "the previous checkpoint is kept" : "there is no earlier checkpoint";
+  if (fd < 0)
+    throw RunError(fmt::format("cannot write checkpoint '{}': {}; {}", tmp.string(), std::strerror(errno), kept));
   std::vector<char> head(header_size);
   const std::uint32_t version = format, reserved = 0;
   std::memcpy(head.data(), magic, 8);
@@ -254,8 +257,7 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   ::close(fd);
   if (!ok) {
     std::filesystem::remove(tmp);
-    throw RunError(fmt::format("writing checkpoint '{}' failed ({}); the previous checkpoint is kept", tmp.string(),
-                               std::strerror(saved_errno)));
+    throw RunError(fmt::format("writing checkpoint '{}' failed: {}; {}", tmp.string(), std::strerror(saved_errno), kept));
   }
   std::filesystem::path prev = path;
   prev += ".prev";
@@ -263,12 +265,13 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   // every instant `path` names a whole checkpoint (renaming path to .prev first left a window in
   // which a SIGKILL found none). Without hard links (some file systems), rename as before.
   std::error_code ec;
-  if (std::filesystem::exists(path)) {
+  if (has_previous) {
     std::filesystem::remove(prev, ec);
     std::filesystem::create_hard_link(path, prev, ec);
     if (ec) std::filesystem::rename(path, prev, ec);
   }
-  std::filesystem::rename(tmp, path);
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) throw RunError(fmt::format("renaming '{}' to '{}' failed: {}; {}", tmp.string(), path.string(), ec.message(), kept));
   fsync_dir(path.parent_path());
 }
 

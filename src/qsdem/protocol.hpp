@@ -2,6 +2,7 @@
 // The phase loops are resumable: everything they need to continue exactly where they stopped is in
 // RunProgress, which checkpoints save with the State.
 #pragma once
+#include <array>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -57,6 +58,28 @@ struct RunProgress {
                                // sample's compaction steps are not this run's)
   bool prepare_only = false;   // `qsdem prepare`: the run ends with the compacted sample
   std::string changes;         // `resume --set` changes, one "from triaxial step N: key=value" a line
+};
+
+// The triaxial result of the rows summed so far (SPEC 10's summary).
+TriaxialResult triaxial_result(const RunProgress& run);
+
+// The blow-up watch (docs/runs.md), checked after every step. A numerical instability (a time
+// step too large for the contact stiffness) makes the largest overlap grow geometrically from
+// step to step, then the state NaN; a fine particle pinched in a force chain has a large but
+// steady overlap and runs on. Stops the run (RunError) when the state is not finite, when the
+// largest overlap exceeds limits.max_overlap (the bound beyond which the contact geometry is
+// meaningless), or when, above watch_level, it is at least twice the smallest of the last
+// `window` steps (of the steps so far, in the phase's first ones).
+class BlowUpWatch {
+ public:
+  static constexpr double watch_level = 0.05;  // overlap / smaller radius
+  static constexpr long window = 20;           // steps
+  // `step`: the phase's step number, counted from 0 as in compaction.csv and series.csv.
+  void check(const State& st, const Params& params, const char* phase, long step);
+
+ private:
+  std::array<double, window> recent_{};
+  long seen_ = 0;
 };
 
 // Called after every step; `sample_point` is true when a CSV row was just written. It may save a
