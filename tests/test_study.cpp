@@ -25,6 +25,7 @@
 
 #include "qsdem/study.hpp"
 #include "qsdem/types.hpp"
+#include "qsdem/version.hpp"
 #include "test_support.hpp"
 
 extern char** environ;
@@ -264,6 +265,9 @@ TEST(Study, TinyStudyEndToEnd) {
   EXPECT_EQ(ids.size(), 8u);
   EXPECT_FALSE(fs::exists(ref.dir / "failures.json"));
   EXPECT_TRUE(fs::exists(ref.dir / "analysis" / "per_run.csv")) << "the study ends with the analysis";
+  EXPECT_EQ(nlohmann::json::parse(slurp(ref.dir / "analysis" / "analysis.json"))["study"]["qsdem_version"],
+            QSDEM_VERSION)
+      << "the exact source version (docs/runs.md)";
 }
 
 // Another study file for the same directory is refused before anything is touched.

@@ -108,6 +108,9 @@ DirectoryLock lock_run_directory(const fs::path& dir) {
 // holds files of something else than a qsdem run. Writes nothing.
 void check_out(const fs::path& dir, bool force, bool locked_here) {
   if (dir.empty()) throw InputError("--out is empty: give the directory for the results");
+  for (const auto& part : fs::absolute(dir))
+    if (part.string().size() > 255)
+      throw InputError(fmt::format("--out '{}': the name '{}' is longer than 255 bytes", dir.string(), part.string()));
   std::error_code ec;
   if (fs::exists(dir, ec) && !fs::is_directory(dir, ec))
     throw InputError(fmt::format("--out '{}' is a file, not a directory", dir.string()));
@@ -126,9 +129,6 @@ void check_out(const fs::path& dir, bool force, bool locked_here) {
   if (!locked_here && fs::exists(dir / run_lock_file, ec)) {
     const DirectoryLock probe = lock_run_directory(dir);  // refused now if another qsdem holds it
   }
-  for (const auto& part : fs::absolute(dir))
-    if (part.string().size() > 255)
-      throw InputError(fmt::format("--out '{}': the name '{}' is longer than 255 bytes", dir.string(), part.string()));
   switch (classify(dir)) {
     case DirKind::run_finished:
       if (!force)
