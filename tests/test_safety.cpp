@@ -489,3 +489,22 @@ TEST(RunSafety, VersionNamesTheSource) {
   }
   EXPECT_EQ(nlohmann::json::parse(slurp(reference() / "summary.json"))["version"], version);
 }
+
+// A cell that shrinks below the size rule of SPEC 3 during compaction is a stop at run time
+// (RunError, exit 3) that keeps the checkpoints, not an input error that left them behind.
+TEST(RunSafety, CellShrinkingBelowTheSizeRuleIsARunTimeStop) {
+  const fs::path example = fs::path(QSDEM_SOURCE_DIR) / "examples" / "spheres-A-small.toml";
+  // 120 particles of Sample A's grading: the 16 mm spheres fit the loose cell, not the dense one.
+  const Params params = parse_case(slurp(example), example.string(),
+                                   {"sample.total_particles=120", "checkpoint.every_sample_points=1"});
+  const fs::path d = fresh("shrink");
+  try {
+    run_case(params, to(d));
+    ADD_FAILURE() << "the cell did not shrink below the size rule";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("compaction stopped after compaction step"), std::string::npos) << what;
+    EXPECT_NE(what.find("half the smallest cell width"), std::string::npos) << what;
+  }
+  EXPECT_TRUE(fs::exists(d / checkpoint_file));
+}
