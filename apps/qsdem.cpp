@@ -3,7 +3,10 @@
 #include <fmt/format.h>
 #include <omp.h>
 
+#include <algorithm>
 #include <charconv>
+#include <cstring>
+#include <iterator>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -13,6 +16,7 @@
 #include "qsdem/run.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/study_analysis.hpp"
+#include "qsdem/version.hpp"
 
 namespace {
 
@@ -41,9 +45,35 @@ CLI::Validator whole_number_at_least(long lo, const std::string& meaning = "") {
       fmt::format("INT>={}", lo));
 }
 
+// Threads of --threads: 0 (all cores) to max_threads. More only exhausts the address space
+// (each OpenMP thread reserves a stack) and crashed inside the OpenMP runtime.
+constexpr long max_threads = 256;
+
+CLI::Validator thread_count() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        long value = 0;
+        const char* const end = text.data() + text.size();
+        const auto [stop, ec] = std::from_chars(text.data(), end, value);
+        if (ec == std::errc() && stop == end && value >= 0 && value <= max_threads) return {};
+        return fmt::format("'{}' is not allowed: give a whole number from 0 (all cores) to {}", text, max_threads);
+      },
+      fmt::format("INT in [0, {}]", max_threads));
+}
+
+constexpr const char* subcommands[] = {"run", "prepare", "resume", "bench", "study", "analyze"};
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  // CLI11 answers an unknown subcommand with "A subcommand is required": name it instead.
+  if (argc > 1 && argv[1][0] != '-' &&
+      std::none_of(std::begin(subcommands), std::end(subcommands), [&](const char* c) { return std::strcmp(c, argv[1]) == 0; })) {
+    std::fprintf(stderr, "qsdem: unknown subcommand '%s' (allowed: run, prepare, resume, bench, study, analyze; see "
+                         "qsdem --help)\n", argv[1]);
+    return 1;
+  }
+
   CLI::App app{
       "qsdem: quasi-static DEM of spheres and ellipsoids in a deformable periodic cell.\n"
       "Drained triaxial tests with size-dependent (nd) or global mass (od) damping, and the equilibrium\n"
@@ -56,7 +86,7 @@ int main(int argc, char** argv) {
                "overrides), then exit without running anything (exit code 0, 1 or 2)");
   app.fallthrough();  // --dry-run may follow the subcommand
 
-  const CLI::Validator all_cores_or_count = whole_number_at_least(0, " (0: all cores)");
+  const CLI::Validator all_cores_or_count = thread_count();
   std::string case_path;
   std::string out_dir;
   std::vector<std::string> overrides;
@@ -97,6 +127,11 @@ int main(int argc, char** argv) {
       "in its directory (DIR/checkpoint.qsck, or DIR/checkpoint.qsck.prev when the newest is damaged). The "
       "resumed series.csv is identical to that of an uninterrupted run.");
   resume->add_option("dir", resume_dir, "Directory of the run")->required();
+  resume->add_option("--set,-s", overrides,
+                     "Change a case key that does not invalidate the state (limits.max_overlap, "
+                     "limits.max_kinetic_ratio, checkpoint.every_sample_points, checkpoint.every_minutes, "
+                     "output.vtk_every, compaction.max_steps; time.step_ratio during compaction); recorded in "
+                     "summary.json (repeatable)");
   resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   resume->add_flag("--quiet,-q", quiet, "No progress line");
 
@@ -181,7 +216,11 @@ int main(int argc, char** argv) {
                 << summary["stage_table"].get<std::string>() << "\nResults in " << out_dir
                 << (*prepare ? "/ (compacted.packing, summary.json)\n" : "/ (series.csv, summary.json)\n");
     } else if (*resume) {
-      const auto summary = qsdem::resume_run(resume_dir, {resume_dir, quiet, false, false});
+      qsdem::RunOptions options;
+      options.out = resume_dir;
+      options.quiet = quiet;
+      options.sets = overrides;
+      const auto summary = qsdem::resume_run(resume_dir, options);
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*study) {

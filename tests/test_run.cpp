@@ -21,6 +21,7 @@
 #include "qsdem/model.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/step.hpp"
+#include "qsdem/version.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -349,7 +350,13 @@ TEST(Run, CommandLine) {
     EXPECT_NE(err.find("--steps: '" + steps + "' is not allowed: give a whole number >= 1"), std::string::npos) << err;
   }
   EXPECT_EQ(shell("'" + binary + "' run -q --threads -1", dir, out, err), 1);
-  EXPECT_NE(err.find("--threads: '-1' is not allowed: give a whole number >= 0 (0: all cores)"), std::string::npos)
+  EXPECT_NE(err.find("--threads: '-1' is not allowed: give a whole number from 0 (all cores) to 256"),
+            std::string::npos)
+      << err;
+  // More threads than that crashed inside the OpenMP runtime.
+  EXPECT_EQ(shell("'" + binary + "' run -q --threads 100000", dir, out, err), 1);
+  EXPECT_NE(err.find("--threads: '100000' is not allowed: give a whole number from 0 (all cores) to 256"),
+            std::string::npos)
       << err;
   EXPECT_EQ(shell("'" + binary + "' run -q --no-such-option", dir, out, err), 1);
   EXPECT_NE(err.find("--no-such-option"), std::string::npos) << err;

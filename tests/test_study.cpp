@@ -25,6 +25,7 @@
 
 #include "qsdem/study.hpp"
 #include "qsdem/types.hpp"
+#include "qsdem/version.hpp"
 #include "test_support.hpp"
 
 extern char** environ;
@@ -264,6 +265,9 @@ TEST(Study, TinyStudyEndToEnd) {
   EXPECT_EQ(ids.size(), 8u);
   EXPECT_FALSE(fs::exists(ref.dir / "failures.json"));
   EXPECT_TRUE(fs::exists(ref.dir / "analysis" / "per_run.csv")) << "the study ends with the analysis";
+  EXPECT_EQ(nlohmann::json::parse(slurp(ref.dir / "analysis" / "analysis.json"))["study"]["qsdem_version"],
+            QSDEM_VERSION)
+      << "the exact source version (docs/runs.md)";
 }
 
 // Another study file for the same directory is refused before anything is touched.
@@ -430,5 +434,101 @@ TEST(Study, MpiRanksGiveTheSameResults) {
   const auto tables = analysis_tables(ref.dir);
   EXPECT_FALSE(tables.empty());
   EXPECT_EQ(analysis_tables(dir / "study"), tables);
+  fs::remove_all(dir);
+}
+
+namespace {
+
+// A one-run study of a copy of the tiny study's case, in `dir` (study.toml and case.toml).
+fs::path one_run_study(const fs::path& dir) {
+  write(dir / "case.toml", slurp(source_dir / "examples" / "spheres-A-small.toml"));
+  std::string text = slurp(tiny_study);
+  const auto replace = [&](const std::string& from, const std::string& to) {
+    const auto at = text.find(from);
+    if (at != std::string::npos) text.replace(at, from.size(), to);
+  };
+  replace("case = \"../examples/spheres-A-small.toml\"", "case = \"case.toml\"");
+  replace("models = [\"od\", \"nd\"]", "models = [\"nd\"]");
+  replace("damping_ratios = [\"0.2 %\", \"1 %\"]", "damping_ratios = [\"1 %\"]");
+  replace("strain_rates = [5e-6, 2.5e-6]", "strain_rates = [5e-6]");
+  write(dir / "study.toml", text);
+  return dir / "study.toml";
+}
+
+}  // namespace
+
+// A study continued after its case file or a prepared sample changed is refused: its runs would
+// mix two cases in one analysis. study.json records their FNV-1a hashes.
+TEST(StudyCli, RefusesAChangedCaseFileOrSample) {
+  const fs::path dir = fresh_dir("changed");
+  const fs::path file = one_run_study(dir);
+  const fs::path out = dir / "out";
+  Result r = study(file, out, dir / "log");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto m = manifest(out);
+  ASSERT_EQ(m["samples"].size(), 1u);
+  EXPECT_EQ(m["samples"][0]["case"], fs::weakly_canonical(dir / "case.toml").string());
+  EXPECT_EQ(m["samples"][0]["case_fnv1a64"].get<std::string>().size(), 16u);
+  ASSERT_TRUE(m["samples"][0].contains("compacted_fnv1a64"));
+  const std::string case_text = slurp(dir / "case.toml");
+  write(dir / "case.toml", case_text + "# edited\n");
+  r = study(file, out, dir / "log");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("case.toml"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("changed since this study recorded it"), std::string::npos) << r.err;
+  write(dir / "case.toml", case_text);
+  r = study(file, out, dir / "log");
+  EXPECT_EQ(r.code, 0) << "restored: " << r.err;
+  // The sample prepared anew with another seed, by hand.
+  const fs::path sample = out / m["samples"][0]["dir"].get<std::string>();
+  const Result again = run({binary, "prepare", (dir / "case.toml").string(), "--out", sample.string(), "--force",
+                            "--quiet", "--set",
+                            "sample.particles=[{shape=\"sphere\", diameter=\"2.4 mm\", count=60}, "
+                            "{shape=\"sphere\", diameter=\"2.0 mm\", count=60}]",
+                            "--set", "sample.total_particles=0", "--set", "sample.initial_solid_fraction=0.2", "--set",
+                            "compaction.max_strain_rate=1e-3", "--set", "sample.seed=2"},
+                           dir / "again");
+  ASSERT_EQ(again.code, 0) << again.err;
+  r = study(file, out, dir / "log");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("the prepared sample"), std::string::npos) << r.err;
+  fs::remove_all(dir);
+}
+
+// Two studies started at the same instant in one directory: one runs, the other is told that
+// another study is working there (not that the directory "holds no study.toml").
+TEST(StudyCli, TwoStudiesStartedAtOnce) {
+  const fs::path dir = fresh_dir("at-once");
+  const fs::path file = one_run_study(dir);
+  for (int trial = 0; trial < 2; ++trial) {
+    const fs::path out = dir / ("out" + std::to_string(trial));
+    const pid_t a = spawn({binary, "study", file.string(), "--out", out.string(), "--quiet"}, dir / "a");
+    const pid_t b = spawn({binary, "study", file.string(), "--out", out.string(), "--quiet"}, dir / "b");
+    const Result ra = finish(a, dir / "a"), rb = finish(b, dir / "b");
+    SCOPED_TRACE(ra.err + "\n" + rb.err);
+    EXPECT_EQ(std::min(ra.code, rb.code), 0);
+    EXPECT_EQ(std::max(ra.code, rb.code), 2);
+    const std::string& loser = ra.code == 2 ? ra.err : rb.err;
+    EXPECT_NE(loser.find("another `qsdem study` is working"), std::string::npos) << loser;
+  }
+  fs::remove_all(dir);
+}
+
+// A sample name names directories: one longer than a file name can be is refused at once.
+TEST(StudyCli, TooLongSampleNameIsRefused) {
+  const fs::path dir = fresh_dir("long-name");
+  const fs::path file = one_run_study(dir);
+  std::string text = slurp(file);
+  const std::string name = std::string(260, 'n');
+  text.replace(text.find("name = \"tiny\"\ncase"), std::string("name = \"tiny\"").size(), "name = \"" + name + "\"");
+  write(file, text);
+  try {
+    qsdem::load_study(file);
+    ADD_FAILURE() << "a 260-character sample name was accepted";
+  } catch (const qsdem::InputError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("sample.0.name"), std::string::npos) << what;
+    EXPECT_NE(what.find("260 characters: at most 200"), std::string::npos) << what;
+  }
   fs::remove_all(dir);
 }

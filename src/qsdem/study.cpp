@@ -26,6 +26,7 @@
 #define TOML_EXCEPTIONS 1
 #include <toml++/toml.h>
 
+#include "qsdem/checkpoint.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/run.hpp"
@@ -150,6 +151,8 @@ class StudyReader {
   std::string file_;
 };
 
+std::string fnv1a64_hex(const std::string& bytes) { return fmt::format("{:016x}", fnv1a64(bytes.data(), bytes.size())); }
+
 std::string slurp(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
   if (!in) throw InputError(fmt::format("cannot open study file '{}'", p.string()));
@@ -157,6 +160,8 @@ std::string slurp(const fs::path& p) {
   ss << in.rdbuf();
   return ss.str();
 }
+
+constexpr std::size_t max_sample_name = 200;  // + "-seed" + 20 digits < 255 bytes
 
 bool valid_name(const std::string& s) {
   return !s.empty() && s[0] != '.' && s.find_first_not_of("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz"
@@ -285,6 +290,11 @@ Study load_study(const fs::path& file) {
     const std::string sample_name = r.text(t, "name", p + "name", std::nullopt);
     if (!valid_name(sample_name))
       r.fail(p + "name", t.get("name"), "allowed: letters, digits, '.', '_', '+', '-' (it names directories)");
+    if (sample_name.size() > max_sample_name)
+      r.fail(p + "name", t.get("name"),
+             fmt::format("{} characters: at most {} (it names directories, <name>-seed<S>, and a file name has at "
+                         "most 255 bytes)",
+                         sample_name.size(), max_sample_name));
     if (!names.insert(sample_name).second) r.fail(p + "name", t.get("name"), "two samples have this name");
     const std::string case_text = r.text(t, "case", p + "case", std::nullopt);
     fs::path case_file = case_text;
@@ -313,6 +323,7 @@ Study load_study(const fs::path& file) {
       smp.seed = seed;
       smp.dir = fmt::format("samples/{}-seed{}", sample_name, seed);
       smp.case_file = case_file;
+      smp.case_hash = fnv1a64_hex(slurp(case_file));
       if (!seeds.empty()) smp.sets.push_back(fmt::format("sample.seed={}", seed));
       smp.sets.insert(smp.sets.end(), own.begin(), own.end());
       smp.run_sets = own;
@@ -359,7 +370,11 @@ nlohmann::ordered_json study_manifest(const Study& study) {
   m["study_file"] = "study.toml";
   m["samples"] = nlohmann::ordered_json::array();
   for (const auto& smp : study.samples)
-    m["samples"].push_back({{"name", smp.name}, {"seed", smp.seed}, {"dir", smp.dir}});
+    m["samples"].push_back({{"name", smp.name},
+                            {"seed", smp.seed},
+                            {"dir", smp.dir},
+                            {"case", smp.case_file.string()},
+                            {"case_fnv1a64", smp.case_hash}});
   m["runs"] = nlohmann::ordered_json::array();
   for (const auto& run : study.runs) {
     const StudySample& smp = study.samples[run.sample];
@@ -508,7 +523,8 @@ bool finished(const Job& j) {
 }
 
 // A run with a checkpoint resumes from it; anything else starts afresh (--force clears what an
-// unfinished start left). An interrupted `prepare` restarts: `resume` would carry on shearing.
+// unfinished start left). An interrupted `prepare` restarts (a prepared sample of checkpoint format
+// 4 or older would be sheared by `resume`).
 std::vector<std::string> command(const Job& j) {
   if (j.kind == Job::Kind::run && (fs::exists(j.dir / checkpoint_file) || fs::exists(j.dir / "checkpoint.qsck.prev")))
     return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet"};
@@ -760,32 +776,102 @@ nlohmann::json mpi_gather_failures(const Mpi& m, const nlohmann::json& mine) {
 
 constexpr const char* lock_file = ".study.lock";
 
-// Creates DIR with study.toml and study.json, or checks that DIR holds this very study. Holds a
-// lock on DIR until the process ends: two studies in one directory would run the same runs twice
-// at once (a second `qsdem study`, or ranks started without MPI, e.g. a plain srun).
-void setup_directory(const Study& study, const fs::path& out) {
+// The recorded manifest of DIR (study.json), or null.
+nlohmann::json recorded_manifest(const fs::path& out) {
+  try {
+    return nlohmann::json::parse(slurp(out / "study.json"));
+  } catch (const std::exception&) {
+    return nullptr;
+  }
+}
+
+// Refuses to continue a study whose case files or prepared samples changed since they were
+// recorded in study.json: its runs would mix two cases in one analysis.
+void check_recorded(const Study& study, const fs::path& out, const nlohmann::json& recorded) {
+  if (!recorded.is_object() || !recorded.contains("samples")) return;
+  for (const auto& old : recorded["samples"]) {
+    const auto dir = old.value("dir", std::string());
+    const auto it = std::find_if(study.samples.begin(), study.samples.end(), [&](const StudySample& s) { return s.dir == dir; });
+    if (it == study.samples.end()) continue;
+    if (old.contains("case_fnv1a64") && old["case_fnv1a64"] != it->case_hash)
+      throw InputError(fmt::format(
+          "the case file '{}' of sample '{}' changed since this study recorded it in '{}' (FNV-1a {} then, {} now): "
+          "its runs would mix two cases. Restore the file, or start the changed study in another --out",
+          it->case_file.string(), it->name, (out / "study.json").string(), old["case_fnv1a64"].get<std::string>(),
+          it->case_hash));
+    if (old.contains("compacted_fnv1a64")) {
+      const fs::path file = out / dir / "compacted.packing";
+      const std::string now = fs::exists(file) ? fnv1a64_hex(slurp(file)) : "none (the file is gone)";
+      if (now != old["compacted_fnv1a64"])
+        throw InputError(fmt::format(
+            "the prepared sample '{}' changed since this study recorded it in '{}' (FNV-1a {} then, {} now): the "
+            "runs sheared so far used the other one. Start the study anew in another --out",
+            file.string(), (out / "study.json").string(), old["compacted_fnv1a64"].get<std::string>(), now));
+    }
+  }
+}
+
+// The manifest with the recorded hashes of the prepared samples kept.
+nlohmann::ordered_json manifest_keeping(const Study& study, const nlohmann::json& recorded) {
+  nlohmann::ordered_json m = study_manifest(study);
+  if (recorded.is_object() && recorded.contains("samples"))
+    for (auto& smp : m["samples"])
+      for (const auto& old : recorded["samples"])
+        if (old.value("dir", std::string()) == smp["dir"] && old.contains("compacted_fnv1a64"))
+          smp["compacted_fnv1a64"] = old["compacted_fnv1a64"];
+  return m;
+}
+
+// Creates DIR with study.toml and study.json, or checks that DIR holds this very study with the
+// same case files and prepared samples. Takes the lock on DIR first (two studies started at once:
+// the second is told so) and holds it, in `lock`, for the life of the study: two studies in one
+// directory would run the same runs twice at once.
+void setup_directory(const Study& study, const fs::path& out, std::optional<DirectoryLock>& lock) {
   std::error_code ec;
   fs::create_directories(out, ec);
   if (ec) throw InputError(fmt::format("cannot create the study directory '{}': {}", out.string(), ec.message()));
+  const bool had_lock_file = fs::exists(out / lock_file);
+  lock.emplace(out, lock_file,
+               fmt::format("another `qsdem study` is working in '{}' (it holds {}): wait for it or stop it",
+                           out.string(), (out / lock_file).string()));
   const fs::path copy = out / "study.toml";
   const bool empty = std::all_of(fs::directory_iterator(out), fs::directory_iterator(),
                                  [](const fs::directory_entry& e) { return e.path().filename() == lock_file; });
+  const auto refuse = [&](const std::string& why) {
+    if (!had_lock_file) fs::remove(out / lock_file, ec);  // leave a foreign directory as it was
+    lock.reset();
+    throw InputError(why);
+  };
   if (fs::exists(copy)) {
     if (slurp(copy) != study.text)
-      throw InputError(fmt::format(
+      refuse(fmt::format(
           "'{}' holds another study: its study.toml differs from '{}'. Continue a study with the study file it was "
           "started with, or choose another --out",
           out.string(), study.file.string()));
   } else if (!empty) {
-    throw InputError(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory",
-                                 out.string()));
+    refuse(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory", out.string()));
   }
-  const int fd = ::open((out / lock_file).c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);  // kept open: the lock
-  if (fd < 0 || ::flock(fd, LOCK_EX | LOCK_NB) != 0)
-    throw InputError(fmt::format("another `qsdem study` is working in '{}' (it holds {}): wait for it or stop it",
-                                 out.string(), (out / lock_file).string()));
+  const nlohmann::json recorded = recorded_manifest(out);
+  check_recorded(study, out, recorded);
   if (!fs::exists(copy)) write_file_atomic(copy, study.text);
-  write_file_atomic(out / "study.json", study_manifest(study).dump(2) + "\n");
+  write_file_atomic(out / "study.json", manifest_keeping(study, recorded).dump(2) + "\n");
+}
+
+// Records the FNV-1a of every prepared sample's compacted.packing not yet recorded in study.json
+// (and checks the others again: a sample prepared anew meanwhile, with other settings, is
+// refused). The packing, not sample.qsck: the engine writes it bit-identically for the same
+// sample, while a checkpoint holds wall times.
+void record_samples(const Study& study, const fs::path& out) {
+  const nlohmann::json recorded = recorded_manifest(out);
+  check_recorded(study, out, recorded);
+  nlohmann::ordered_json m = manifest_keeping(study, recorded);
+  for (auto& smp : m["samples"]) {
+    const fs::path dir = out / smp["dir"].get<std::string>();
+    const fs::path file = dir / "compacted.packing";
+    if (!smp.contains("compacted_fnv1a64") && fs::exists(dir / prepared_sample_file) && fs::exists(dir / "summary.json"))
+      smp["compacted_fnv1a64"] = fnv1a64_hex(slurp(file));
+  }
+  write_file_atomic(out / "study.json", m.dump(2) + "\n");
 }
 
 std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
@@ -858,9 +944,10 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
 
   // Rank 0 sets the directory up; the others wait for its verdict.
   int status = 0;
+  std::optional<DirectoryLock> lock;  // rank 0's, for the life of the study
   if (mpi.rank == 0) {
     try {
-      setup_directory(study, out);
+      setup_directory(study, out, lock);
     } catch (const InputError& e) {
       std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
       status = 2;
@@ -887,6 +974,16 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   failures.insert(failures.end(), r.failures.begin(), r.failures.end());
   if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
   if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+
+  if (mpi.rank == 0) {
+    try {
+      record_samples(study, out);
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
+      status = 2;
+    }
+  }
+  if (mpi_bcast(mpi, status) != 0) return 2;
 
   r = run_pool(share(run_jobs(study, out), mpi), "runs", study.parallel_runs, launcher, progress);
   failures.insert(failures.end(), r.failures.begin(), r.failures.end());

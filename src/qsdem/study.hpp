@@ -17,6 +17,7 @@ struct StudySample {
   std::uint64_t seed = 1;             // sample.seed it is prepared with
   std::string dir;                    // relative to the study directory: samples/<name>-seed<S>
   std::filesystem::path case_file;    // absolute
+  std::string case_hash;              // FNV-1a 64 of the case file's bytes, 16 hex digits
   std::vector<std::string> sets;      // --set overrides of `qsdem prepare` (seed first)
   std::vector<std::string> run_sets;  // the sample's own overrides, also given to its runs
 };

@@ -21,6 +21,7 @@
 #include <fmt/format.h>
 
 #include "qsdem/output.hpp"
+#include "qsdem/version.hpp"
 
 namespace qsdem {
 
