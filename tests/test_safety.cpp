@@ -357,8 +357,8 @@ TEST(RunSafety, ResumeSetRaisesCompactionMaxSteps) {
   EXPECT_EQ(slurp(d / "series.csv"), slurp(ref / "series.csv"));
 }
 
-// The triaxial wall time in summary.json covers every session of a resumed run.
-TEST(RunSafety, TriaxialWallTimeCoversEverySession) {
+// The triaxial wall time in summary.json covers every process that worked on a resumed run.
+TEST(RunSafety, TriaxialWallTimeCoversEveryProcess) {
   const fs::path d = fresh("wall");
   const pid_t pid = spawn({"run", tiny_file().string(), "--out", d.string(), "--quiet", "--threads", "1"},
                           root / "wall");

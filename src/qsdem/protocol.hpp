@@ -34,7 +34,7 @@ struct TriaxialResult {
   double mean_lateral_stress_error = 0;
 };
 
-// Running sums over the rows of series.csv, and the phase's wall time over all sessions.
+// Running sums over the rows of series.csv, and the phase's wall time over every process that ran it.
 struct TriaxialSums {
   int rows = 0;
   double ufr = 0, iuf = 0, imom = 0, lateral_error = 0, max_lateral_error = 0;
@@ -53,7 +53,7 @@ struct RunProgress {
   Mat3 h0 = Mat3::Identity();  // cell matrix at the start of the phase (m)
   CompactionResult compaction; // set when compaction ends
   TriaxialSums sums;
-  double wall_s = 0;           // wall time of the run's earlier sessions (s)
+  double wall_s = 0;           // wall time of the processes that ran it before (s)
   long first_step = 0;         // State::step when this run's own work began (a prepared
                                // sample's compaction steps are not this run's)
   bool prepare_only = false;   // `qsdem prepare`: the run ends with the compacted sample

@@ -215,14 +215,14 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
   const fs::path dir = options.out;
   Progress progress(Progress::detect(options.quiet));
   const double wall_before = run.wall_s;
-  auto session_s = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
+  auto process_s = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
   auto last_save = std::chrono::steady_clock::now();
   SeriesWriter* rows = nullptr;  // the phase's CSV file: on disk before each checkpoint counts its rows
   const auto done = [&](const std::string& what) {
     if (options.after_write) options.after_write(what);
   };
   auto save = [&](const fs::path& file) {
-    run.wall_s = wall_before + session_s();
+    run.wall_s = wall_before + process_s();
     ScopedStage t(st.timers, Stage::output);
     if (rows) rows->sync();
     save_checkpoint(file, params.case_text, params.source, st, run);
@@ -316,7 +316,7 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     finish_triaxial(nullptr);  // stopped while writing them
   }
 
-  const double wall = wall_before + session_s();
+  const double wall = wall_before + process_s();
   const long own_steps = st.step - run.first_step;  // steps this run took (not a prepared sample's)
   const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st.particles.size());
   const CompactionResult& comp = run.compaction;
