@@ -424,7 +424,9 @@ TEST(Study, MpiRanksGiveTheSameResults) {
   ASSERT_TRUE(completed(r)) << "exit code " << r.code << "\n" << r.err << r.out;
   EXPECT_NE(r.err.find("[rank 1/2]"), std::string::npos) << r.err;
   EXPECT_EQ(slurp(dir / "study/study.json"), slurp(ref.dir / "study.json"));
-  for (const auto& run : manifest(ref.dir)["runs"]) {
+  const auto m = manifest(ref.dir);  // named: a range over a temporary's member would dangle
+  ASSERT_EQ(m["runs"].size(), 8u);
+  for (const auto& run : m["runs"]) {
     const std::string rel = run["dir"].get<std::string>() + "/series.csv";
     ASSERT_TRUE(fs::exists(dir / "study" / rel)) << rel;
     EXPECT_EQ(slurp(dir / "study" / rel), slurp(ref.dir / rel)) << rel;
