@@ -277,7 +277,7 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
 
 // The shipped studies are valid: every case and every override of every run is checked.
 TEST(StudyCli, ShippedStudiesAreValid) {
-  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "tiny-staged.toml"}) {
+  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml"}) {
     SCOPED_TRACE(name);
     qsdem::Study s;
     ASSERT_NO_THROW(s = qsdem::load_study(source_dir / "studies" / name));
@@ -642,6 +642,20 @@ TEST(StudyCli, ModelEntriesWithLabelsAndOverrides) {
                                                       "triaxial.strain_rate=1e-05", "triaxial.lateral_rate_factor=5"}));
   EXPECT_EQ(s.runs[1].sets.back(), "triaxial.lateral_rate_factor=20");
   fs::remove_all(dir);
+}
+
+// The shipped staged study: its runs and steps as its header says.
+TEST(StudyCli, PaperFullStudyIsWhatItsHeaderSays) {
+  const qsdem::Study s = qsdem::load_study(source_dir / "studies/paper-full.toml");
+  ASSERT_EQ(s.stages.size(), 5u);
+  double steps0 = 0;
+  for (const auto& r : s.runs) steps0 += r.expected_steps;
+  EXPECT_EQ(s.runs.size(), 100u);  // sweep 96, table5 2, reference 2; slow and slowest are picked later
+  EXPECT_DOUBLE_EQ(steps0, 28'062'500);
+  EXPECT_EQ(s.stages[3].level, 1);
+  EXPECT_EQ(s.stages[4].level, 1);
+  EXPECT_EQ(s.analysis.baseline, "od");
+  EXPECT_TRUE(s.analysis.has_reference);
 }
 
 namespace {
