@@ -234,11 +234,15 @@ class StudyProgress {
     if (open_line_) std::fputc('\n', stderr);
     open_line_ = false;
   }
-  // A message between progress lines.
+  // A message between progress lines (printed even when quiet: failures, warnings).
   void message(const std::string& text) {
     end_line();
     std::fprintf(stderr, "%s%s\n", prefix_.c_str(), text.c_str());
     last_.clear();
+  }
+  // Information between progress lines (not when quiet).
+  void note(const std::string& text) {
+    if (!quiet_) message(text);
   }
 
  private:
@@ -627,7 +631,7 @@ nlohmann::json pick_level(Study& study, const fs::path& out, int level, StudyPro
           progress.message(fmt::format("stage {}: {} {} not started: {}", st.name, sample, model, why));
         } else {
           st.picks.push_back({sample, model, o->xi_opt, o->method, o->runs_used, ratios});
-          progress.message(fmt::format("stage {}: {} {}: {} of stage {} ({}: ξopt = {:.4g} %)", st.name, sample, model,
+          progress.note(fmt::format("stage {}: {} {}: {} of stage {} ({}: ξopt = {:.4g} %)", st.name, sample, model,
                                        ratios_text(ratios), source, o->method, 100 * o->xi_opt));
         }
       }
