@@ -30,10 +30,12 @@ inline bool has_value(const std::vector<double>& v, double x) {
 
 inline bool has_name(const std::vector<std::string>& v, const std::string& x) { return std::find(v.begin(), v.end(), x) != v.end(); }
 
+// The curves of a run (series.csv by header name, SPEC 10).
 struct Series {
   std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
 };
 
+// A run of the manifest: its entry, the means of its summary.json, its curves.
 struct Run {
   std::string id, sample, model, dir;
   std::string damping_model;  // the case's damping.model (the label's own name for a bare model)
@@ -48,6 +50,7 @@ struct Run {
   Series s;
 };
 
+// One row of the paper's Table 4 with its Fig. 9 fit (SPEC 9).
 struct PaperRef {
   double xi_opt, eps_qs, improvement, a, b, r2;
 };
@@ -59,6 +62,7 @@ struct Point {
   double imom = nan, ufr = nan, iuf = nan, phi = nan, ekin_norm = nan;
 };
 
+// One (sample, model, eps'): its points and optima.
 struct Group {
   std::string sample, model;
   double rate = nan;
@@ -67,6 +71,7 @@ struct Group {
   const Run* chosen = nullptr;  // the finished run closest to xi_opt (IMom), for Figs. 10-11, 15-19
 };
 
+// One (sample, model): the power law of IMom at the optimum against eps'.
 struct Law {
   std::string sample, model;
   PowerLawFit fit;
@@ -89,6 +94,7 @@ struct EqualSet {
   std::vector<const Run*> runs;
 };
 
+// The ratios a stage picked for one (sample, model), as recorded in study.json.
 struct Pick {
   std::string sample, model;
   double xi_opt = nan;  // the optimum when the ratios were picked
@@ -97,6 +103,7 @@ struct Pick {
   std::vector<double> ratios;  // what the stage runs
 };
 
+// A stage of study.json ("stages"): which runs it lists (docs/study.md).
 struct DesignStage {
   std::string name;
   std::vector<std::string> samples, models;
@@ -140,6 +147,7 @@ struct PickCheck {
 
 constexpr double deviation_strains[] = {0.02, 0.05, 0.10};  // the tables' 2, 5 and 10 % axial strain
 
+// A run against the reference run of its (sample, seed), and its verdict.
 struct Deviation {
   const Run* run = nullptr;
   const Run* ref = nullptr;
@@ -156,7 +164,13 @@ struct SeedScatter {
   double phi = nan, ev = nan, cn = nan;
 };
 
+// Everything the tables, figures and files are made from; groups, laws and deviations point
+// into `runs`, so an Analysis is filled in place and never copied.
 struct Analysis {
+  Analysis() = default;
+  Analysis(const Analysis&) = delete;
+  Analysis& operator=(const Analysis&) = delete;
+
   AnalysisSettings settings;  // baseline resolved
   std::vector<Run> runs;
   std::vector<Group> groups;
@@ -169,13 +183,14 @@ struct Analysis {
   std::vector<Deviation> devs;
   std::vector<SeedScatter> scatter;
 
-  const Run* reference_of(const std::string& sample) const {  // the first seed's
+  const Run* reference_of(const std::string& sample) const {  // the first seed's (for figures)
     for (const auto& [key, r] : refs)
       if (key.first == sample) return r;
     return nullptr;
   }
 };
 
+// A table, rendered as Markdown and as HTML from the same cells.
 struct Table {
   std::string title, note;
   std::vector<std::string> head;
@@ -183,6 +198,7 @@ struct Table {
   bool detail = false;  // folded (<details>) in the report
 };
 
+// A figure: panels of curves, drawn by gnuplot from NAME.dat with NAME.gp.
 struct Curve {
   std::string title;  // empty: no key entry
   std::vector<double> x, y;
