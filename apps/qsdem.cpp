@@ -164,7 +164,8 @@ int main(int argc, char** argv) {
   auto* study = app.add_subcommand(
       "study",
       "Run a study (SPEC 9, docs/study.md): every sample of the study file prepared once, then sheared with every "
-      "damping model, damping ratio and strain rate of its [design], in parallel processes (and over the ranks of "
+      "damping model, damping ratio and strain rate of its [design] (or of its [[stage]] tables, in order), in "
+      "parallel processes (and over the ranks of "
       "`mpirun -np K`). Writes DIR/study.json, DIR/samples/, DIR/runs/, then the analysis (DIR/analysis/). Running it "
       "again on the same DIR continues it: finished runs are kept, interrupted ones resume from their checkpoints.");
   study->add_option("study", study_file, "Study file (TOML, see docs/study.md)")->required();
