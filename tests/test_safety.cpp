@@ -365,7 +365,7 @@ TEST(RunSafety, TriaxialWallTimeCoversEveryProcess) {
   ASSERT_TRUE(wait_for([&] { return lines(d / "series.csv.partial") >= 9; }, pid));
   ::kill(pid, SIGTERM);
   ASSERT_EQ(finish(pid, root / "wall").code, 143);
-  const double before = load_checkpoint(d / checkpoint_file).run.sums.wall_s;
+  const double before = load_checkpoint(d / checkpoint_file).run.phases.at(1).wall_s;
   EXPECT_GT(before, 0);
   const Cli r = cli({"resume", d.string(), "--quiet", "--threads", "1"}, "wall-resume");
   ASSERT_EQ(r.code, 0) << r.err;

@@ -41,18 +41,4 @@ double smallest_equiv_radius(const Particles& p) {
   return r;
 }
 
-Model base_model(const Params& params, const Particles& particles) {
-  Model m;
-  m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
-  m.r_min = smallest_equiv_radius(particles);
-  m.critical_time = critical_time(m.material, m.r_min);
-  m.dt = params.step_ratio * m.critical_time;
-  m.servo.proportional_gain = params.servo.proportional_gain;
-  m.servo.integral_gain = params.servo.integral_gain;
-  m.skin = params.neighbor.skin_ratio * m.r_min;
-  m.sort_particles = true;
-  m.skip_apart_pairs = true;
-  return m;
-}
-
 }  // namespace qsdem

@@ -4,7 +4,6 @@
 #include <cstdint>
 #include <vector>
 
-#include "qsdem/config.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {

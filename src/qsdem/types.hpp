@@ -25,6 +25,20 @@ struct RunError : std::runtime_error {
 
 inline constexpr double pi = 3.14159265358979323846;
 
+enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
+// The particle damping law of a phase (SPEC 6).
+enum class DampingModel : std::uint8_t { none, od, nd };
+
+inline const char* to_string(ShapeKind k) { return k == ShapeKind::sphere ? "sphere" : "ellipsoid"; }
+inline const char* to_string(DampingModel m) {
+  switch (m) {
+    case DampingModel::none: return "none";
+    case DampingModel::od: return "od";
+    case DampingModel::nd: return "nd";
+  }
+  return "?";
+}
+
 // Loops shorter than this run on one thread: below it, the cost of waking the OpenMP team
 // exceeds the work (measured on 2 cores).
 inline constexpr std::size_t parallel_threshold = 4096;
