@@ -54,6 +54,8 @@
 #include <cmath>
 #include <limits>
 
+#include "qsdem/clones.hpp"
+
 namespace qsdem {
 
 namespace {
@@ -128,7 +130,7 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
 
 // In vector lanes where the CPU has AVX2 (chosen at load time; no FMA, so the same bits). The
 // arrays as doubles: through Vec3 and Quat GCC 12 does not vectorise the loop ("no vectype").
-[[gnu::target_clones("avx2", "default")]] void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
+QSDEM_CLONES void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
                                                                 std::size_t lo, std::size_t hi) {
   static_assert(sizeof(Vec3) == 3 * sizeof(double) && sizeof(Quat) == 4 * sizeof(double), "packed arrays");
   const double* const ad = reinterpret_cast<const double*>(axes);  // a0 a1 a2 per particle
@@ -173,7 +175,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
 // overlap and radius of those lanes, again in one loop. Each lane's arithmetic is the same sequence as for a lone pair.
 // Two builds of the batch, chosen at load time by the CPU: four lanes per instruction with AVX2,
 // two with the x86-64 baseline (SSE2). Neither uses FMA, so both give the same bits.
-[[gnu::target_clones("avx2", "default")]] void ellipsoid_contacts(EllipsoidContactBatch& b) {
+QSDEM_CLONES void ellipsoid_contacts(EllipsoidContactBatch& b) {
   constexpr int cap = EllipsoidContactBatch::capacity;
   // Lanes still iterating (slot a -> lane[a]): unit branch e, Q_i, D = Q_j - Q_i, bracket.
   alignas(64) double ex[cap], ey[cap], ez[cap], l2s[cap], lams[cap], los[cap], his[cap];

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "qsdem/clones.hpp"
 #include "qsdem/contact_law.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
@@ -124,7 +125,7 @@ struct ContactLanes {
 };
 
 // sphere_sphere (contact_law.hpp) on every lane.
-[[gnu::target_clones("avx2", "default")]] void sphere_geometry(ContactLanes& c) {
+QSDEM_CLONES void sphere_geometry(ContactLanes& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a)
     sphere_sphere(c.lx[a], c.ly[a], c.lz[a], c.distance[a], c.ri[a], c.rj[a], c.nx[a], c.ny[a], c.nz[a], c.overlap[a],
@@ -134,7 +135,7 @@ struct ContactLanes {
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
 // (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4), and the contact's terms of the sums.
 // Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the same bits.
-[[gnu::target_clones("avx2", "default")]] void evaluate_contacts(const HertzMindlin& law, double dt,
+QSDEM_CLONES void evaluate_contacts(const HertzMindlin& law, double dt,
                                                                  ContactLanes& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
@@ -249,7 +250,7 @@ inline void clear_block_resultants(Particles& p, const PairList& pairs, std::siz
 // Which of n listed pairs to test: keep[m] = 0 while pair m is still provably apart
 // (NeighborState::moved(i, j), the same sum, below its apart_until), else 1. In vector lanes (AVX2
 // gathers the paths).
-[[gnu::target_clones("avx2", "default")]] void to_test(const double* path, const std::uint32_t* pair_i,
+QSDEM_CLONES void to_test(const double* path, const std::uint32_t* pair_i,
                                                        const std::uint32_t* pair_j, const double* apart_until,
                                                        double strain, std::uint32_t n, double* keep) {
 #pragma omp simd
@@ -358,7 +359,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
 // as branch_vector gives it) and reach r = r_i + r_j: |l|, touching (1: |l|^2 < r^2, else 0), and
 // for an apart pair the motion `moved` + gap (|l| - r, less a margin for its round-off) below which
 // it is not tested again (-1: tested at the next step).
-[[gnu::target_clones("avx2", "default")]] void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
+QSDEM_CLONES void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
                                                             const double* reach, std::uint32_t n, double moved,
                                                             double* distance, double* touch, double* until) {
 #pragma omp simd

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include "qsdem/clones.hpp"
+
 namespace qsdem {
 
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
@@ -224,7 +226,7 @@ inline void turn_lane(int k, TurnLanes& t, int a, double dt) {
 // All lanes at once, by the Taylor polynomials (several lanes per vector instruction: a lone
 // spheroid's turn is one long chain of dependent operations). Built for AVX2 and the x86-64
 // baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
-[[gnu::target_clones("avx2", "default")]] void turn_lanes(int k, TurnLanes& t, double dt) {
+QSDEM_CLONES void turn_lanes(int k, TurnLanes& t, double dt) {
   if (k == 0) {
 #pragma omp simd
     for (int a = 0; a < t.size; ++a) turn_lane<0, true>(t, a, dt);
