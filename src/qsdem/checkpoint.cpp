@@ -88,23 +88,12 @@ class Reader {
 };
 
 // One function per type, used in both directions so that the two can never disagree.
+// The particles' arrays as their registry lists them (particles.hpp).
 template <class IO, class P>
-void io_particles(IO& io, P& p) {
-  io.vec(p.id);
-  io.vec(p.shape);
-  io.vec(p.semi_axes);
-  io.vec(p.bound_radius);
-  io.vec(p.equiv_radius);
-  io.vec(p.mass);
-  io.vec(p.inertia);
-  io.vec(p.damping);
-  io.vec(p.s);
-  io.vec(p.q);
-  io.vec(p.v);
-  io.vec(p.angmom);
-  io.vec(p.omega);
-  io.vec(p.force);
-  io.vec(p.torque);
+void io_particles(IO& io, P& p, std::uint32_t version) {
+  for_each_field(p, [&](auto& array, ParticleField field) {
+    if (field.saved_since != 0 && version >= field.saved_since) io.vec(array);
+  });
 }
 
 template <class IO, class R>
@@ -142,7 +131,7 @@ void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
 // `version`: the format being read (the writer always writes checkpoint_format_version).
 template <class IO, class S>
 void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) {
-  io_particles(io, st.particles);
+  io_particles(io, st.particles, version);
   io.pod(st.cell.h);
   io.pod(st.cell.L);
   io.vec(st.pairs.i);

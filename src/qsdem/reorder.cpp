@@ -48,23 +48,7 @@ bool sort_particles(State& st) {
   for (std::size_t k = 0; k < n && identity; ++k) identity = order[k] == k;
   if (identity) return false;
 
-  permute(p.id, order);
-  permute(p.shape, order);
-  permute(p.semi_axes, order);
-  permute(p.bound_radius, order);
-  permute(p.equiv_radius, order);
-  permute(p.mass, order);
-  permute(p.inertia, order);
-  permute(p.inv_mass, order);
-  permute(p.inv_inertia, order);
-  permute(p.damping, order);
-  permute(p.s, order);
-  permute(p.q, order);
-  permute(p.v, order);
-  permute(p.angmom, order);
-  permute(p.omega, order);
-  permute(p.force, order);
-  permute(p.torque, order);
+  for_each_field(p, [&](auto& array, ParticleField) { permute(array, order); });
   if (st.neighbor.s_at_build.size() == n) permute(st.neighbor.s_at_build, order);
   if (st.neighbor.surface_path.size() == n) permute(st.neighbor.surface_path, order);
 

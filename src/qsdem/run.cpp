@@ -332,9 +332,8 @@ double kib(const std::vector<T>& v) {
 nlohmann::json memory_kib(const State& st) {
   const Particles& p = st.particles;
   const PairList& q = st.pairs;
-  const double particles = kib(p.id) + kib(p.shape) + kib(p.semi_axes) + kib(p.bound_radius) + kib(p.equiv_radius) +
-                           kib(p.mass) + kib(p.inertia) + kib(p.inv_mass) + kib(p.inv_inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
-                           kib(p.angmom) + kib(p.omega) + kib(p.force) + kib(p.torque);
+  double particles = 0;
+  for_each_field(p, [&](const auto& array, ParticleField) { particles += kib(array); });
   const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
   const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
