@@ -4,7 +4,6 @@
 #include <omp.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <stdexcept>
 
@@ -23,49 +22,8 @@ struct ForceInputs {
   const EllipsoidShape* shapes;  // per particle, when some particle is an ellipsoid
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
-  std::span<const std::size_t> owner_first;  // State::owner_first
-  std::uint32_t* contact_owner_first;        // State::contact_owner_first
+  Schedule& schedule;            // owners of the update region (group_contacts_by_owner)
 };
-
-// Groups block b's contacts by the thread that owns their j end (State::contact_owner_first),
-// keeping the pair order within each group: a counting sort of the block's slots (all four
-// contact arrays).
-void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const ForceBlock& acc, std::size_t b) {
-  const std::size_t owners = in.owner_first.size() - 1;
-  std::uint32_t* const row = in.contact_owner_first + b * (owners + 1);
-  const std::uint32_t first = acc.first_contact, count = acc.contacts;
-  if (owners == 1) {  // one thread: one group, in place
-    row[0] = first, row[1] = first + count;
-    return;
-  }
-  const auto owner = [&](std::uint32_t j) {  // the last t with owner_first[t] <= j
-    std::size_t t = 0;
-    while (t + 1 < owners && in.owner_first[t + 1] <= j) ++t;
-    return t;
-  };
-  std::fill(row, row + owners + 1, 0u);
-  for (std::uint32_t m = first; m < first + count; ++m) ++row[owner(pairs.contact_j[m]) + 1];
-  row[0] = first;
-  for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
-  if (row[1] == first + count) return;  // all in the first group: already in place
-  // Each contact's new slot (row[t] serves as group t's next slot and ends at group t + 1's
-  // start: shifted back after), then the four arrays moved through a copy. The copies are the
-  // thread's own, kept from block to block (no allocation once grown).
-  thread_local std::vector<std::uint32_t> slot, copy_u32;
-  thread_local std::vector<Vec3> copy_vec;
-  slot.resize(count);
-  for (std::uint32_t c = 0; c < count; ++c) slot[c] = row[owner(pairs.contact_j[first + c])]++;
-  for (std::size_t t = owners; t > 0; --t) row[t] = row[t - 1];
-  row[0] = first;
-  const auto move = [&](auto& array, auto& copy) {
-    copy.assign(array.begin() + first, array.begin() + first + count);
-    for (std::uint32_t c = 0; c < count; ++c) array[slot[c]] = copy[c];
-  };
-  move(pairs.contact_pairs, copy_u32);
-  move(pairs.contact_j, copy_u32);
-  move(pairs.contact_force, copy_vec);
-  move(pairs.contact_torque_j, copy_vec);
-}
 
 // The contacts of a chunk of pairs (SPEC 4), in lanes (structure of arrays): `add` takes a
 // contact's pair, velocities and history, `set_geometry` its ellipsoid geometry or
@@ -351,7 +309,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
     }
   }
   flush_contacts(in, contacts, p, pairs, acc);
-  group_contacts_by_owner(in, pairs, acc, b);
+  group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
   return acc;
 }
 
@@ -440,49 +398,13 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
     }
   }
   flush_sphere_contacts(in, contacts, p, pairs, acc);
-  group_contacts_by_owner(in, pairs, acc, b);
+  group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
   return acc;
-}
-
-// Cuts the blocks into contiguous ranges of equal cost for the threads (State::block_cut): the
-// blocks' smoothed times of the last steps when `timed`, else (right after a list build) their
-// pair counts.
-void share_blocks(State& state, int nthreads, bool timed) {
-  const PairList& pairs = state.pairs;
-  const std::size_t nblocks = state.blocks.size();
-  std::vector<std::size_t>& cut = state.block_cut;
-  cut.assign(static_cast<std::size_t>(nthreads) + 1, nblocks);
-  cut[0] = 0;
-  if (nthreads == 1) return;
-  const auto cost = [&](std::size_t b) {
-    return timed ? state.blocks[b].weight
-                 : static_cast<double>(pairs.first_i[pairs.block_first[b + 1]] - pairs.first_i[pairs.block_first[b]]);
-  };
-  double total = 0;
-  for (std::size_t b = 0; b < nblocks; ++b) total += cost(b);
-  double before = 0;  // cost of blocks [0, b)
-  int t = 1;
-  for (std::size_t b = 0; b < nblocks && t < nthreads; ++b) {
-    const double c = cost(b);
-    while (t < nthreads && before + 0.5 * c >= total * t / nthreads) cut[t++] = b;  // b's middle is past the share
-    before += c;
-  }
-}
-
-// Adds this step's mean and largest thread time in the force stage to the timers (balance).
-void record_thread_balance(State& state) {
-  double busiest = 0, sum = 0;
-  for (const double busy : state.thread_busy) {
-    busiest = std::max(busiest, busy);
-    sum += busy;
-  }
-  state.timers.force_thread_mean += sum / static_cast<double>(state.thread_busy.size());
-  state.timers.force_thread_max += busiest;
 }
 
 }  // namespace
 
-void compute_contact_forces(const Model& model, State& state) {
+void compute_contact_forces(const Model& model, State& state, Schedule& schedule) {
   Particles& p = state.particles;
   PairList& pairs = state.pairs;
   const HertzMindlin law{model.material.effective_modulus(), model.material.effective_shear_modulus(),
@@ -518,66 +440,31 @@ void compute_contact_forces(const Model& model, State& state) {
   // spheres: 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' smoothed times of
   // the last steps are equal (with an equal number of blocks the slowest thread took 1.06-1.20x the
   // mean: blocks differ in contacts and narrow tests). Right after a list build pair counts stand
-  // in. What the cut misses, the threads share at the ranges' ends (below).
+  // in. What the cut misses, the threads share at the ranges' ends (run_blocks).
   const int nthreads = np > parallel_threshold ? omp_get_max_threads() : 1;
-  const bool timed = state.blocks_build == state.neighbor.builds;  // the same blocks as last step
-  share_blocks(state, nthreads, timed);
-  const std::vector<std::size_t>& cut = state.block_cut;
+  share_blocks(schedule, pairs, ns.builds, nthreads);
   // The update region's particle ranges (step.cpp), fixed here so that each block can group its
-  // contacts by the thread that owns their j end: with as many threads as this stage, a thread
-  // owns the particles of its blocks (their i-side sums are in its cache); else an even split.
+  // contacts by the thread that owns their j end.
   const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
-  state.owner_first.resize(owners + 1);
-  for (std::size_t t = 0; t <= owners; ++t)
-    state.owner_first[t] = t == 0        ? 0
-                           : t == owners ? n
-                           : owners == static_cast<std::size_t>(nthreads)
-                               ? std::min<std::size_t>(n, pairs.block_first[cut[t]])
-                               : n * t / owners;
-  state.contact_owner_first.resize(nblocks * (owners + 1));
+  assign_owners(schedule, pairs, n, owners, nthreads);
   const ForceInputs in{law,
                        model.dt,
                        state.cell,
                        state.shapes.data(),
                        ns,
                        model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np,
-                       state.owner_first,
-                       state.contact_owner_first.data()};
-  // A thread done with its own range takes the blocks left at the end of the others' ranges, one
-  // at a time, from the back: the owner works from the front, so the two meet where the range's
-  // work is shared as it happens (the smoothed cut misses by the noise of the last steps; measured
-  // balance 0.87-0.93 with the cut alone). A block is claimed once, by an atomic exchange of its
-  // flag; the owner stops at the first block a thief has claimed, and a thief at the first one
-  // claimed by anyone, so each range is a prefix of its owner's and a suffix of one thief's.
-  state.block_claimed.assign(nblocks, 0);
-  state.thread_busy.assign(static_cast<std::size_t>(nthreads), 0.0);
-  const auto claim = [&](std::size_t b) {
-    return std::atomic_ref<std::uint8_t>(state.block_claimed[b]).exchange(1, std::memory_order_relaxed) == 0;
-  };
-  const auto run_block = [&](std::size_t b) {
+                       schedule};
+  run_blocks(schedule, nblocks, nthreads, [&](std::size_t b) {
     const double t0 = omp_get_wtime();
-    ForceBlock fb = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
-    fb.seconds = omp_get_wtime() - t0;
-    // Smoothed: one step's times carry the machine's noise (measured balance 0.88-0.94 with them).
-    fb.weight = timed ? 0.8 * state.blocks[b].weight + 0.2 * fb.seconds : fb.seconds;
-    state.blocks[b] = fb;
-    return fb.seconds;
-  };
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
-  {
-    const int team = omp_get_num_threads(), me = omp_get_thread_num();
-    double busy = 0;
-    for (int r = me; r < nthreads; r += team)
-      for (std::size_t b = cut[r]; b < cut[r + 1] && claim(b); ++b) busy += run_block(b);
-    for (int d = 1; d < nthreads; ++d) {
-      const int r = (me + d) % nthreads;
-      for (std::size_t b = cut[r + 1]; b-- > cut[r] && claim(b);) busy += run_block(b);
-    }
-    state.thread_busy[static_cast<std::size_t>(me)] = busy;
-  }
-  state.blocks_build = state.neighbor.builds;
+    state.blocks[b] = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
+    const double seconds = omp_get_wtime() - t0;
+    record_block_time(schedule, b, seconds);
+    return seconds;
+  });
+  schedule.timed_build = ns.builds;
+  state.contacts_build = ns.builds;
   pairs.overlap_known = true;
-  if (nthreads > 1) record_thread_balance(state);
+  if (nthreads > 1) record_thread_balance(schedule, state.timers);
 
   Mat3 sum = Mat3::Zero();
   Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
@@ -604,8 +491,9 @@ void compute_contact_forces(const Model& model, State& state) {
   state.stress_h = cell.h;
 }
 
-void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first, std::size_t owners,
-                       Particles& p, std::size_t t) {
+void gather_resultants(const PairList& pairs, const Schedule& schedule, Particles& p, std::size_t t) {
+  const std::size_t owners = schedule.owners();
+  const std::vector<std::uint32_t>& contact_owner_first = schedule.contact_owner_first;
   constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
   // Through local pointers (integrate_velocities says why).
   const std::uint32_t* const contact_j = pairs.contact_j.data();
@@ -631,7 +519,7 @@ std::vector<Vec3> contact_forces_by_pair(const State& state) {
   const PairList& pairs = state.pairs;
   std::vector<Vec3> by_pair(pairs.size(), Vec3::Zero());
   // The contact slots are those of the last force evaluation: on a list built since, they are stale.
-  if (!state.blocks.empty() && state.blocks_build != state.neighbor.builds)
+  if (!state.blocks.empty() && state.contacts_build != state.neighbor.builds)
     throw std::logic_error("contact_forces_by_pair: the pair list changed since the last force evaluation");
   for (const ForceBlock& b : state.blocks)
     for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m)
@@ -639,18 +527,17 @@ std::vector<Vec3> contact_forces_by_pair(const State& state) {
   return by_pair;
 }
 
-void gather_resultants(State& state) {
+void gather_resultants(State& state, const Schedule& schedule) {
   // Adds the j ends of the contacts to the i-side sums the force stage wrote, in pair order (so
-  // for any thread count): each owner of a range of particles (State::owner_first) reads the
+  // for any thread count): each owner of a range of particles (Schedule::owner_first) reads the
   // contacts the force stage grouped for it, which costs less than reading every pair's overlap
   // through the j incidence (measured, spheres-A: gather 97 -> 32 us/step, 1 thread).
-  const int owners = static_cast<int>(state.owner_first.size()) - 1;
+  const int owners = static_cast<int>(schedule.owners());
 #pragma omp parallel num_threads(owners) if (owners > 1)
   {
     const int team = omp_get_num_threads();
     for (int t = omp_get_thread_num(); t < owners; t += team)
-      gather_resultants(state.pairs, state.contact_owner_first, static_cast<std::size_t>(owners), state.particles,
-                        static_cast<std::size_t>(t));
+      gather_resultants(state.pairs, schedule, state.particles, static_cast<std::size_t>(t));
   }
 }
 

@@ -110,8 +110,9 @@ CompactionResult compact(const Params& params, State& st, RunProgress& run, Prog
   progress.begin("compaction", 0);
   const double wall_before = run.compaction.wall_s;
   const long run_steps_at_start = run.phase_steps;
+  Schedule schedule;
   while (run.phase_steps < c.max_steps) {
-    step(model, st);
+    step(model, st, schedule);
     check_step(st, params, "compaction");
     const long n = ++run.phase_steps;
     if (n % c.check_interval != 0) {
@@ -180,9 +181,10 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
     return std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
   };
   // Force evaluation n (0..total) happens at axial strain n c_t eps'; sample k is taken at n_k.
+  Schedule schedule;
   while (run.phase_steps <= total) {
     const long n = run.phase_steps;
-    step(model, st);
+    step(model, st, schedule);
     check_step(st, params, "triaxial");
     ++run.phase_steps;
     if (n != sample_step(run.rows + 1)) {

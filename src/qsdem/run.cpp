@@ -329,7 +329,7 @@ double kib(const std::vector<T>& v) {
 
 // Heap held by the state's arrays (KiB), by structure: what `peak_rss_kib` is made of besides
 // the binary, its libraries and transient build buffers.
-nlohmann::json memory_kib(const State& st) {
+nlohmann::json memory_kib(const State& st, const Schedule& schedule) {
   const Particles& p = st.particles;
   const PairList& q = st.pairs;
   double particles = 0;
@@ -338,8 +338,10 @@ nlohmann::json memory_kib(const State& st) {
   const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
-  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(st.block_cut) + kib(st.block_claimed) +
-                         kib(st.thread_busy) + kib(st.owner_first) + kib(st.contact_owner_first);
+  const Schedule& s = schedule;
+  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(s.block_seconds) + kib(s.block_weight) +
+                         kib(s.block_cut) + kib(s.block_claimed) + kib(s.thread_busy) + kib(s.owner_first) +
+                         kib(s.contact_owner_first);
   return {{"particles", particles},
           {"pair_keys_and_history", history},
           {"pair_results", results},
@@ -373,8 +375,9 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
   st.timers = {};
   const auto t0 = std::chrono::steady_clock::now();
   long narrow_tests = 0, pw_iterations = 0;
+  Schedule schedule;
   for (long n = 0; n < steps; ++n) {
-    step(model, st);
+    step(model, st, schedule);
     narrow_tests += st.narrow_tests;
     pw_iterations += st.pw_iterations;
   }
@@ -398,7 +401,7 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
                                       ? nlohmann::json(st.timers.force_thread_mean / st.timers.force_thread_max)
                                       : nlohmann::json(nullptr)},
           {"peak_rss_kib", peak_rss_kib()},
-          {"state_kib", memory_kib(st)},
+          {"state_kib", memory_kib(st, schedule)},
           {"dt_s", model.dt},
           {"density_kg_m3", model.material.density},
           {"young_modulus_Pa", model.material.young_modulus},
