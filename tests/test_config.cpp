@@ -262,6 +262,19 @@ TEST(Config, UnknownDampingModelIsAnError) {
                   {"case.toml:13", "damping.model", "\"xd\"", "\"none\"", "\"od\"", "\"nd\""});
 }
 
+// [contact] (docs/config.md): the law is one that contact/laws.hpp registers, Hertz-Mindlin by
+// default; a key that the chosen law does not declare is named with the law and what it takes.
+TEST(Config, ContactLawAndItsKeysAreChecked) {
+  EXPECT_EQ(parse_case(base_case(), "case.toml").contact.law, "hertz_mindlin");
+  EXPECT_TRUE(parse_case(base_case(), "case.toml").contact.values.empty());
+  EXPECT_EQ(parse_case(base_case() + "[contact]\nlaw = \"hertz_mindlin\"\n", "case.toml").contact.law, "hertz_mindlin");
+  expect_mentions(error_of(base_case() + "[contact]\nlaw = \"hooke\"\n"),
+                  {"case.toml:23", "contact.law", "\"hooke\"", "\"hertz_mindlin\""});
+  expect_mentions(error_of(base_case() + "[contact]\nrestitution = 0.5\n"),
+                  {"case.toml:23", "contact.restitution", "hertz_mindlin", "no keys of its own"});
+  expect_mentions(error_of(base_case(), {"contact.law=hooke"}), {"contact.law", "\"hooke\"", "hertz_mindlin"});
+}
+
 TEST(Config, TomlSyntaxErrorNamesTheLine) {
   expect_mentions(error_of(base_case(12, "[damping")), {"case.toml:12", "TOML syntax error"});
   expect_mentions(error_of(base_case(16, "friction = ")), {"case.toml:16", "TOML syntax error"});

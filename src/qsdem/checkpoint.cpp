@@ -10,6 +10,8 @@
 #include <limits>
 #include <type_traits>
 
+#include "qsdem/contact/laws.hpp"
+
 namespace qsdem {
 namespace {
 
@@ -38,6 +40,11 @@ class Writer {
   void str(const std::string& s) {
     pod(static_cast<std::uint64_t>(s.size()));
     out.insert(out.end(), s.begin(), s.end());
+  }
+  // A per-pair array of w doubles per pair: the number of pairs, then the values.
+  void pair_values(const std::vector<double>& v, std::size_t w) {
+    pod(static_cast<std::uint64_t>(w > 0 ? v.size() / w : 0));
+    for (const double x : v) pod(x);
   }
   std::vector<char> out;
 };
@@ -72,6 +79,13 @@ class Reader {
     need(n);
     s.assign(p_, n);
     p_ += n;
+  }
+  void pair_values(std::vector<double>& v, std::size_t w) {
+    std::uint64_t n = 0;
+    pod(n);
+    if (n > static_cast<std::uint64_t>(end_ - p_)) damaged("an array is longer than the file");
+    v.resize(n * w);
+    for (double& x : v) pod(x);
   }
   bool at_end() const { return p_ == end_; }
   [[noreturn]] void damaged(const std::string& why) const {
@@ -137,9 +151,15 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
   io.vec(st.pairs.i);
   io.vec(st.pairs.j);
   io.vec(st.pairs.image);
-  io.vec(st.pairs.shear);
-  io.vec(st.pairs.pw_lambda);
-  if (version >= 2) io.vec(st.pairs.apart_until);
+  // The contact history is the default law's (the only one these formats hold).
+  if constexpr (std::is_same_v<IO, Reader>)
+    st.pairs.history.layout = &std::variant_alternative_t<0, ContactLaw>::history;
+  for_each_pair_field(
+      [&](const HistoryLayout& layout, PairField field, auto& values) {
+        if (field.saved_since != 0 && version >= field.saved_since)
+          io.pair_values(values, static_cast<std::size_t>(layout.width));
+      },
+      st.pairs);
   io.vec(st.neighbor.s_at_build);
   if (version >= 2) {
     io.vec(st.neighbor.surface_path);

@@ -11,6 +11,7 @@
 #define TOML_EXCEPTIONS 1
 #include <toml++/toml.h>
 
+#include "qsdem/contact/laws.hpp"
 #include "qsdem/units.hpp"
 
 namespace qsdem {
@@ -242,7 +243,8 @@ class Reader {
   static bool known_section(const std::string& path) {
     static const std::set<std::string> sections{"material", "sample",     "sample.particles", "time",
                                                 "damping",  "compaction", "triaxial",         "servo",
-                                                "neighbor", "checkpoint", "limits",           "output"};
+                                                "neighbor", "checkpoint", "limits",           "output",
+                                                "contact"};
     const bool table_entry = path.rfind("sample.particles.", 0) == 0 &&
                              path.find('.', std::string("sample.particles.").size()) == std::string::npos;
     return sections.count(path) > 0 || table_entry;
@@ -278,6 +280,35 @@ const auto non_negative = [](double v) { return v >= 0; };
 DampingModel damping_model(Reader& r, const std::string& path, const std::string& def) {
   const std::string m = r.text(path, def, {"none", "od", "nd"});
   return m == "none" ? DampingModel::none : m == "od" ? DampingModel::od : DampingModel::nd;
+}
+
+// [contact]: the law (contact/laws.hpp) and the keys it declares, checked by the law.
+ContactSettings read_contact(Reader& r) {
+  ContactSettings c;
+  const std::vector<std::string_view> laws = contact_law_names();
+  c.law = r.text("contact.law", std::string(laws.front()), std::vector<std::string>(laws.begin(), laws.end()));
+  const std::vector<LawKey> keys = contact_law_keys(c.law);
+  const toml::node* table = r.find("contact");
+  if (table && table->is_table()) {
+    for (const auto& [k, v] : *table->as_table()) {
+      const std::string name(k.str()), path = "contact." + name;
+      if (name == "law") continue;
+      bool own = false;
+      std::string list;
+      for (const LawKey& key : keys) {
+        own = own || key.name == name;
+        list += fmt::format("{}{} ({})", list.empty() ? "" : ", ", key.name, key.meaning);
+      }
+      if (!own)
+        r.fail(path, &v, fmt::format("not a key of contact law \"{}\" ({})", c.law,
+                                     list.empty() ? "it has no keys of its own" : "its keys: " + list));
+      c.values[name] = r.quantity(path, Dimension::ratio, 0.0, [](double) { return true; }, "");
+    }
+  }
+  std::string key;
+  if (const std::string why = check_contact_settings(c, key); !why.empty())
+    r.fail("contact." + key, r.find("contact." + key), why);
+  return c;
 }
 
 SizeClass read_size_class(Reader& r, const std::string& p) {
@@ -363,6 +394,8 @@ Params parse_case(const std::string& toml_text, const std::string& source,
                           "must be in (0, 0.5]: above 0.5 the time step exceeds the stability bound (20 % of the "
                           "Rayleigh time)");
 
+  p.contact = read_contact(r);
+
   p.damping.model = damping_model(r, "damping.model", "nd");
   p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
 
@@ -423,6 +456,8 @@ nlohmann::json to_json(const Params& p) {
                      {"count", c.count}});
   const auto& c = p.compaction;
   const auto& t = p.triaxial;
+  nlohmann::json contact = {{"law", p.contact.law}};
+  for (const auto& [key, value] : p.contact.values) contact[key] = value;
   return {
       {"name", p.name},
       {"source", p.source},
@@ -431,6 +466,7 @@ nlohmann::json to_json(const Params& p) {
       {"sample", {{"seed", p.sample.seed}, {"initial_solid_fraction", p.sample.initial_solid_fraction},
                   {"total_particles", p.sample.total_particles}, {"particles", table}, {"from", p.sample.from}}},
       {"time", {{"step_ratio", p.step_ratio}}},
+      {"contact", contact},
       {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio}}},
       {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
                       {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},

@@ -3,7 +3,10 @@
 // value and what is allowed.
 #pragma once
 #include <cstdint>
+#include <functional>
+#include <map>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -25,6 +28,15 @@ struct SizeClass {
   long count = 0;
 };
 
+// The [contact] table: the contact law (contact/laws.hpp) and the values of its own keys.
+struct ContactSettings {
+  std::string law = "hertz_mindlin";
+  std::map<std::string, double, std::less<>> values;  // the law's keys that the case gives
+
+  bool has(std::string_view key) const { return values.find(key) != values.end(); }
+  double value(std::string_view key) const { return values.find(key)->second; }
+};
+
 struct Params {
   std::string name;
   std::string source;  // file name, or "<built-in default>"
@@ -44,6 +56,8 @@ struct Params {
   } sample;
 
   double step_ratio = 0.32;  // c_t (SPEC 5)
+
+  ContactSettings contact;
 
   struct Damping {
     DampingModel model = DampingModel::nd;

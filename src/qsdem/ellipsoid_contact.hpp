@@ -24,7 +24,7 @@
 // Swapping i and j maps lambda -> 1 - lambda. At the maximiser lambda = h_i(n) / (h_i(n) + h_j(n)),
 // h_k(n) = sqrt(n^T Q_k n) the support function (distance from centre to tangent plane).
 #pragma once
-#include "qsdem/contact_law.hpp"
+#include "qsdem/contact/geometry.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {

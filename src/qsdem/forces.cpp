@@ -8,15 +8,16 @@
 #include <stdexcept>
 
 #include "qsdem/clones.hpp"
-#include "qsdem/contact_law.hpp"
+#include "qsdem/contact/laws.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
 namespace {
 
 // Inputs of the force stage's blocks, read-only except the pair history and results.
+template <class Law>
 struct ForceInputs {
-  const HertzMindlin& law;
+  const Law& law;
   double dt;
   const Cell& cell;
   const EllipsoidShape* shapes;  // per particle, when some particle is an ellipsoid
@@ -25,13 +26,17 @@ struct ForceInputs {
   Schedule& schedule;            // owners of the update region (group_contacts_by_owner)
 };
 
+// The pair driver: written once, instantiated per contact law (contact/law.hpp).
+//
 // The contacts of a chunk of pairs (SPEC 4), in lanes (structure of arrays): `add` takes a
 // contact's pair, velocities and history, `set_geometry` its ellipsoid geometry or
 // `sphere_geometry` computes the spheres'; `evaluate_contacts` runs the relative velocity, the law
 // and the contact's torques and sum terms on all lanes at once (vector lanes: one contact is a long
 // chain of dependent operations); `commit_contacts` writes the results in pair order (the order of
 // every sum, as one contact at a time: the same bits).
+template <class Law>
 struct ContactLanes {
+  static constexpr int width = Law::history.width;  // the law's history per contact
   // 16 contacts at a time: the lanes' ~60 arrays stay within a third of the L1 cache (at 128
   // contacts the simulated L1 misses of the sphere bench rose 1.7x).
   static constexpr int capacity = 16;
@@ -41,7 +46,7 @@ struct ContactLanes {
   int size = 0;
   std::uint32_t pair[stride], first[stride], second[stride];  // k, i, j
   // In: branch l, geometry (normal, overlap, radius, arms), the spheres' |l| and radii (for
-  // sphere_geometry), velocities and spins of i and j, the affine velocity L l, shear.
+  // sphere_geometry), velocities and spins of i and j, the affine velocity L l, the history.
   double lx[stride], ly[stride], lz[stride];
   double nx[stride], ny[stride], nz[stride], overlap[stride], radius[stride];
   double aix[stride], aiy[stride], aiz[stride], ajx[stride], ajy[stride], ajz[stride];
@@ -49,16 +54,17 @@ struct ContactLanes {
   double r_min[stride];  // min(R_i, R_j), for the largest overlap ratio
   double vix[stride], viy[stride], viz[stride], vjx[stride], vjy[stride], vjz[stride];
   double wix[stride], wiy[stride], wiz[stride], wjx[stride], wjy[stride], wjz[stride];
-  double ux[stride], uy[stride], uz[stride], sx[stride], sy[stride], sz[stride];
-  // Out: the force on j, the torques about j's and i's centres (and the new shear), and the
+  double ux[stride], uy[stride], uz[stride], history[width][stride];
+  // Out: the force on j, the torques about j's and i's centres (and the new history), and the
   // contact's terms of the block's sums: f l^T by row, the stiffnesses of the servo (servo.hpp).
   double fx[stride], fy[stride], fz[stride], tjx[stride], tjy[stride], tjz[stride];
   double tix[stride], tiy[stride], tiz[stride];
   double stress[9][stride], stiffness[3][stride], shear_stiffness[3][stride];
+  double mass[Law::needs_masses ? stride : 1];  // m* (laws with needs_masses)
 
   // Appends the contact of pair k (i, j) with branch l; returns its lane.
-  [[gnu::always_inline]] int add(const ForceInputs& in, const Particles& p, const PairList& pairs, std::uint32_t k,
-                                 std::uint32_t i, std::uint32_t j, const Vec3& l) {
+  [[gnu::always_inline]] int add(const ForceInputs<Law>& in, const Particles& p, const PairList& pairs,
+                                 std::uint32_t k, std::uint32_t i, std::uint32_t j, const Vec3& l) {
     const int a = size++;
     pair[a] = k, first[a] = i, second[a] = j;
     lx[a] = l.x(), ly[a] = l.y(), lz[a] = l.z();
@@ -67,8 +73,9 @@ struct ContactLanes {
     wix[a] = wi.x(), wiy[a] = wi.y(), wiz[a] = wi.z(), wjx[a] = wj.x(), wjy[a] = wj.y(), wjz[a] = wj.z();
     const Vec3 u = in.cell.L * l;  // the affine field's part (SPEC 3), in Eigen's order of sums
     ux[a] = u.x(), uy[a] = u.y(), uz[a] = u.z();
-    const Vec3& s = pairs.shear[k];
-    sx[a] = s.x(), sy[a] = s.y(), sz[a] = s.z();
+    const double* const h = pairs.history.values.data() + width * k;
+    for (int c = 0; c < width; ++c) history[c][a] = h[c];
+    if constexpr (Law::needs_masses) mass[a] = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j]);
     r_min[a] = std::min(p.equiv_radius[i], p.equiv_radius[j]);
     return a;
   }
@@ -82,8 +89,9 @@ struct ContactLanes {
   }
 };
 
-// sphere_sphere (contact_law.hpp) on every lane.
-QSDEM_CLONES void sphere_geometry(ContactLanes& c) {
+// sphere_sphere (contact/geometry.hpp) on every lane.
+template <class Law>
+QSDEM_CLONES void sphere_geometry(ContactLanes<Law>& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a)
     sphere_sphere(c.lx[a], c.ly[a], c.lz[a], c.distance[a], c.ri[a], c.rj[a], c.nx[a], c.ny[a], c.nz[a], c.overlap[a],
@@ -91,21 +99,29 @@ QSDEM_CLONES void sphere_geometry(ContactLanes& c) {
 }
 
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
-// (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4), and the contact's terms of the sums.
-// Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the same bits.
-QSDEM_CLONES void evaluate_contacts(const HertzMindlin& law, double dt,
-                                                                 ContactLanes& c) {
+// (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4) with the law's own, and the contact's
+// terms of the sums. Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the
+// same bits.
+template <class Law>
+QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
     const double nx = c.nx[a], ny = c.ny[a], nz = c.nz[a];
     const double aix = c.aix[a], aiy = c.aiy[a], aiz = c.aiz[a], ajx = c.ajx[a], ajy = c.ajy[a], ajz = c.ajz[a];
     // v_j + w_j x arm_j - v_i - w_i x arm_i + L l, summed left to right as Eigen does.
     const double wjx = c.wjx[a], wjy = c.wjy[a], wjz = c.wjz[a], wix = c.wix[a], wiy = c.wiy[a], wiz = c.wiz[a];
-    const double vx = c.vjx[a] + (wjy * ajz - wjz * ajy) - c.vix[a] - (wiy * aiz - wiz * aiy) + c.ux[a];
-    const double vy = c.vjy[a] + (wjz * ajx - wjx * ajz) - c.viy[a] - (wiz * aix - wix * aiz) + c.uy[a];
-    const double vz = c.vjz[a] + (wjx * ajy - wjy * ajx) - c.viz[a] - (wix * aiy - wiy * aix) + c.uz[a];
-    double fx, fy, fz, kn, kt;
-    law.evaluate(nx, ny, nz, c.overlap[a], c.radius[a], vx, vy, vz, dt, c.sx[a], c.sy[a], c.sz[a], fx, fy, fz, kn, kt);
+    ContactInput in;
+    in.nx = nx, in.ny = ny, in.nz = nz, in.overlap = c.overlap[a], in.radius = c.radius[a];
+    in.vx = c.vjx[a] + (wjy * ajz - wjz * ajy) - c.vix[a] - (wiy * aiz - wiz * aiy) + c.ux[a];
+    in.vy = c.vjy[a] + (wjz * ajx - wjx * ajz) - c.viy[a] - (wiz * aix - wix * aiz) + c.uy[a];
+    in.vz = c.vjz[a] + (wjx * ajy - wjy * ajx) - c.viz[a] - (wix * aiy - wiy * aix) + c.uz[a];
+    in.wx = Law::needs_spins ? wjx - wix : 0.0, in.wy = Law::needs_spins ? wjy - wiy : 0.0;
+    in.wz = Law::needs_spins ? wjz - wiz : 0.0;
+    if constexpr (Law::needs_masses) in.mass = c.mass[a];
+    else in.mass = 0;
+    ContactOutput out;
+    law.evaluate(in, dt, HistoryView{&c.history[0][a], ContactLanes<Law>::stride}, out);
+    const double fx = out.fx, fy = out.fy, fz = out.fz, kn = out.kn, kt = out.kt;
     c.fx[a] = fx, c.fy[a] = fy, c.fz[a] = fz;
     // Love-Weber f l^T (SPEC 7).
     const double l[3] = {c.lx[a], c.ly[a], c.lz[a]}, f[3] = {fx, fy, fz};
@@ -121,19 +137,27 @@ QSDEM_CLONES void evaluate_contacts(const HertzMindlin& law, double dt,
       const double nn = n2[u] * n2[w], half = 0.5 * (n2[u] + n2[w]);
       c.shear_stiffness[q][a] = l2 * (2 * kn * nn + kt * (half - 2 * nn));
     }
-    c.tjx[a] = ajy * fz - ajz * fy;  // as Eigen's cross
-    c.tjy[a] = ajz * fx - ajx * fz;
-    c.tjz[a] = ajx * fy - ajy * fx;
+    double tjx = ajy * fz - ajz * fy;  // as Eigen's cross
+    double tjy = ajz * fx - ajx * fz;
+    double tjz = ajx * fy - ajy * fx;
     const double mx = -fx, my = -fy, mz = -fz;
-    c.tix[a] = aiy * mz - aiz * my;
-    c.tiy[a] = aiz * mx - aix * mz;
-    c.tiz[a] = aix * my - aiy * mx;
+    double tix = aiy * mz - aiz * my;
+    double tiy = aiz * mx - aix * mz;
+    double tiz = aix * my - aiy * mx;
+    if constexpr (Law::has_torque) {
+      tjx += out.tx, tjy += out.ty, tjz += out.tz;
+      tix -= out.tx, tiy -= out.ty, tiz -= out.tz;
+    }
+    c.tjx[a] = tjx, c.tjy[a] = tjy, c.tjz[a] = tjz;
+    c.tix[a] = tix, c.tiy[a] = tiy, c.tiz[a] = tiz;
   }
 }
 
 // The lanes' contacts, in order: the contact's results for its j end, the pair's history, i's
 // resultant, the block's contact list, stress and stiffness sums.
-void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+template <class Law>
+void commit_contacts(const ContactLanes<Law>& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+  constexpr int width = ContactLanes<Law>::width;
   // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
   // loaded and stored every sum at every contact (a store through a double* may alias them).
   double stress[9], stiffness[3], shear_stiffness[3];
@@ -148,7 +172,7 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
   Vec3* const contact_force = pairs.contact_force.data() + slot;
   Vec3* const contact_torque = pairs.contact_torque_j.data() + slot;
   double* const overlap = pairs.overlap.data();
-  Vec3* const shear = pairs.shear.data();
+  double* const history = pairs.history.values.data();
   Vec3* const force = p.force.data();
   Vec3* const torque = p.torque.data();
   for (int a = 0; a < c.size; ++a) {
@@ -160,7 +184,7 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
       max_overlap = c.overlap[a] / c.r_min[a];
       max_overlap_pair = k;
     }
-    shear[k] = Vec3(c.sx[a], c.sy[a], c.sz[a]);
+    for (int m = 0; m < width; ++m) history[width * k + m] = c.history[m][a];
     const Vec3 f(c.fx[a], c.fy[a], c.fz[a]);
     contact_force[a] = f;
     contact_torque[a] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
@@ -178,23 +202,33 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
 }
 
 // Evaluates and commits the lanes' contacts (their geometry set), and empties them.
-inline void flush_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+template <class Law>
+inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
+                           ForceBlock& acc) {
   evaluate_contacts(in.law, in.dt, c);
   commit_contacts(c, p, pairs, acc);
   c.size = 0;
 }
 
 // The same for sphere contacts, whose geometry is computed here (ContactLanes::set_spheres).
-inline void flush_sphere_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs,
+template <class Law>
+inline void flush_sphere_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
                                   ForceBlock& acc) {
   sphere_geometry(c);
   flush_contacts(in, c, p, pairs, acc);
 }
 
-// A pair that is apart: no force; a contact just lost releases its spring.
+// A pair that is apart: no force; a contact just lost releases its history (the law's released
+// values). A history within 1e-12 of them is left as it is (no write).
+template <class Law>
 inline void mark_apart(PairList& pairs, std::uint32_t k) {
+  constexpr int width = Law::history.width;
   pairs.overlap[k] = 0;
-  if (!pairs.shear[k].isZero()) pairs.shear[k].setZero();
+  double* const h = pairs.history.values.data() + width * k;
+  bool released = true;
+  for (int m = 0; m < width; ++m) released &= std::abs(h[m] - Law::history.released[m]) <= 1e-12;
+  if (!released)
+    for (int m = 0; m < width; ++m) h[m] = Law::history.released[m];
 }
 
 // Zeroes the i-side resultants of block b's particles (the pair loop sums into them).
@@ -219,7 +253,8 @@ QSDEM_CLONES void to_test(const double* path, const std::uint32_t* pair_i,
 // ellipsoid by Perram-Wertheim, skipped while provably apart. The pairs to test are taken a batch
 // at a time: the ellipsoid pairs' narrow phase runs on the whole batch at once (EllipsoidContactBatch),
 // then the law runs on the contacts in pair order (the order of the sums, as one pair at a time).
-ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std::size_t b) {
+template <class Law>
+ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(p, pairs, b);
@@ -227,7 +262,8 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
   EllipsoidContactBatch batch;
   int lane[capacity];  // the pair's lane in the batch, -1 for two spheres
   Vec3 branch[capacity];
-  ContactLanes contacts;
+  ContactLanes<Law> contacts;
+  constexpr int width = ContactLanes<Law>::width;
   // One flat loop over the block's pairs, summing into p.force[i] directly (a loop per particle,
   // ~2-4 pairs each, mispredicts its exit: the sphere contact stage measured 7 % slower).
   const std::uint32_t k1 = pairs.first_i[pairs.block_first[b + 1]];
@@ -268,7 +304,8 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
         const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
         branch[m] = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[kt]);
         lane[m] = spheres ? -1 : batch.add(branch[m], in.shapes[i], in.shapes[j], pairs.pw_lambda[kt]);
-        __builtin_prefetch(&pairs.shear[kt], 1);  // the law's history: the listed pairs' overflow L2
+        // The law's history: the listed pairs' overflow L2.
+        __builtin_prefetch(pairs.history.values.data() + width * kt, 1);
       }
       acc.narrow_tests += nt;
       // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
@@ -300,11 +337,11 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
           }
         }
         if (!touching) {
-          mark_apart(pairs, kt);
+          mark_apart<Law>(pairs, kt);
           continue;
         }
         contacts.set_geometry(contacts.add(in, p, pairs, kt, i, j, l), g);
-        if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc);
+        if (contacts.size == ContactLanes<Law>::capacity) flush_contacts(in, contacts, p, pairs, acc);
       }
     }
   }
@@ -340,14 +377,16 @@ QSDEM_CLONES void sphere_tests(const CellMap& h, double* lx, double* ly, double*
 // A pair proved apart is skipped, on one sequential read, while the motion of any two particles
 // since then (NeighborState::moved_any) is below its gap. The others go through a first pass over
 // a chunk that tests them without a branch on the outcome; a second runs the law on the touching.
-ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pairs, std::size_t b) {
+template <class Law>
+ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(p, pairs, b);
   constexpr std::uint32_t chunk = 128;
   std::uint32_t tested[chunk], touching[chunk];
   alignas(64) double lx[chunk], ly[chunk], lz[chunk], reach[chunk], distance[chunk], touch[chunk], until[chunk];
-  ContactLanes contacts;
+  ContactLanes<Law> contacts;
+  constexpr int width = ContactLanes<Law>::width;
   const std::uint32_t k0 = pairs.first_i[pairs.block_first[b]], k1 = pairs.first_i[pairs.block_first[b + 1]];
   const bool overlap_known = pairs.overlap_known;
   const double moved = in.skip_apart ? in.ns.moved_any() : 0;
@@ -379,22 +418,22 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
       nt += t ? 1 : 0;
       // The law's history, for a contact (a select, not a branch: t mispredicts); the contacts are
       // every ~9th listed pair, too sparse for the hardware prefetcher.
-      __builtin_prefetch(&pairs.shear[t ? k : c0], 1);
+      __builtin_prefetch(pairs.history.values.data() + width * (t ? k : c0), 1);
       // An apart pair is written only when it was a contact (rare, so well predicted; `&`, not
       // `&&`: a branch on t itself mispredicts, and cost this stage 11 %).
       const bool lost = (!t) & ((pairs.overlap[k] != 0) | !overlap_known);
-      if (lost) mark_apart(pairs, k);
+      if (lost) mark_apart<Law>(pairs, k);
       if (in.skip_apart) pairs.apart_until[k] = until[m];
     }
     for (std::uint32_t n = 0; n < nt; ++n) {
       const std::uint32_t m = touching[n], k = tested[m], i = pairs.i[k], j = pairs.j[k];
       const double ri = p.bound_radius[i], rj = p.bound_radius[j];
       if (!(ri + rj - distance[m] > 0)) {  // sphere_sphere's overlap
-        mark_apart(pairs, k);  // |l| rounded to r_i + r_j: not a contact
+        mark_apart<Law>(pairs, k);  // |l| rounded to r_i + r_j: not a contact
         continue;
       }
       contacts.set_spheres(contacts.add(in, p, pairs, k, i, j, Vec3(lx[m], ly[m], lz[m])), distance[m], ri, rj);
-      if (contacts.size == ContactLanes::capacity) flush_sphere_contacts(in, contacts, p, pairs, acc);
+      if (contacts.size == ContactLanes<Law>::capacity) flush_sphere_contacts(in, contacts, p, pairs, acc);
     }
   }
   flush_sphere_contacts(in, contacts, p, pairs, acc);
@@ -402,13 +441,27 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
   return acc;
 }
 
+// The blocks of the force stage with the law: the pair driver instantiated on it.
+template <class Law>
+void run_force_blocks(const ForceInputs<Law>& in, State& state, std::size_t nblocks, int nthreads, bool all_spheres) {
+  adopt_history(state.pairs, Law::history);
+  Particles& p = state.particles;
+  PairList& pairs = state.pairs;
+  Schedule& schedule = in.schedule;
+  run_blocks(schedule, nblocks, nthreads, [&](std::size_t b) {
+    const double t0 = omp_get_wtime();
+    state.blocks[b] = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
+    const double seconds = omp_get_wtime() - t0;
+    record_block_time(schedule, b, seconds);
+    return seconds;
+  });
+}
+
 }  // namespace
 
 void compute_contact_forces(const Model& model, State& state, Schedule& schedule) {
   Particles& p = state.particles;
   PairList& pairs = state.pairs;
-  const HertzMindlin law{model.material.effective_modulus(), model.material.effective_shear_modulus(),
-                         model.friction};
   const std::size_t np = pairs.size();
   const std::size_t n = p.size();
   const std::size_t nblocks = pairs.block_first.size() - 1;
@@ -447,20 +500,17 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   // contacts by the thread that owns their j end.
   const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
   assign_owners(schedule, pairs, n, owners, nthreads);
-  const ForceInputs in{law,
-                       model.dt,
-                       state.cell,
-                       state.shapes.data(),
-                       ns,
-                       model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np,
-                       schedule};
-  run_blocks(schedule, nblocks, nthreads, [&](std::size_t b) {
-    const double t0 = omp_get_wtime();
-    state.blocks[b] = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
-    const double seconds = omp_get_wtime() - t0;
-    record_block_time(schedule, b, seconds);
-    return seconds;
-  });
+  const bool skip_apart = model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np;
+  // The law of the phase, chosen here once for the whole stage.
+  const ContactLaw contact_law = make_contact_law({model.material.effective_modulus(),
+                                                   model.material.effective_shear_modulus(), model.friction,
+                                                   model.contact});
+  std::visit(
+      [&]<class Law>(const Law& law) {
+        const ForceInputs<Law> in{law, model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule};
+        run_force_blocks(in, state, nblocks, nthreads, all_spheres);
+      },
+      contact_law);
   schedule.timed_build = ns.builds;
   state.contacts_build = ns.builds;
   pairs.overlap_known = true;

@@ -44,6 +44,7 @@ double smallest_equiv_radius(const Particles& p) {
 Model base_model(const Params& params, const Particles& particles) {
   Model m;
   m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
+  m.contact = params.contact;
   m.r_min = smallest_equiv_radius(particles);
   m.critical_time = critical_time(m.material, m.r_min);
   m.dt = params.step_ratio * m.critical_time;

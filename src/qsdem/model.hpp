@@ -37,6 +37,7 @@ struct Servo {
 
 struct Model {
   Material material;
+  ContactSettings contact;      // the contact law and its keys (contact/laws.hpp)
   double friction = 0.5;        // Coulomb mu
   double r_min = 0;             // equal-volume radius of the smallest particle (m)
   double critical_time = 0;     // t_c = 2 R_min sqrt(rho/E), SPEC 5

@@ -236,17 +236,21 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
 }
 
 // The list of the candidates (sorted by key), with the history of the pairs that `pairs` lists
-// under the same key (both sorted).
+// under the same key (both sorted): each per-pair array of the registry copied for those pairs
+// when it is kept, else released.
 PairList list_with_history(const std::vector<Candidate>& all, const PairList& pairs) {
   PairList next;
   const std::size_t np = all.size();
   next.i.resize(np);
   next.j.resize(np);
   next.image.resize(np);
-  next.shear.assign(np, Vec3::Zero());
-  next.pw_lambda.assign(np, -1.0);
-  next.apart_until.assign(np, -1.0);  // the motion bounds restart at this build: test every pair
-  next.overlap.assign(np, 0.0);
+  next.history.layout = pairs.history.layout;
+  for_each_pair_field([&](const HistoryLayout& layout, PairField, std::vector<double>& values) {
+    values = released_values(layout, np);
+  }, next);
+  // The old pair of each new pair that was listed before (or none).
+  constexpr std::size_t none = SIZE_MAX;
+  std::vector<std::size_t> before(np, none);
   std::size_t o = 0;
   for (std::size_t k = 0; k < np; ++k) {
     const Candidate& c = all[k];
@@ -254,17 +258,36 @@ PairList list_with_history(const std::vector<Candidate>& all, const PairList& pa
     next.j[k] = c.j;
     next.image[k] = c.image;
     while (o < pairs.size() && key_less(pairs.i[o], pairs.j[o], pairs.image[o], c.i, c.j, c.image)) ++o;
-    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) {
-      next.shear[k] = pairs.shear[o];
-      next.pw_lambda[k] = pairs.pw_lambda[o];
-      next.overlap[k] = pairs.overlap[o];
-    }
+    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) before[k] = o;
   }
+  for_each_pair_field(
+      [&](const HistoryLayout& layout, PairField field, std::vector<double>& values, const std::vector<double>& old) {
+        const std::size_t w = static_cast<std::size_t>(layout.width);
+        if (!field.kept || old.size() != pairs.size() * w) return;  // not sized on the old list: none to keep
+        for (std::size_t k = 0; k < np; ++k)
+          if (before[k] != none) std::copy_n(old.data() + w * before[k], w, values.data() + w * k);
+      },
+      next, pairs);
   next.overlap_known = pairs.overlap_known && pairs.overlap.size() == pairs.size();
   return next;
 }
 
 }  // namespace
+
+std::vector<double> released_values(const HistoryLayout& layout, std::size_t np) {
+  const std::size_t w = static_cast<std::size_t>(layout.width);
+  std::vector<double> values(w * np);
+  for (std::size_t k = 0; k < np; ++k) std::copy_n(layout.released.begin(), w, values.begin() + w * k);
+  return values;
+}
+
+void adopt_history(PairList& pairs, const HistoryLayout& layout) {
+  PairHistory& h = pairs.history;
+  const bool same = h.layout->name == layout.name && h.layout->width == layout.width;
+  if (!same || h.values.size() != pairs.size() * static_cast<std::size_t>(layout.width))
+    h.values = released_values(layout, pairs.size());
+  h.layout = &layout;
+}
 
 void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
   check_cell_size(p, cell, skin);

@@ -334,8 +334,10 @@ nlohmann::json memory_kib(const State& st, const Schedule& schedule) {
   const PairList& q = st.pairs;
   double particles = 0;
   for_each_field(p, [&](const auto& array, ParticleField) { particles += kib(array); });
-  const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
-  const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
+  double history = kib(q.i) + kib(q.j) + kib(q.image);
+  for_each_pair_field([&](const HistoryLayout&, PairField, const std::vector<double>& values) { history += kib(values); },
+                      q);
+  const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
   const Schedule& s = schedule;
