@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -24,6 +25,7 @@
 #include "qsdem/neighbor.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/step.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -227,12 +229,35 @@ TEST(CheckpointFile, RoundTripIsExact) {
   EXPECT_EQ(c.state.particles.v, st.particles.v);
   EXPECT_EQ(c.state.particles.angmom, st.particles.angmom);
   EXPECT_EQ(c.state.pairs.history.values, st.pairs.history.values);
+  EXPECT_EQ(c.state.pairs.history.layout, st.pairs.history.layout);
   EXPECT_EQ(c.state.pairs.image, st.pairs.image);
   EXPECT_EQ(c.state.cell.h, st.cell.h);
   EXPECT_EQ(c.state.cell.L, st.cell.L);
   EXPECT_EQ(c.state.pairs.first_i, st.pairs.first_i);
   EXPECT_EQ(c.state.pairs.block_first, st.pairs.block_first);
   ASSERT_GT(st.pairs.size(), 0u);
+}
+
+// The checkpoint names the contact history by its layout (contact/law.hpp): one that no law of
+// this build declares is refused by name, not read as another.
+TEST(CheckpointFile, UnknownContactHistoryIsRefused) {
+  static constexpr HistoryLayout unknown{"rolling_spring", 6, {}, {}};
+  const Params params = parse_case(small_case, "small.toml");
+  State st = generate_loose_sample(params);
+  const Model model = base_model(params, st.particles);
+  evaluate_forces(model, st);
+  ASSERT_GT(st.pairs.size(), 0u);
+  st.pairs.history.layout = &unknown;
+  st.pairs.history.values.assign(6 * st.pairs.size(), 0.25);
+  const fs::path f = scratch("unknown-history.qsck");
+  save_checkpoint(f, params.case_text, params.source, st, RunProgress{});
+  try {
+    load_checkpoint(f);
+    FAIL() << "expected an InputError";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("\"rolling_spring\""), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(f.string()), std::string::npos) << e.what();
+  }
 }
 
 // A prepared sample is sheared without compacting again, and gives the full run's series exactly.
@@ -333,13 +358,27 @@ TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
 // read into a run with ellipsoids it is unknown, not zero (a zero would rule out every list
 // rebuild). Formats 3 and 4 have the same payload; only the header's version differs.
 TEST(CheckpointFile, Format3LeavesEllipsoidRunsWithoutAMotionBound) {
+  // The state written in format `version` (< 5): today's file without the contact history's name,
+  // which format 5 added after the pair keys. The states have no pairs yet: after the cell matrix
+  // h come L, the three empty key arrays, then the name.
   const auto reload_as = [](const State& st, std::uint32_t version, const char* name) {
+    EXPECT_EQ(st.pairs.size(), 0u);
     const fs::path f = scratch(name);
     save_checkpoint(f, "", "", st, RunProgress{});
-    std::fstream io(f, std::ios::in | std::ios::out | std::ios::binary);
-    io.seekp(8);  // the version, after the 8-byte magic (outside the checksum)
-    io.write(reinterpret_cast<const char*>(&version), 4);
-    io.close();
+    std::string bytes = qsdem_test::slurp(f);
+    constexpr std::size_t header = 32;  // magic, version, reserved, size, checksum
+    const std::string h(reinterpret_cast<const char*>(st.cell.h.data()), 9 * sizeof(double));
+    const std::size_t at = bytes.find(h, header);
+    EXPECT_NE(at, std::string::npos);
+    const std::size_t name_at = at + 9 * 8 + 9 * 8 + 3 * 8;
+    EXPECT_EQ(bytes.substr(name_at, 8), std::string(8, '\0')) << "an empty name";
+    bytes.erase(name_at, 8);
+    std::string payload = bytes.substr(header);
+    const std::uint64_t size = payload.size(), sum = fnv1a64(payload.data(), payload.size());
+    std::memcpy(bytes.data() + 8, &version, 4);
+    std::memcpy(bytes.data() + 16, &size, 8);
+    std::memcpy(bytes.data() + 24, &sum, 8);
+    std::ofstream(f, std::ios::binary | std::ios::trunc) << bytes;
     return load_checkpoint(f).state.neighbor.fluctuation_path;
   };
   const fs::path spheroid_case = fs::path(QSDEM_SOURCE_DIR) / "examples" / "paper-A-small.toml";

@@ -91,6 +91,9 @@ class Reader {
   [[noreturn]] void damaged(const std::string& why) const {
     throw InputError(fmt::format("checkpoint '{}' is damaged: {}", file_, why));
   }
+  [[noreturn]] void refuse(const std::string& why) const {
+    throw InputError(fmt::format("checkpoint '{}' {}", file_, why));
+  }
 
  private:
   void need(std::size_t n) const {
@@ -142,6 +145,21 @@ void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
   if (version >= 2) io.pod(r.first_step);
 }
 
+// The contact history's layout, by its name (contact/law.hpp) from format 5 on; the formats
+// before hold Hertz-Mindlin's tangential force.
+void io_history_layout(Writer& w, const PairHistory& h, std::uint32_t) { w.str(std::string(h.layout->name)); }
+void io_history_layout(Reader& r, PairHistory& h, std::uint32_t version) {
+  if (version < 5) {
+    h.layout = &HertzMindlin::history;
+    return;
+  }
+  std::string name;
+  r.str(name);
+  h.layout = name.empty() ? &no_history : find_history_layout(name);
+  if (!h.layout)
+    r.refuse(fmt::format("holds the contact history \"{}\", which no contact law of this qsdem declares", name));
+}
+
 // `version`: the format being read (the writer always writes checkpoint_format_version).
 template <class IO, class S>
 void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) {
@@ -151,9 +169,7 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
   io.vec(st.pairs.i);
   io.vec(st.pairs.j);
   io.vec(st.pairs.image);
-  // The contact history is the default law's (the only one these formats hold).
-  if constexpr (std::is_same_v<IO, Reader>)
-    st.pairs.history.layout = &std::variant_alternative_t<0, ContactLaw>::history;
+  io_history_layout(io, st.pairs.history, version);
   for_each_pair_field(
       [&](const HistoryLayout& layout, PairField field, auto& values) {
         if (field.saved_since != 0 && version >= field.saved_since)

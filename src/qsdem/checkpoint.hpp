@@ -13,7 +13,7 @@ namespace qsdem {
 
 // 2: skip state of apart pairs; 3: the same for runs of spheres only (fluctuation_path); 4: the
 // fluctuation_path of runs with ellipsoids too (the skin test's motion bound)
-inline constexpr std::uint32_t checkpoint_format_version = 4;
+inline constexpr std::uint32_t checkpoint_format_version = 5;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides
