@@ -8,11 +8,12 @@
 #include <vector>
 
 #include "qsdem/contact/hertz_mindlin.hpp"
+#include "qsdem/contact/hertz_mindlin_dashpot.hpp"
 
 namespace qsdem {
 
 // Registration: one entry per law, the first is the default.
-using ContactLaw = std::variant<HertzMindlin>;
+using ContactLaw = std::variant<HertzMindlin, HertzMindlinDashpot>;
 
 // The law that settings.law names, made from the constants (InputError for an unknown name).
 ContactLaw make_contact_law(const LawConstants& constants);
