@@ -189,6 +189,36 @@ TEST(Servo, StressAxisLawSignAndClamp) {
   for (int k = 0; k < 3; ++k) EXPECT_DOUBLE_EQ(loose.cell.L(k, k), -1.0);
 }
 
+// Contact dashpots add a viscous stress -eta L (servo.hpp): in a loop with an axis whose stress is
+// sigma = sigma_elastic - eta L, sigma_elastic moved by -C L dt each step, the servo with the
+// viscosity reaches the target as without it, also when the true C and eta are half the estimated
+// ones (the affine estimates bound the true response from above). eta / (C dt) = 26 here, as on
+// paper-A-small with e = 0.5, where the law without eta (loop gain beta eta / (C dt) = 2.6) diverges.
+TEST(Servo, StressAxisWithViscosityConverges) {
+  Model model = sphere_model(1 * mm);
+  model.servo = {0.1, 0.002, 1e6};
+  model.control[0] = {AxisControl::Kind::stress, 390e3, 0.0};
+  const double C = 1.2e9, eta = 26 * C * model.dt, target = 390e3;
+  for (const double truth : {1.0, 0.5}) {
+    State st;
+    st.affine_stiffness = Vec3(C, 0, 0);
+    st.affine_viscosity = Vec3(eta, 0, 0);
+    double elastic = 0.8 * target;
+    for (int n = 0; n < 600; ++n) {
+      st.stress(0, 0) = elastic - truth * eta * st.cell.L(0, 0);
+      const double last = st.cell.L(0, 0);
+      servo_update(model, st);
+      if (n == 0) {  // the law of servo.hpp, by hand
+        EXPECT_NEAR(st.cell.L(0, 0),
+                    (eta * last - (0.1 * 0.2 + 0.002 * 0.2) * target) / (C * model.dt + eta), 1e-12 * target / eta);
+      }
+      elastic -= truth * C * model.dt * st.cell.L(0, 0);
+    }
+    EXPECT_NEAR(st.stress(0, 0), target, 1e-4 * target) << "true response x " << truth;
+    EXPECT_LT(std::abs(st.cell.L(0, 0)) * eta, 1e-4 * target) << "the rate settles";
+  }
+}
+
 namespace {
 
 // The loose sample compacted once for the two protocol tests below.
@@ -245,6 +275,35 @@ TEST_F(ServoProtocol, IsotropicCompactionReachesTargetOnAllAxes) {
   EXPECT_GT(compaction_->steps, 0);
   // Compacted from solid fraction 0.2 (void ratio 4) to a packing of touching spheres.
   EXPECT_LT(m.void_ratio, 1.0);
+}
+
+// The shear-stress servo (servo.hpp, Servo::zero_shear_stress) on the compacted sample: a simple
+// shear of the cell, gamma = 2e-4 in the 1-2 plane with the particles carried affinely, imposes a
+// shear stress sigma_12 of several % of p; the servo, with the normal stresses held at the
+// target, drives it back below the compaction tolerance (1 % of p) and keeps it there.
+TEST_F(ServoProtocol, ShearServoDrivesAnImposedShearStressToZero) {
+  OneThread one;
+  State st = *state_;
+  const Model model = compaction_model(*params_, st);
+  ASSERT_TRUE(model.servo.zero_shear_stress);
+  const double target = params_->compaction.stress;
+  Mat3 shear = Mat3::Identity();
+  shear(0, 1) = 2e-4;
+  set_matrix(st.cell, shear * st.cell.h);  // s unchanged: the particles follow the cell
+  evaluate_forces(model, st);
+  const double imposed = st.stress(0, 1);
+  EXPECT_GT(std::abs(imposed), 0.05 * target) << "the imposed shear stress";
+  Schedule schedule;
+  double worst_late = 0;
+  for (int n = 0; n < 4000; ++n) {
+    step(model, st, schedule);
+    if (n >= 3000) worst_late = std::max(worst_late, std::abs(st.stress(0, 1)));
+  }
+  std::printf("[ info ] sigma_12: %.3g %% of p imposed, at most %.3g %% over the last 1000 steps\n",
+              100 * imposed / target, 100 * worst_late / target);
+  EXPECT_LT(worst_late, params_->compaction.stress_tolerance * target);
+  for (int k = 0; k < 3; ++k)
+    EXPECT_NEAR(st.stress(k, k), target, 2 * params_->compaction.stress_tolerance * target) << "axis " << k;
 }
 
 // SPEC 3 / 8, drained triaxial: axis 3 at constant strain rate, axes 1 and 2 stress-controlled at

@@ -61,6 +61,9 @@ struct ContactLanes {
   double tix[stride], tiy[stride], tiz[stride];
   double stress[9][stride], stiffness[3][stride], shear_stiffness[3][stride];
   double mass[Law::needs_masses ? stride : 1];  // m* (laws with needs_masses)
+  // The contact's terms of the viscosity sums (laws with has_dashpots).
+  static constexpr int viscous_stride = Law::has_dashpots ? stride : 1;
+  double viscosity[3][viscous_stride], shear_viscosity[3][viscous_stride];
 
   // Appends the contact of pair k (i, j) with branch l; returns its lane.
   [[gnu::always_inline]] int add(const ForceInputs<Law>& in, const Particles& p, const PairList& pairs,
@@ -136,6 +139,11 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
       const int u = q < 2 ? 0 : 1, w = q == 0 ? 1 : 2;  // the pair (a, b) of shear q
       const double nn = n2[u] * n2[w], half = 0.5 * (n2[u] + n2[w]);
       c.shear_stiffness[q][a] = l2 * (2 * kn * nn + kt * (half - 2 * nn));
+      if constexpr (Law::has_dashpots) {  // the same sums of the viscous coefficients
+        const double cn = out.cn, ct = out.ct;
+        c.viscosity[q][a] = (cn * n2[q] + ct * (1 - n2[q])) * (l[q] * l[q]);
+        c.shear_viscosity[q][a] = l2 * (2 * cn * nn + ct * (half - 2 * nn));
+      }
     }
     double tjx = ajy * fz - ajz * fy;  // as Eigen's cross
     double tjy = ajz * fx - ajx * fz;
@@ -193,6 +201,10 @@ void commit_contacts(const ContactLanes<Law>& c, Particles& p, PairList& pairs, 
     for (int m = 0; m < 9; ++m) stress[m] += c.stress[m][a];
     for (int q = 0; q < 3; ++q) stiffness[q] += c.stiffness[q][a], shear_stiffness[q] += c.shear_stiffness[q][a];
   }
+  if constexpr (Law::has_dashpots)
+    for (int a = 0; a < c.size; ++a)
+      for (int q = 0; q < 3; ++q)
+        acc.viscosity_sum[q] += c.viscosity[q][a], acc.shear_viscosity_sum[q] += c.shear_viscosity[q][a];
   acc.contacts += static_cast<std::uint32_t>(c.size);
   for (int r = 0; r < 3; ++r)
     for (int q = 0; q < 3; ++q) acc.stress_sum(r, q) = stress[3 * r + q];
@@ -517,7 +529,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   if (nthreads > 1) record_thread_balance(schedule, state.timers);
 
   Mat3 sum = Mat3::Zero();
-  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
+  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero(), viscosity = Vec3::Zero(), shear_viscosity = Vec3::Zero();
   state.max_overlap = 0;
   state.narrow_tests = 0;
   state.pw_iterations = 0;
@@ -525,6 +537,8 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
     sum += b.stress_sum;
     stiff += b.stiffness_sum;
     shear_stiff += b.shear_stiffness_sum;
+    viscosity += b.viscosity_sum;
+    shear_viscosity += b.shear_viscosity_sum;
     state.narrow_tests += b.narrow_tests;
     state.pw_iterations += b.pw_iterations;
     if (b.max_overlap > state.max_overlap) {
@@ -537,6 +551,8 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive
   state.affine_stiffness = stiff / v;
   state.shear_stiffness = shear_stiff / v;
+  state.affine_viscosity = viscosity / v;
+  state.shear_viscosity = shear_viscosity / v;
   state.stress_volume = v;
   state.stress_h = cell.h;
 }

@@ -6,6 +6,7 @@
 namespace qsdem {
 
 void servo_update(const Model& model, State& state) {
+  const Mat3& last = state.cell.L;  // the rates of the last step
   Mat3 L = Mat3::Zero();
   for (int k = 0; k < 3; ++k) {
     const AxisControl& c = model.control[static_cast<std::size_t>(k)];
@@ -19,14 +20,15 @@ void servo_update(const Model& model, State& state) {
         const double target = c.value;
         const double err = (target - state.stress(k, k)) / target;
         const double cap = model.servo.max_strain_rate;
-        const double stiff = state.affine_stiffness[k];
+        const double stiff = state.affine_stiffness[k], viscosity = state.affine_viscosity[k];
         double rate;
         if (stiff <= 0) {
           rate = err > 0 ? -cap : cap;  // no contacts: close (or open) the cell at the cap
         } else {
           const double integral = state.servo_integral[k] + err;
-          rate = -(model.servo.proportional_gain * err + model.servo.integral_gain * integral) * target /
-                 (stiff * model.dt);
+          rate = (viscosity * last(k, k) -
+                  (model.servo.proportional_gain * err + model.servo.integral_gain * integral) * target) /
+                 (stiff * model.dt + viscosity);
           if (std::abs(rate) < cap) state.servo_integral[k] = integral;  // anti-windup
           rate = std::clamp(rate, -cap, cap);
         }
@@ -46,10 +48,12 @@ void servo_update(const Model& model, State& state) {
     constexpr int pair[3][2] = {{0, 1}, {0, 2}, {1, 2}};
     for (int s = 0; s < 3; ++s) {
       const int a = pair[s][0], b = pair[s][1];
-      const double g = state.shear_stiffness[s];
+      const double g = state.shear_stiffness[s], viscosity = state.shear_viscosity[s];
       if (g <= 0) continue;
       const double cap = model.servo.max_strain_rate;
-      const double rate = std::clamp(model.servo.proportional_gain * state.stress(a, b) / (g * model.dt), -cap, cap);
+      const double rate = std::clamp(
+          (model.servo.proportional_gain * state.stress(a, b) + viscosity * last(a, b)) / (g * model.dt + viscosity),
+          -cap, cap);
       L(a, b) = L(b, a) = rate;
     }
   }

@@ -19,6 +19,8 @@ struct ForceBlock {
   Mat3 stress_sum = Mat3::Zero();      // sum f (x) l over contacts (N m)
   Vec3 stiffness_sum = Vec3::Zero();   // sum (k_n n_k^2 + k_t (1 - n_k^2)) l_k^2 (N m)
   Vec3 shear_stiffness_sum = Vec3::Zero();  // the same for the shears 12, 13, 23 (servo.hpp)
+  Vec3 viscosity_sum = Vec3::Zero();        // the two with the viscous coefficients c_n, c_t (N s m)
+  Vec3 shear_viscosity_sum = Vec3::Zero();
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
   long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
@@ -43,6 +45,8 @@ struct State {
   Mat3 stress = Mat3::Zero();           // Love-Weber, compression positive (Pa), SPEC 7
   Vec3 affine_stiffness = Vec3::Zero(); // d sigma_kk / d eps_kk of an affine strain (Pa)
   Vec3 shear_stiffness = Vec3::Zero();  // -d sigma_ab / d D_ab dt for the shears 12, 13, 23 (Pa)
+  Vec3 affine_viscosity = Vec3::Zero(); // d sigma_kk / d(-L_kk) of the contacts' dashpots (Pa s)
+  Vec3 shear_viscosity = Vec3::Zero();  // -d sigma_ab / d D_ab of the dashpots, shears 12, 13, 23 (Pa s)
   double stress_volume = 1;             // V at which stress was evaluated (m^3)
   Mat3 stress_h = Mat3::Identity();     // cell matrix at which stress was evaluated (m)
   double max_overlap = 0;               // largest delta / min(R_i, R_j) over the contacts

@@ -37,7 +37,7 @@ struct HertzMindlin {
   static constexpr std::string_view name = "hertz_mindlin";
   static constexpr HistoryLayout history{
       "tangential_force", 3, {0, 0, 0}, {OnSwap::negate, OnSwap::negate, OnSwap::negate}};
-  static constexpr bool needs_masses = false, needs_spins = false, has_torque = false;
+  static constexpr bool needs_masses = false, needs_spins = false, has_torque = false, has_dashpots = false;
   static constexpr std::array<LawKey, 0> keys{};
   static std::string check(const ContactSettings&, std::string&) { return {}; }
   static HertzMindlin make(const LawConstants& c) {
@@ -68,6 +68,7 @@ struct HertzMindlin {
     shear[0] = sx, shear[1] = sy, shear[2] = sz;
     out.fx = fn * c.nx + sx, out.fy = fn * c.ny + sy, out.fz = fn * c.nz + sz;
     out.tx = out.ty = out.tz = 0;
+    out.cn = out.ct = 0;
     out.energy = 0.4 * fn * c.overlap + ((sx * sx + sy * sy) + sz * sz) / (2 * out.kt);
   }
 

@@ -21,7 +21,8 @@
 //                    tangential history model).
 //   History          the spring F_s: Hertz-Mindlin's ("tangential_force"), so either law can
 //                    follow the other.
-//   Output           force on j = F_n n + F_t; k_n, k_t as Hertz-Mindlin; elastic energy
+//   Output           force on j = F_n n + F_t; k_n, k_t as Hertz-Mindlin; gamma_n, and gamma_t
+//                    (0 when sliding) for the servo; elastic energy
 //                    2/5 (4/3 E* sqrt(R_e) delta^(3/2)) delta + |F_s|^2 / (2 k_t).
 // The dashpot forces are contact forces: they count in the stress, the resultants and the indices.
 // e = 1 (or zeta = 0) gives Hertz-Mindlin's bits.
@@ -38,7 +39,7 @@ namespace qsdem {
 struct HertzMindlinDashpot {
   static constexpr std::string_view name = "hertz_mindlin_dashpot";
   static constexpr const HistoryLayout& history = HertzMindlin::history;
-  static constexpr bool needs_masses = true, needs_spins = false, has_torque = false;
+  static constexpr bool needs_masses = true, needs_spins = false, has_torque = false, has_dashpots = true;
   static constexpr std::array<LawKey, 2> keys{{{"restitution", "restitution coefficient e in (0, 1]"},
                                                {"damping_ratio", "damping ratio in [0, 1)"}}};
 
@@ -91,6 +92,7 @@ struct HertzMindlinDashpot {
     const double tz = sliding ? sz : sz - gamma_t * vtz;
     out.fx = fn * c.nx + tx, out.fy = fn * c.ny + ty, out.fz = fn * c.nz + tz;
     out.tx = out.ty = out.tz = 0;
+    out.cn = gamma_n, out.ct = sliding ? 0.0 : gamma_t;
     out.energy = 0.4 * fn_elastic * c.overlap + ((sx * sx + sy * sy) + sz * sz) / (2 * out.kt);
   }
 };

@@ -8,6 +8,7 @@
 //   static constexpr bool needs_masses;            it reads ContactInput::mass
 //   static constexpr bool needs_spins;             it reads ContactInput::spin
 //   static constexpr bool has_torque;              it returns a torque besides arm x force
+//   static constexpr bool has_dashpots;            it returns viscous coefficients (cn, ct)
 //   static constexpr std::array<LawKey, N> keys;   its own keys in [contact] (below)
 //   static std::string check(const ContactSettings&, std::string& key);  what is wrong, "" if
 //                                                  nothing (key: the key to name)
@@ -73,6 +74,8 @@ struct ContactOutput {
   double tx, ty, tz;  // torque on j besides arm_j x f (N m), laws with has_torque; i receives the
                       // opposite
   double kn, kt;      // normal and tangential stiffness (N/m): the servo's affine stiffness
+  double cn, ct;      // normal and tangential viscous coefficient (N s/m) of the contact's force,
+                      // laws with has_dashpots: the servo's affine viscosity
   double energy;      // elastic energy stored in the contact (J)
 };
 
