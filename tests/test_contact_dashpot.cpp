@@ -177,7 +177,8 @@ TEST(DashpotLaw, CaseKeysAreChecked) {
   EXPECT_NE(error_of("").find("needs restitution"), std::string::npos) << error_of("");
   const std::string both = error_of("restitution = 0.5\ndamping_ratio = 0.1\n");
   EXPECT_NE(both.find("not both"), std::string::npos) << both;
-  for (const char* bad : {"restitution = 0\n", "restitution = 1.5\n", "damping_ratio = 1\n", "damping_ratio = -0.1\n"}) {
+  for (const char* bad :
+       {"restitution = 0\n", "restitution = 1.5\n", "damping_ratio = 1\n", "damping_ratio = -0.1\n"}) {
     const std::string why = error_of(bad);
     EXPECT_NE(why.find("case.toml:10"), std::string::npos) << why;
     EXPECT_NE(why.find("out of range"), std::string::npos) << why;
