@@ -262,6 +262,16 @@ TEST(Config, UnknownDampingModelIsAnError) {
                   {"case.toml:13", "damping.model", "\"xd\"", "\"none\"", "\"od\"", "\"nd\""});
 }
 
+// damping.acts_on: what the triaxial phase's particle damping acts on (damping.hpp), both by default.
+TEST(Config, DampingActsOnIsChecked) {
+  EXPECT_EQ(parse_case(base_case(), "case.toml").damping.acts_on, DampedMotion::both);
+  EXPECT_EQ(parse_case(base_case(13, "acts_on = \"rotation\""), "case.toml").damping.acts_on, DampedMotion::rotation);
+  EXPECT_EQ(parse_case(base_case(), "case.toml", {"damping.acts_on=translation"}).damping.acts_on,
+            DampedMotion::translation);
+  expect_mentions(error_of(base_case(13, "acts_on = \"spin\"")),
+                  {"case.toml:13", "damping.acts_on", "\"spin\"", "\"both\"", "\"translation\"", "\"rotation\""});
+}
+
 // [contact] (docs/config.md): the law is one that contact/laws.hpp registers, Hertz-Mindlin by
 // default; a key that the chosen law does not declare is named with the law and what it takes.
 TEST(Config, ContactLawAndItsKeysAreChecked) {

@@ -25,6 +25,15 @@ const char* to_string(DampingModel m) {
   return "?";
 }
 
+const char* to_string(DampedMotion m) {
+  switch (m) {
+    case DampedMotion::both: return "both";
+    case DampedMotion::translation: return "translation";
+    case DampedMotion::rotation: return "rotation";
+  }
+  return "?";
+}
+
 const char* to_string(ShapeKind k) { return k == ShapeKind::sphere ? "sphere" : "ellipsoid"; }
 
 namespace {
@@ -398,6 +407,10 @@ Params parse_case(const std::string& toml_text, const std::string& source,
 
   p.damping.model = damping_model(r, "damping.model", "nd");
   p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  const std::string acts_on = r.text("damping.acts_on", std::string("both"), {"both", "translation", "rotation"});
+  p.damping.acts_on = acts_on == "translation" ? DampedMotion::translation
+                      : acts_on == "rotation"  ? DampedMotion::rotation
+                                               : DampedMotion::both;
 
   auto& c = p.compaction;
   c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
@@ -467,7 +480,8 @@ nlohmann::json to_json(const Params& p) {
                   {"total_particles", p.sample.total_particles}, {"particles", table}, {"from", p.sample.from}}},
       {"time", {{"step_ratio", p.step_ratio}}},
       {"contact", contact},
-      {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio}}},
+      {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio},
+                   {"acts_on", to_string(p.damping.acts_on)}}},
       {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
                       {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},
                       {"damping_model", to_string(c.damping_model)}, {"damping_ratio", c.damping_ratio},

@@ -17,8 +17,11 @@ namespace qsdem {
 
 enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
 enum class DampingModel : std::uint8_t { none, od, nd };
+// What the particle damping acts on (damping.hpp).
+enum class DampedMotion : std::uint8_t { both, translation, rotation };
 
 const char* to_string(DampingModel m);
+const char* to_string(DampedMotion m);
 const char* to_string(ShapeKind k);
 
 // One row of the particle-size table (SPEC 9): a shape and how many of it.
@@ -62,6 +65,7 @@ struct Params {
   struct Damping {
     DampingModel model = DampingModel::nd;
     double ratio = 0.005;  // xi_0
+    DampedMotion acts_on = DampedMotion::both;
   } damping;
 
   struct Compaction {

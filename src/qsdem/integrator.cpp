@@ -12,11 +12,13 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
   const double dt = model.dt;
   hi = std::min(hi, p.size());
   double v2max = 0;
-  double damping = 0;  // the factors of the last damping seen (one value in most runs)
-  DampedKick kick(damping, dt);
+  // The factors of the last damping seen, for translation and rotation (one value each in most runs).
+  double damping = 0, damping_rot = 0;
+  DampedKick kick(damping, dt), kick_rot(damping_rot, dt);
   // The arrays through local pointers: through p, each store made GCC load the next array's
   // address again (it cannot tell that a Vec3 store leaves p's vectors alone).
-  const double* const damping_of = p.damping.data();
+  const double* const damping_of = p.damping_translation.data();
+  const double* const damping_rot_of = p.damping_rotation.data();
   const double* const inv_mass = p.inv_mass.data();
   const Vec3* const inv_inertia = p.inv_inertia.data();
   const Vec3* const force = p.force.data();
@@ -26,12 +28,13 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
   Vec3* const angmom = p.angmom.data();
   Vec3* const omega = p.omega.data();
   for (std::size_t i = lo; i < hi; ++i) {
-    if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i = B_i (SPEC 6)
+    if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i (SPEC 6)
+    if (damping_rot_of[i] != damping_rot) kick_rot = DampedKick(damping_rot = damping_rot_of[i], dt);  // B_i
     const Vec3 v = kick(vel[i], force[i] * inv_mass[i]);
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    angmom[i] = kick(angmom[i], torque[i]);
+    angmom[i] = kick_rot(angmom[i], torque[i]);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
     if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();

@@ -56,7 +56,7 @@ void Particles::add(std::uint32_t pid, ShapeKind kind, const Vec3& ax, double de
   inertia[k] = ellipsoid_inertia(m, ax);
   inv_mass[k] = 1 / m;
   inv_inertia[k] = inertia[k].cwiseInverse();
-  damping[k] = 0.0;
+  damping_translation[k] = damping_rotation[k] = 0.0;
   s[k] = frac_pos;
   q[k] = orientation.normalized();
   v[k] = Vec3::Zero();

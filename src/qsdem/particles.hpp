@@ -24,7 +24,8 @@ struct Particles {
   std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2)
   std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
   std::vector<Vec3> inv_inertia;       // (divisions led the integrator's profile)
-  std::vector<double> damping;         // A_i = B_i (1/s) of the current phase, SPEC 6
+  std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping.hpp), SPEC 6
+  std::vector<double> damping_rotation;     // B_i (1/s)
 
   // Dynamic state.
   std::vector<Vec3> s;                 // fractional position h^-1 x, never wrapped (SPEC 3)
@@ -68,7 +69,8 @@ constexpr void for_each_field(P& p, F&& f) {
   f(p.inertia, ParticleField{"inertia", 1});
   f(p.inv_mass, ParticleField{"inv_mass", 0});
   f(p.inv_inertia, ParticleField{"inv_inertia", 0});
-  f(p.damping, ParticleField{"damping", 1});
+  f(p.damping_translation, ParticleField{"damping_translation", 1});
+  f(p.damping_rotation, ParticleField{"damping_rotation", 0});  // set with the translation's on load
   f(p.s, ParticleField{"s", 1});
   f(p.q, ParticleField{"q", 1});
   f(p.v, ParticleField{"v", 1});

@@ -72,6 +72,7 @@ Model triaxial_model(const Params& params, const State& state, double axial_refe
   m.friction = params.triaxial.friction;
   m.damping = params.damping.model;
   m.damping_ratio = params.damping.ratio;
+  m.damping_acts_on = params.damping.acts_on;
   const double rate = params.triaxial.strain_rate / m.critical_time;  // eps' = rate t_c (SPEC 8)
   m.control[0] = {AxisControl::Kind::stress, params.triaxial.confining_stress, 0.0};
   m.control[1] = {AxisControl::Kind::stress, params.triaxial.confining_stress, 0.0};

@@ -8,6 +8,7 @@
 #include <array>
 #include <cmath>
 
+#include "qsdem/damping.hpp"
 #include "qsdem/forces.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/reorder.hpp"
@@ -64,6 +65,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       const double t0 = omp_get_wtime();
       gather_resultants(s.pairs, schedule, p, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
+      update_damping(model, p, lo, hi);  // the damping stage, before the kick (damping.hpp)
       m = std::max(m, integrate_velocities(model, p, lo, hi));
       const double t2 = omp_get_wtime();
       advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);
