@@ -231,14 +231,14 @@ inline void flush_sphere_contacts(const ForceInputs<Law>& in, ContactLanes<Law>&
 }
 
 // A pair that is apart: no force; a contact just lost releases its history (the law's released
-// values). A history within 1e-12 of them is left as it is (no write).
+// values; written only when it differs from them).
 template <class Law>
 inline void mark_apart(PairList& pairs, std::uint32_t k) {
   constexpr int width = Law::history.width;
   pairs.overlap[k] = 0;
   double* const h = pairs.history.values.data() + width * k;
   bool released = true;
-  for (int m = 0; m < width; ++m) released &= std::abs(h[m] - Law::history.released[m]) <= 1e-12;
+  for (int m = 0; m < width; ++m) released &= h[m] == Law::history.released[m];
   if (!released)
     for (int m = 0; m < width; ++m) h[m] = Law::history.released[m];
 }

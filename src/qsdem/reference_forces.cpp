@@ -44,11 +44,7 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
     const Vec3 l = branch_vector(cell, p.s[i], p.s[j], pairs.image[k]);
     ContactGeometry g;
     if (!narrow_phase(p, i, j, l, out.pw_lambda[k], g)) {
-      // Released; a history within 1e-12 of the released values is left as it is (as the fast stage).
-      bool released = true;
-      for (int m = 0; m < width; ++m) released &= std::abs(history[m] - Law::history.released[m]) <= 1e-12;
-      if (!released)
-        for (int m = 0; m < width; ++m) history[m] = Law::history.released[m];
+      for (int m = 0; m < width; ++m) history[m] = Law::history.released[m];  // released
       continue;
     }
     const Vec3 v = p.v[j] + p.omega[j].cross(g.arm_j) - p.v[i] - p.omega[i].cross(g.arm_i) + cell.L * l;
