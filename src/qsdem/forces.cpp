@@ -1,6 +1,5 @@
 #include "qsdem/forces.hpp"
 
-#include <fmt/format.h>
 #include <omp.h>
 
 #include <algorithm>

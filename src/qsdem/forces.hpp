@@ -2,7 +2,6 @@
 // per-particle gather of resultants. Both are deterministic for any thread count.
 #pragma once
 #include <cstdint>
-#include <span>
 #include <vector>
 
 #include "qsdem/model.hpp"

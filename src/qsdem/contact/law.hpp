@@ -4,9 +4,10 @@
 // documented example; contact/laws.hpp registers the laws. A law declares
 //
 //   static constexpr std::string_view name;        its value of the case key [contact] law
-//   static constexpr const HistoryLayout& history;  its per-contact history (below)
+//   static constexpr HistoryLayout history;        its per-contact history (below), or a reference
+//                                                  to another law's, to share it
 //   static constexpr bool needs_masses;            it reads ContactInput::mass
-//   static constexpr bool needs_spins;             it reads ContactInput::spin
+//   static constexpr bool needs_spins;             it reads ContactInput::wx, wy, wz
 //   static constexpr bool has_torque;              it returns a torque besides arm x force
 //   static constexpr bool has_dashpots;            it returns viscous coefficients (cn, ct)
 //   static constexpr std::array<LawKey, N> keys;   its own keys in [contact] (below)
@@ -17,7 +18,10 @@
 //
 // evaluate runs in vector lanes, one contact per lane: it must be inline, branch-free (selects),
 // and sum in a fixed order (the same bits on every build). `history` holds the contact's
-// history.width values, read and updated in place.
+// history.width values, read and updated in place. The pair list keeps the history, transfers it
+// across list rebuilds, applies the swap rules when a reorder exchanges a pair's ends and the
+// released values when the contact is lost, and the checkpoint saves it under its name
+// (neighbor.hpp, the pair registry).
 #pragma once
 #include <array>
 #include <cstdint>
