@@ -1,9 +1,12 @@
-// qsdem command line: run a case, benchmark a packing.
+// qsdem command line: run a case, prepare a sample, resume, study, analyse, benchmark.
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 #include <omp.h>
 
+#include <algorithm>
 #include <charconv>
+#include <cstring>
+#include <iterator>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -13,6 +16,7 @@
 #include "qsdem/run.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/study_analysis.hpp"
+#include "qsdem/version.hpp"
 
 namespace {
 
@@ -41,17 +45,48 @@ CLI::Validator whole_number_at_least(long lo, const std::string& meaning = "") {
       fmt::format("INT>={}", lo));
 }
 
+// Threads of --threads: 0 (all cores) to max_threads. More only exhausts the address space
+// (each OpenMP thread reserves a stack) and crashed inside the OpenMP runtime.
+constexpr long max_threads = 256;
+
+CLI::Validator thread_count() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        long value = 0;
+        const char* const end = text.data() + text.size();
+        const auto [stop, ec] = std::from_chars(text.data(), end, value);
+        if (ec == std::errc() && stop == end && value >= 0 && value <= max_threads) return {};
+        return fmt::format("'{}' is not allowed: give a whole number from 0 (all cores) to {}", text, max_threads);
+      },
+      fmt::format("INT in [0, {}]", max_threads));
+}
+
+constexpr const char* subcommands[] = {"run", "prepare", "resume", "bench", "study", "analyze"};
+
 }  // namespace
 
 int main(int argc, char** argv) {
+  // CLI11 answers an unknown subcommand with "A subcommand is required": name it instead.
+  if (argc > 1 && argv[1][0] != '-' &&
+      std::none_of(std::begin(subcommands), std::end(subcommands), [&](const char* c) { return std::strcmp(c, argv[1]) == 0; })) {
+    std::fprintf(stderr, "qsdem: unknown subcommand '%s' (allowed: run, prepare, resume, bench, study, analyze; see "
+                         "qsdem --help)\n", argv[1]);
+    return 1;
+  }
+
   CLI::App app{
       "qsdem: quasi-static DEM of spheres and ellipsoids in a deformable periodic cell.\n"
       "Drained triaxial tests with size-dependent (nd) or global mass (od) damping, and the equilibrium\n"
       "indices UFR, Iuf and IMom of Yousefi (2018). Cases are TOML files (docs/config.md)."};
   app.require_subcommand(1);
   app.set_version_flag("--version", QSDEM_VERSION);
+  bool dry_run = false;
+  app.add_flag("--dry-run", dry_run,
+               "Check the command line, and the case or study file it names when that file exists (with its --set "
+               "overrides), then exit without running anything (exit code 0, 1 or 2)");
+  app.fallthrough();  // --dry-run may follow the subcommand
 
-  const CLI::Validator all_cores_or_count = whole_number_at_least(0, " (0: all cores)");
+  const CLI::Validator all_cores_or_count = thread_count();
   std::string case_path;
   std::string out_dir;
   std::vector<std::string> overrides;
@@ -92,32 +127,45 @@ int main(int argc, char** argv) {
       "in its directory (DIR/checkpoint.qsck, or DIR/checkpoint.qsck.prev when the newest is damaged). The "
       "resumed series.csv is identical to that of an uninterrupted run.");
   resume->add_option("dir", resume_dir, "Directory of the run")->required();
+  resume->add_option("--set,-s", overrides,
+                     "Change a case key that does not invalidate the state (limits.max_overlap, "
+                     "limits.max_kinetic_ratio, checkpoint.every_sample_points, checkpoint.every_minutes, "
+                     "output.vtk_every, compaction.max_steps; time.step_ratio during compaction); recorded in "
+                     "summary.json (repeatable)");
   resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   resume->add_flag("--quiet,-q", quiet, "No progress line");
 
-  std::string packing;
+  std::string bench_source;
   long steps = 1000;
   auto* bench = app.add_subcommand(
       "bench",
-      "Step a packing (qsdem packing format, e.g. DIR/compacted.packing of a run) in a fixed cell with the "
-      "triaxial friction and damping of a case, with no output, and print one JSON line: particles, contacts, steps, threads, "
-      "wall seconds, particle-steps per second, peak memory.");
-  bench->add_option("packing", packing, "Packing file")->required()->check(CLI::ExistingFile);
-  bench->add_option("--case,-c", case_path, "Case file giving material, friction and time step")->required();
-  bench->add_option("--steps,-n", steps, "Steps to run")->check(whole_number_at_least(1));
+      "Step a state in a fixed cell with no output and print one JSON line (docs/benchmarks.md): particles, "
+      "contacts at the first and the last step, steps, threads, wall seconds, particle-steps per second, memory, "
+      "time per stage. The state is a packing (at rest, no contact history; the triaxial friction and damping of "
+      "--case), or a checkpoint: DIR/sample.qsck of `qsdem prepare`, DIR/checkpoint.qsck of an unfinished run "
+      "(velocities and contact history as the run left them; the friction and damping of its phase).");
+  bench->add_option("source", bench_source,
+                    "A packing file, a checkpoint file (*.qsck), or a run directory (its sample.qsck, else its "
+                    "checkpoint.qsck)")
+      ->required();
+  bench->add_option("--case,-c", case_path,
+                    "Case file: material, friction, damping and time step. Required for a packing; for a checkpoint "
+                    "it replaces the checkpoint's own case (material and time.step_ratio must be equal)");
+  bench->add_option("--steps,-n", steps, "Steps to time (default 1000)")->check(whole_number_at_least(1));
   bench->add_option("--set,-s", overrides, "Override a case key (as for run)");
   bench->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   bool as_spheres = false;
   bench->add_flag("--as-spheres", as_spheres,
-                  "Replace every ellipsoid by its equal-volume sphere at the same centre first (the sphere "
-                  "path on the same packing)");
+                  "Replace every ellipsoid by its equal-volume sphere at the same centre first, at rest and without "
+                  "contact history (the sphere path on the same packing)");
 
   std::string study_file;
   int parallel = 0;
   auto* study = app.add_subcommand(
       "study",
       "Run a study (SPEC 9, docs/study.md): every sample of the study file prepared once, then sheared with every "
-      "damping model, damping ratio and strain rate of its [design], in parallel processes (and over the ranks of "
+      "damping model, damping ratio and strain rate of its [design] (or of its [[stage]] tables, in order), in "
+      "parallel processes (and over the ranks of "
       "`mpirun -np K`). Writes DIR/study.json, DIR/samples/, DIR/runs/, then the analysis (DIR/analysis/). Running it "
       "again on the same DIR continues it: finished runs are kept, interrupted ones resume from their checkpoints.");
   study->add_option("study", study_file, "Study file (TOML, see docs/study.md)")->required();
@@ -140,6 +188,23 @@ int main(int argc, char** argv) {
 
   try {
     set_threads(threads);
+    if (dry_run) {
+      namespace fs = std::filesystem;
+      std::string checked;
+      if ((*run || *prepare) && case_path.empty()) {
+        qsdem::parse_case(qsdem::default_case_toml, qsdem::default_case_name, overrides);
+        checked = "the built-in case";
+      } else if ((*run || *prepare || *bench) && fs::is_regular_file(case_path)) {
+        qsdem::load_case(case_path, overrides);
+        checked = "case " + case_path;
+      } else if (*study && fs::is_regular_file(study_file)) {
+        qsdem::load_study(study_file);
+        checked = "study " + study_file;
+      }
+      std::cout << "qsdem: dry run: the command line is valid"
+                << (checked.empty() ? std::string() : "; " + checked + " is valid") << "\n";
+      return 0;
+    }
     if (*run || *prepare) {
       const qsdem::Params params =
           case_path.empty() ? qsdem::parse_case(qsdem::default_case_toml, qsdem::default_case_name, overrides)
@@ -152,7 +217,11 @@ int main(int argc, char** argv) {
                 << summary["stage_table"].get<std::string>() << "\nResults in " << out_dir
                 << (*prepare ? "/ (compacted.packing, summary.json)\n" : "/ (series.csv, summary.json)\n");
     } else if (*resume) {
-      const auto summary = qsdem::resume_run(resume_dir, {resume_dir, quiet, false, false});
+      qsdem::RunOptions options;
+      options.out = resume_dir;
+      options.quiet = quiet;
+      options.sets = overrides;
+      const auto summary = qsdem::resume_run(resume_dir, options);
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*study) {
@@ -161,8 +230,7 @@ int main(int argc, char** argv) {
       qsdem::analyze_study(analyze_dir);
       std::cout << "Analysis written to " << analyze_dir << "/analysis/\n";
     } else if (*bench) {
-      const qsdem::Params params = qsdem::load_case(case_path, overrides);
-      std::cout << qsdem::bench_packing(params, packing, steps, as_spheres).dump() << std::endl;
+      std::cout << qsdem::bench_packing(bench_source, case_path, overrides, steps, as_spheres).dump() << std::endl;
     }
   } catch (const qsdem::Interrupted& e) {
     std::fprintf(stderr, "\nqsdem: %s\n", e.what());

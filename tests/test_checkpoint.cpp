@@ -10,6 +10,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstddef>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
@@ -22,6 +23,7 @@
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/model.hpp"
 #include "qsdem/neighbor.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
@@ -354,31 +356,96 @@ TEST(BlowUp, ExcessiveOverlapStopsTheProcess) {
   EXPECT_FALSE(fs::exists(d / "summary.json"));
 }
 
+namespace {
+
+// Three fine spheres (R = 0.2 mm) each pinched between two big ones (R = 2 mm) along a line
+// through a fixed periodic cell, overlapping by 8 % of the fine radius (~50 N each): a steady
+// force chain. The fine spheres start with 1 m/s along the chain.
+std::pair<State, Model> pinched_chain(double dt_factor) {
+  const Params params = parse_case(small_case, "small.toml");
+  const double rb = 2e-3, rs = 2e-4, overlap = 0.08 * rs, d = rb + rs - overlap, side = 6 * d;
+  State st;
+  st.cell = make_cell(side * Mat3::Identity());
+  for (int k = 0; k < 6; ++k) {
+    const double r = k % 2 == 0 ? rb : rs;
+    st.particles.add(static_cast<std::uint32_t>(k), ShapeKind::sphere, Vec3::Constant(r), 2650,
+                     Vec3(0.5, 0.5, k * d / side), Quat::Identity());
+    if (k % 2 == 1) st.particles.v.back() = Vec3(0, 0, 1.0);
+  }
+  Model m = triaxial_model(params, st);
+  for (auto& c : m.control) c = {};  // a fixed cell
+  m.dt *= dt_factor;
+  assign_damping(m, st.particles);
+  return {std::move(st), m};
+}
+
+}  // namespace
+
+// A fine particle pinched by a large force (overlap above the old 5 % stop, steady) runs on.
+TEST(BlowUp, PinchedFineParticleRunsOn) {
+  auto [st, model] = pinched_chain(1.0);
+  const Params params = parse_case(small_case, "small.toml");
+  BlowUpWatch watch;
+  double low = 1, high = 0;
+  for (long n = 0; n < 3000; ++n) {
+    step(model, st);
+    ASSERT_NO_THROW(watch.check(st, params, "test", n)) << "step " << n;
+    low = std::min(low, st.max_overlap);
+    high = std::max(high, st.max_overlap);
+  }
+  EXPECT_GT(low, BlowUpWatch::watch_level) << "the old 5 % limit would have stopped this healthy chain";
+  EXPECT_LT(high - low, 0.01) << "steady: " << low << " to " << high;
+}
+
+// A time step far too large (10 times the stable one) on the same chain: the overlap grows
+// geometrically and the watch stops it, saying that the time step is too large.
+TEST(BlowUp, TimeStepFarTooLargeIsStopped) {
+  auto [st, model] = pinched_chain(10.0);
+  const Params params = parse_case(small_case, "small.toml");
+  BlowUpWatch watch;
+  try {
+    for (long n = 0; n < 3000; ++n) {
+      step(model, st);
+      watch.check(st, params, "test", n);
+    }
+    ADD_FAILURE() << "no blow-up detected";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("numerical instability"), std::string::npos) << what;
+    EXPECT_NE(what.find("time step is too large"), std::string::npos) << what;
+    EXPECT_NE(what.find("time.step_ratio"), std::string::npos) << what;
+  }
+}
+
+// A whole run with time.step_ratio twenty times the largest the case file allows stops as a
+// blow-up at run time (exit 3 in the CLI), naming the time step.
+TEST(BlowUp, RunWithAFarTooLargeTimeStepIsStopped) {
+  Params params = parse_case(small_case, "small.toml");
+  params.step_ratio = 10;  // the case file refuses > 0.5
+  const fs::path d = scratch("dt-too-large");
+  RunOptions o;
+  o.out = d;
+  o.quiet = true;
+  try {
+    run_case(params, o);
+    ADD_FAILURE() << "no blow-up detected";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    std::printf("[ info ] %s\n", what.c_str());
+    EXPECT_NE(what.find("blow-up"), std::string::npos) << what;
+    EXPECT_NE(what.find("numerical instability"), std::string::npos) << what;
+    EXPECT_NE(what.find("time.step_ratio"), std::string::npos) << what;
+  }
+}
+
 // Format 3 summed fluctuation_path (the skin test's bound of the motion) in runs of spheres only:
 // read into a run with ellipsoids it is unknown, not zero (a zero would rule out every list
-// rebuild). Formats 3 and 4 have the same payload; only the header's version differs.
+// rebuild).
 TEST(CheckpointFile, Format3LeavesEllipsoidRunsWithoutAMotionBound) {
-  // The state written in format `version` (< 5): today's file without the contact history's name,
-  // which format 5 added after the pair keys. The states have no pairs yet: after the cell matrix
-  // h come L, the three empty key arrays, then the name.
   const auto reload_as = [](const State& st, std::uint32_t version, const char* name) {
     EXPECT_EQ(st.pairs.size(), 0u);
     const fs::path f = scratch(name);
-    save_checkpoint(f, "", "", st, RunProgress{});
-    std::string bytes = qsdem_test::slurp(f);
-    constexpr std::size_t header = 32;  // magic, version, reserved, size, checksum
-    const std::string h(reinterpret_cast<const char*>(st.cell.h.data()), 9 * sizeof(double));
-    const std::size_t at = bytes.find(h, header);
-    EXPECT_NE(at, std::string::npos);
-    const std::size_t name_at = at + 9 * 8 + 9 * 8 + 3 * 8;
-    EXPECT_EQ(bytes.substr(name_at, 8), std::string(8, '\0')) << "an empty name";
-    bytes.erase(name_at, 8);
-    std::string payload = bytes.substr(header);
-    const std::uint64_t size = payload.size(), sum = fnv1a64(payload.data(), payload.size());
-    std::memcpy(bytes.data() + 8, &version, 4);
-    std::memcpy(bytes.data() + 16, &size, 8);
-    std::memcpy(bytes.data() + 24, &sum, 8);
-    std::ofstream(f, std::ios::binary | std::ios::trunc) << bytes;
+    save_checkpoint(f, "", "", st, RunProgress{}, version);
     return load_checkpoint(f).state.neighbor.fluctuation_path;
   };
   const fs::path spheroid_case = fs::path(QSDEM_SOURCE_DIR) / "examples" / "paper-A-small.toml";
@@ -437,4 +504,43 @@ TEST(CheckpointFile, Format1PreparedSampleStillShears) {
     for (std::size_t k = 0; k < want.size(); ++k)
       EXPECT_NEAR(got[k][c], want[k][c], 1e-6 * scale + 1e-300) << "row " << k << " column " << c;
   }
+}
+
+// The triaxial sums are written field by field: the bytes of a checkpoint do not depend on the
+// padding of TriaxialSums (format 4 wrote the struct's raw bytes, padding included); a format-4
+// file's sums still read back.
+TEST(CheckpointFile, TriaxialSumsAreWrittenFieldByField) {
+  const State st = generate_loose_sample(parse_case(small_case, "small.toml"));
+  const auto save_with_padding = [&](unsigned char fill, const fs::path& f, std::uint32_t format) {
+    RunProgress run;
+    run.phase = RunProgress::Phase::triaxial;
+    // the bytes between `rows` and `ufr`: indeterminate in a real run, set here
+    auto* sums = reinterpret_cast<unsigned char*>(&run.sums);
+    std::memset(sums + sizeof(int), fill, offsetof(TriaxialSums, ufr) - sizeof(int));
+    run.sums.rows = 7;
+    run.sums.ufr = 0.25;
+    run.sums.peak_phi_deg = 31.5;
+    run.sums.final_e1 = 0.02;
+    run.sums.wall_s = 12.5;
+    run.changes = "triaxial step 4: limits.max_kinetic_ratio=2\n";
+    save_checkpoint(f, "", "", st, run, format);
+  };
+  ASSERT_GT(offsetof(TriaxialSums, ufr), sizeof(int)) << "no padding to test on this platform";
+  const fs::path a = scratch("sums-a.qsck"), b = scratch("sums-b.qsck"), v4 = scratch("sums-v4.qsck");
+  save_with_padding(0x00, a, checkpoint_format_version);
+  save_with_padding(0xff, b, checkpoint_format_version);
+  EXPECT_EQ(read(a), read(b));
+  const Checkpoint c = load_checkpoint(b);
+  EXPECT_EQ(c.run.sums.rows, 7);
+  EXPECT_EQ(c.run.sums.ufr, 0.25);
+  EXPECT_EQ(c.run.sums.peak_phi_deg, 31.5);
+  EXPECT_EQ(c.run.sums.final_e1, 0.02);
+  EXPECT_EQ(c.run.sums.wall_s, 12.5);
+  EXPECT_EQ(c.run.changes, "triaxial step 4: limits.max_kinetic_ratio=2\n");
+  save_with_padding(0xff, v4, 4);
+  const Checkpoint old = load_checkpoint(v4);
+  EXPECT_EQ(old.run.sums.rows, 7);
+  EXPECT_EQ(old.run.sums.ufr, 0.25);
+  EXPECT_EQ(old.run.sums.final_e1, 0.02);
+  EXPECT_EQ(old.run.sums.wall_s, 0) << "format 4 kept no triaxial wall time";
 }

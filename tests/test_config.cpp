@@ -2,9 +2,11 @@
 // error messages of bad input (SPEC 1: values carry units, nothing is silently SI or mm), and the
 // rescaling of the size table (SPEC 9: the mass fractions of the grading are kept).
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <initializer_list>
 #include <sstream>
 #include <string>
@@ -218,9 +220,10 @@ TEST(Config, MissingRequiredKeysAreErrors) {
 }
 
 TEST(Config, OutOfRangeValuesAreErrors) {
-  // Sizes and moduli must be > 0.
-  expect_mentions(error_of(base_case(10, "diameter = \"0 mm\"")), {"case.toml:10", "sample.particles.0.diameter", "0 mm", "> 0"});
-  expect_mentions(error_of(base_case(10, "diameter = \"-2 mm\"")), {"case.toml:10", "-2 mm", "> 0"});
+  // Sizes lie from 1 nm to 1 km; moduli must be > 0.
+  expect_mentions(error_of(base_case(10, "diameter = \"0 mm\"")),
+                  {"case.toml:10", "sample.particles.0.diameter", "0 mm", "from 1 nm to 1 km"});
+  expect_mentions(error_of(base_case(10, "diameter = \"-2 mm\"")), {"case.toml:10", "-2 mm", "from 1 nm to 1 km"});
   expect_mentions(error_of(base_case(4, "young_modulus = \"0 GPa\"")), {"case.toml:4", "material.young_modulus", "> 0"});
   expect_mentions(error_of(base_case(3, "density = \"-1 kg/m^3\"")), {"case.toml:3", "material.density", "> 0"});
   // Poisson's ratio of an isotropic solid lies in (-1, 0.5).
@@ -329,4 +332,46 @@ TEST(Config, ResolveTableKeepsSampleAGrading) {
   // The written table itself is used when total_particles is 0.
   s.total_particles = 0;
   EXPECT_EQ(resolve_table(s)[0].count, 7284);
+}
+
+// Messages of bad values name the file, line, key and value as written, and what is allowed.
+TEST(Config, MessagesOfAbsurdValues) {
+  // A number beyond a double's range is said to be so (not "does not start with a number").
+  expect_mentions(error_of(base_case(10, "diameter = \"1e400 mm\"")),
+                  {"case.toml:10", "sample.particles.0.diameter", "1e400 mm", "out of the range of a double"});
+  // A float where a whole number goes is shown as written, with the whole number to write.
+  expect_mentions(error_of(base_case(11, "count = 7284.0")),
+                  {"case.toml:11", "sample.particles.0.count", "= 7284.0", "without a decimal point: 7284"});
+  // Sizes whose masses a double cannot hold are refused (1e-320 m ran into NaN at step 2).
+  expect_mentions(error_of(base_case(10, "diameter = \"1e-320 m\"")),
+                  {"case.toml:10", "1e-320 m", "from 1 nm to 1 km"});
+  expect_mentions(error_of(base_case(10, "diameter = \"2000 m\"")), {"case.toml:10", "2000 m", "from 1 nm to 1 km"});
+  EXPECT_EQ(error_of(base_case(10, "diameter = \"0.002 um\"")), "");
+}
+
+TEST(Config, ADirectoryIsNoCaseFile) {
+  try {
+    load_case(examples.string());
+    ADD_FAILURE() << "a directory was read as a case";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("is a directory"), std::string::npos) << e.what();
+  }
+}
+
+// sample.from in a case file is relative to the case file (as the paths of a study file are to
+// the study file); on the command line, to the working directory. Kept absolute.
+TEST(Config, SampleFromIsRelativeToTheCaseFile) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("qsdem_config_from_" + std::to_string(::getpid())) / "cases";
+  fs::create_directories(dir);
+  std::string with_from = base_case();
+  with_from.insert(with_from.find("[[sample.particles]]"), "from = \"packings/a.packing\"\n");
+  std::ofstream(dir / "case.toml") << with_from;
+  const Params p = load_case((dir / "case.toml").string());
+  EXPECT_EQ(p.sample.from, (dir / "packings" / "a.packing").string());
+  EXPECT_NE(p.case_text.find((dir / "packings" / "a.packing").string()), std::string::npos)
+      << "the checkpoint's case names the same file";
+  const Params q = load_case((dir / "case.toml").string(), {"sample.from=other.packing"});
+  EXPECT_EQ(q.sample.from, (fs::current_path() / "other.packing").string());
+  fs::remove_all(dir.parent_path());
 }

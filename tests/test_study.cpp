@@ -23,8 +23,12 @@
 #include <thread>
 #include <vector>
 
+#include <fmt/format.h>
+
 #include "qsdem/study.hpp"
+#include "qsdem/study_analysis.hpp"
 #include "qsdem/types.hpp"
+#include "qsdem/version.hpp"
 #include "test_support.hpp"
 
 extern char** environ;
@@ -104,41 +108,50 @@ std::map<std::string, std::string> analysis_tables(const fs::path& dir) {
   return out;
 }
 
-// The uninterrupted tiny study, run once per build and shared by the tests (and by the processes
-// of a parallel ctest, under a lock): DIR, the exit code and stderr.
+// An uninterrupted study of a shipped file, run once per build and shared by the tests (and by the
+// processes of a parallel ctest, under a lock): DIR, the exit code and stderr.
 struct Reference {
   fs::path dir;
   Result result;
 };
 
+Reference run_reference(const fs::path& file) {
+  struct stat st {};
+  ::stat(binary.c_str(), &st);
+  const fs::path base = fs::temp_directory_path() /
+                        ("qsdem_study_reference_" + std::to_string(::getuid()) + "_" + file.stem().string() + "_" +
+                         std::to_string(std::hash<std::string>{}(slurp(file))) + "_" +
+                         std::to_string(st.st_mtim.tv_sec) + "_" + std::to_string(st.st_mtim.tv_nsec) + "_" +
+                         std::to_string(st.st_size));
+  fs::create_directories(base);
+  const int lock = ::open((base / "lock").c_str(), O_RDWR | O_CREAT, 0644);
+  ::flock(lock, LOCK_EX);
+  Reference r;
+  r.dir = base / "study";
+  const fs::path done = base / "done.json";
+  if (fs::exists(done)) {
+    const auto j = nlohmann::json::parse(slurp(done));
+    r.result.code = j["code"];
+    r.result.err = j["err"];
+  } else {
+    fs::remove_all(r.dir);
+    r.result = study(file, r.dir, base / "log", false);
+    write(done, nlohmann::json{{"code", r.result.code}, {"err", r.result.err}}.dump());
+  }
+  ::flock(lock, LOCK_UN);
+  ::close(lock);
+  return r;
+}
+
 const Reference& reference() {
-  static const Reference ref = [] {
-    struct stat st {};
-    ::stat(binary.c_str(), &st);
-    const fs::path base = fs::temp_directory_path() /
-                          ("qsdem_study_reference_" + std::to_string(::getuid()) + "_" +
-                           std::to_string(std::hash<std::string>{}(slurp(tiny_study))) + "_" +
-                           std::to_string(st.st_mtim.tv_sec) + "_" + std::to_string(st.st_mtim.tv_nsec) + "_" +
-                           std::to_string(st.st_size));
-    fs::create_directories(base);
-    const int lock = ::open((base / "lock").c_str(), O_RDWR | O_CREAT, 0644);
-    ::flock(lock, LOCK_EX);
-    Reference r;
-    r.dir = base / "study";
-    const fs::path done = base / "done.json";
-    if (fs::exists(done)) {
-      const auto j = nlohmann::json::parse(slurp(done));
-      r.result.code = j["code"];
-      r.result.err = j["err"];
-    } else {
-      fs::remove_all(r.dir);
-      r.result = study(tiny_study, r.dir, base / "log");
-      write(done, nlohmann::json{{"code", r.result.code}, {"err", r.result.err}}.dump());
-    }
-    ::flock(lock, LOCK_UN);
-    ::close(lock);
-    return r;
-  }();
+  static const Reference ref = run_reference(tiny_study);
+  return ref;
+}
+
+const fs::path staged_study = source_dir / "studies" / "tiny-staged.toml";
+
+const Reference& staged_reference() {
+  static const Reference ref = run_reference(staged_study);
   return ref;
 }
 
@@ -150,6 +163,10 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
   const std::string sample = "[[sample]]\nname = \"s\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
                              "\"\n";
   const std::string design = "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n";
+  const std::string stage_design = "[design]\nmodels = [\"nd\"]\n";
+  const std::string sweep = "[[stage]]\nname = \"sweep\"\ndamping_ratios = [\"0.5 %\", \"1 %\"]\nstrain_rates = [1e-5]\n";
+  const std::string sweep_nd =
+      "[[stage]]\nname = \"sweep\"\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n";
   struct Case {
     const char* what;
     std::string text;
@@ -179,6 +196,71 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
        {"triaxial.sample_points", "out of range"}},
       {"a bad sample name", "[[sample]]\nname = \"a/b\"\ncase = \"x.toml\"\n" + design, {"sample.0.name", "\"a/b\""}},
       {"no design", sample, {"'design'", "required"}},
+      // The model axis: names go through the case parser; a labelled entry names directories.
+      {"a model the case parser refuses",
+       sample + "[design]\nmodels = [\"nd\", \"local2\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n",
+       {"design.models.1", "\"local2\"", "refuses it", "damping.model"}},
+      {"a labelled entry without a label",
+       sample + "[design]\nmodels = [{ set = [\"damping.model=nd\"] }]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n",
+       {"design.models.0.label", "required"}},
+      {"a label that is no directory name",
+       sample + "[design]\nmodels = [{ label = \"a b\" }]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n",
+       {"design.models.0.label", "\"a b\"", "names directories"}},
+      {"a labelled entry setting the ratio",
+       sample + "[design]\nmodels = [{ label = \"x\", set = [\"damping.ratio=1 %\"] }]\ndamping_ratios = [\"0.5 %\"]\n"
+                "strain_rates = [1e-5]\n",
+       {"design.models.0.set.0", "set by the study"}},
+      {"a labelled entry with a bad override",
+       sample + "[design]\nmodels = [{ label = \"x\", set = [\"damping.model=xd\"] }]\ndamping_ratios = [\"0.5 %\"]\n"
+                "strain_rates = [1e-5]\n",
+       {"design.models.0", "refuses it", "\"xd\""}},
+      {"two entries with one label",
+       sample + "[design]\nmodels = [\"nd\", { label = \"nd\", set = [\"damping.model=od\"] }]\n"
+                "damping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n",
+       {"design.models.1", "listed twice"}},
+      // Stages.
+      {"ratios in [design] and stages", sample + design + "[[stage]]\nname = \"a\"\ndamping_ratios = [0.005]\nstrain_rates = [1e-5]\n",
+       {"design.damping_ratios", "each stage gives its own"}},
+      {"a stage picking from a stage that does not come before",
+       sample + stage_design + "[[stage]]\nname = \"slow\"\ndamping_ratios = { from = \"sweep\" }\nstrain_rates = [1e-6]\n"
+                "[[stage]]\nname = \"sweep\"\ndamping_ratios = [0.005]\nstrain_rates = [1e-5]\n",
+       {"stage.0.damping_ratios.from", "\"sweep\"", "earlier stage", "there is none"}},
+      {"a stage picking from an unknown stage",
+       sample + stage_design + sweep + "[[stage]]\nname = \"slow\"\ndamping_ratios = { from = \"swep\" }\nstrain_rates = [1e-6]\n",
+       {"stage.1.damping_ratios.from", "\"swep\"", "earlier: \"sweep\""}},
+      {"an unknown pick",
+       sample + stage_design + sweep +
+           "[[stage]]\nname = \"slow\"\ndamping_ratios = { from = \"sweep\", pick = \"best\" }\nstrain_rates = [1e-6]\n",
+       {"stage.1.damping_ratios.pick", "\"best\"", "\"optimum+neighbours\""}},
+      {"an optimum at a rate the source did not run",
+       sample + stage_design + sweep +
+           "[[stage]]\nname = \"slow\"\ndamping_ratios = { from = \"sweep\", at_rate = 3e-6 }\nstrain_rates = [1e-6]\n",
+       {"stage.1.damping_ratios.at_rate", "no run at this rate"}},
+      {"a bad rate of a picking stage",
+       sample + stage_design + sweep + "[[stage]]\nname = \"slow\"\ndamping_ratios = { from = \"sweep\" }\nstrain_rates = [0.5]\n",
+       {"stage.1.strain_rates.0", "(0, 0.01)"}},
+      {"a picking stage with a model its source lacks",
+       sample + "[design]\nmodels = [\"nd\", \"od\"]\n" + sweep_nd +
+           "[[stage]]\nname = \"slow\"\ndamping_ratios = { from = \"sweep\" }\nstrain_rates = [1e-6]\n",
+       {"stage.1.damping_ratios.from", "does not run every model"}},
+      {"a stage with a model not in the design",
+       sample + stage_design + "[[stage]]\nname = \"a\"\nmodels = [\"od\"]\ndamping_ratios = [0.005]\nstrain_rates = [1e-5]\n",
+       {"stage.0.models.0", "\"od\"", "\"nd\""}},
+      {"a stage with runs and a grid",
+       sample + stage_design + "[[stage]]\nname = \"a\"\nstrain_rates = [1e-5]\nruns = [{ model = \"nd\", ratio = 0, rate = 1e-5 }]\n",
+       {"stage.0.strain_rates", "not both"}},
+      {"one run in two stages",
+       sample + stage_design + sweep + "[[stage]]\nname = \"again\"\nruns = [{ model = \"nd\", ratio = \"0.5 %\", rate = 1e-5 }]\n",
+       {"stage 'again' lists the run", "of stage 'sweep'"}},
+      // [analysis].
+      {"an unknown baseline", sample + design + "[analysis]\nbaseline = \"od\"\n", {"analysis.baseline", "\"od\""}},
+      {"a reference with an unknown model", sample + design + "[analysis]\nreference = { model = \"none\" }\n",
+       {"analysis.reference.model", "\"none\""}},
+      {"a reference matching no run", sample + design + "[analysis]\nreference = { rate = 1e-6 }\n",
+       {"analysis.reference", "matches no run of sample 's'"}},
+      {"a reference rule misspelt", sample + design + "[analysis]\nreference = \"least damped\"\n",
+       {"analysis.reference", "\"least-damped\""}},
+      {"a tolerance of zero", sample + design + "[analysis]\nphi_tolerance_deg = 0\n", {"analysis.phi_tolerance_deg", "> 0"}},
   };
   for (const auto& c : cases) {
     SCOPED_TRACE(c.what);
@@ -195,7 +277,7 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
 
 // The shipped studies are valid: every case and every override of every run is checked.
 TEST(StudyCli, ShippedStudiesAreValid) {
-  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml"}) {
+  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml"}) {
     SCOPED_TRACE(name);
     qsdem::Study s;
     ASSERT_NO_THROW(s = qsdem::load_study(source_dir / "studies" / name));
@@ -264,6 +346,9 @@ TEST(Study, TinyStudyEndToEnd) {
   EXPECT_EQ(ids.size(), 8u);
   EXPECT_FALSE(fs::exists(ref.dir / "failures.json"));
   EXPECT_TRUE(fs::exists(ref.dir / "analysis" / "per_run.csv")) << "the study ends with the analysis";
+  EXPECT_EQ(nlohmann::json::parse(slurp(ref.dir / "analysis" / "analysis.json"))["study"]["qsdem_version"],
+            QSDEM_VERSION)
+      << "the exact source version (docs/runs.md)";
 }
 
 // Another study file for the same directory is refused before anything is touched.
@@ -420,7 +505,9 @@ TEST(Study, MpiRanksGiveTheSameResults) {
   ASSERT_TRUE(completed(r)) << "exit code " << r.code << "\n" << r.err << r.out;
   EXPECT_NE(r.err.find("[rank 1/2]"), std::string::npos) << r.err;
   EXPECT_EQ(slurp(dir / "study/study.json"), slurp(ref.dir / "study.json"));
-  for (const auto& run : manifest(ref.dir)["runs"]) {
+  const auto m = manifest(ref.dir);  // named: a range over a temporary's member would dangle
+  ASSERT_EQ(m["runs"].size(), 8u);
+  for (const auto& run : m["runs"]) {
     const std::string rel = run["dir"].get<std::string>() + "/series.csv";
     ASSERT_TRUE(fs::exists(dir / "study" / rel)) << rel;
     EXPECT_EQ(slurp(dir / "study" / rel), slurp(ref.dir / rel)) << rel;
@@ -430,5 +517,344 @@ TEST(Study, MpiRanksGiveTheSameResults) {
   const auto tables = analysis_tables(ref.dir);
   EXPECT_FALSE(tables.empty());
   EXPECT_EQ(analysis_tables(dir / "study"), tables);
+  fs::remove_all(dir);
+}
+
+namespace {
+
+// A one-run study of a copy of the tiny study's case, in `dir` (study.toml and case.toml).
+fs::path one_run_study(const fs::path& dir) {
+  write(dir / "case.toml", slurp(source_dir / "examples" / "spheres-A-small.toml"));
+  std::string text = slurp(tiny_study);
+  const auto replace = [&](const std::string& from, const std::string& to) {
+    const auto at = text.find(from);
+    if (at != std::string::npos) text.replace(at, from.size(), to);
+  };
+  replace("case = \"../examples/spheres-A-small.toml\"", "case = \"case.toml\"");
+  replace("models = [\"od\", \"nd\"]", "models = [\"nd\"]");
+  replace("damping_ratios = [\"0.2 %\", \"1 %\"]", "damping_ratios = [\"1 %\"]");
+  replace("strain_rates = [5e-6, 2.5e-6]", "strain_rates = [5e-6]");
+  write(dir / "study.toml", text);
+  return dir / "study.toml";
+}
+
+}  // namespace
+
+// A study continued after its case file or a prepared sample changed is refused: its runs would
+// mix two cases in one analysis. study.json records their FNV-1a hashes.
+TEST(StudyCli, RefusesAChangedCaseFileOrSample) {
+  const fs::path dir = fresh_dir("changed");
+  const fs::path file = one_run_study(dir);
+  const fs::path out = dir / "out";
+  Result r = study(file, out, dir / "log");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto m = manifest(out);
+  ASSERT_EQ(m["samples"].size(), 1u);
+  EXPECT_EQ(m["samples"][0]["case"], fs::weakly_canonical(dir / "case.toml").string());
+  EXPECT_EQ(m["samples"][0]["case_fnv1a64"].get<std::string>().size(), 16u);
+  ASSERT_TRUE(m["samples"][0].contains("compacted_fnv1a64"));
+  const std::string case_text = slurp(dir / "case.toml");
+  write(dir / "case.toml", case_text + "# edited\n");
+  r = study(file, out, dir / "log");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("case.toml"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("changed since this study recorded it"), std::string::npos) << r.err;
+  write(dir / "case.toml", case_text);
+  r = study(file, out, dir / "log");
+  EXPECT_EQ(r.code, 0) << "restored: " << r.err;
+  // The sample prepared anew with another seed, by hand.
+  const fs::path sample = out / m["samples"][0]["dir"].get<std::string>();
+  const Result again = run({binary, "prepare", (dir / "case.toml").string(), "--out", sample.string(), "--force",
+                            "--quiet", "--set",
+                            "sample.particles=[{shape=\"sphere\", diameter=\"2.4 mm\", count=60}, "
+                            "{shape=\"sphere\", diameter=\"2.0 mm\", count=60}]",
+                            "--set", "sample.total_particles=0", "--set", "sample.initial_solid_fraction=0.2", "--set",
+                            "compaction.max_strain_rate=1e-3", "--set", "sample.seed=2"},
+                           dir / "again");
+  ASSERT_EQ(again.code, 0) << again.err;
+  r = study(file, out, dir / "log");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("the prepared sample"), std::string::npos) << r.err;
+  fs::remove_all(dir);
+}
+
+// Two studies started at the same instant in one directory: one runs, the other is told that
+// another study is working there (not that the directory "holds no study.toml").
+TEST(StudyCli, TwoStudiesStartedAtOnce) {
+  const fs::path dir = fresh_dir("at-once");
+  const fs::path file = one_run_study(dir);
+  for (int trial = 0; trial < 2; ++trial) {
+    const fs::path out = dir / ("out" + std::to_string(trial));
+    const pid_t a = spawn({binary, "study", file.string(), "--out", out.string(), "--quiet"}, dir / "a");
+    const pid_t b = spawn({binary, "study", file.string(), "--out", out.string(), "--quiet"}, dir / "b");
+    const Result ra = finish(a, dir / "a"), rb = finish(b, dir / "b");
+    SCOPED_TRACE(ra.err + "\n" + rb.err);
+    EXPECT_EQ(std::min(ra.code, rb.code), 0);
+    EXPECT_EQ(std::max(ra.code, rb.code), 2);
+    const std::string& loser = ra.code == 2 ? ra.err : rb.err;
+    EXPECT_NE(loser.find("another `qsdem study` is working"), std::string::npos) << loser;
+  }
+  fs::remove_all(dir);
+}
+
+// A sample name names directories: one longer than a file name can be is refused at once.
+TEST(StudyCli, TooLongSampleNameIsRefused) {
+  const fs::path dir = fresh_dir("long-name");
+  const fs::path file = one_run_study(dir);
+  std::string text = slurp(file);
+  const std::string name = std::string(260, 'n');
+  text.replace(text.find("name = \"tiny\"\ncase"), std::string("name = \"tiny\"").size(), "name = \"" + name + "\"");
+  write(file, text);
+  try {
+    qsdem::load_study(file);
+    ADD_FAILURE() << "a 260-character sample name was accepted";
+  } catch (const qsdem::InputError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("sample.0.name"), std::string::npos) << what;
+    EXPECT_NE(what.find("260 characters: at most 200"), std::string::npos) << what;
+  }
+  fs::remove_all(dir);
+}
+
+// The model axis: a name as before (study.json unchanged), or a label with overrides, which come
+// after design.set; the manifest records the label, the case's damping model and the overrides.
+TEST(StudyCli, ModelEntriesWithLabelsAndOverrides) {
+  const fs::path dir = fresh_dir("labels");
+  write(dir / "s.toml", "[[sample]]\nname = \"A\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\n[design]\nmodels = [\"nd\", { label = \"nd-fast-sides\", set = [\"damping.model=nd\", "
+                            "\"triaxial.lateral_rate_factor=20\"] }, { label = \"case\" }]\n"
+                            "damping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+                            "set = [\"triaxial.lateral_rate_factor=5\"]\n");
+  const qsdem::Study s = qsdem::load_study(dir / "s.toml");
+  ASSERT_EQ(s.runs.size(), 3u);
+  const auto m = qsdem::study_manifest(s);
+  EXPECT_FALSE(m.contains("analysis")) << "no [analysis], no stages: study.json as before";
+  EXPECT_FALSE(m.contains("stages"));
+  EXPECT_EQ(m["runs"][0]["id"], "A-seed1/nd/xi-0.5%/rate-1e-05");
+  EXPECT_FALSE(m["runs"][0].contains("damping_model"));
+  EXPECT_EQ(m["runs"][1]["id"], "A-seed1/nd-fast-sides/xi-0.5%/rate-1e-05");
+  EXPECT_EQ(m["runs"][1]["model"], "nd-fast-sides");
+  EXPECT_EQ(m["runs"][1]["damping_model"], "nd");
+  EXPECT_EQ(m["runs"][1]["set"], nlohmann::json({"damping.model=nd", "triaxial.lateral_rate_factor=20"}));
+  EXPECT_EQ(m["runs"][2]["damping_model"], "nd") << "a label without overrides runs the case's own damping";
+  // The named model's override sits where it always did; the labelled entry's come last.
+  EXPECT_EQ(s.runs[0].sets, (std::vector<std::string>{"damping.model=nd", "damping.ratio=0.005",
+                                                      "triaxial.strain_rate=1e-05", "triaxial.lateral_rate_factor=5"}));
+  EXPECT_EQ(s.runs[1].sets.back(), "triaxial.lateral_rate_factor=20");
+  fs::remove_all(dir);
+}
+
+// The shipped staged study: its runs and steps as its header says.
+TEST(StudyCli, PaperFullStudyIsWhatItsHeaderSays) {
+  const qsdem::Study s = qsdem::load_study(source_dir / "studies/paper-full.toml");
+  ASSERT_EQ(s.stages.size(), 5u);
+  double steps0 = 0;
+  for (const auto& r : s.runs) steps0 += r.expected_steps;
+  EXPECT_EQ(s.runs.size(), 100u);  // sweep 96, table5 2, reference 2; slow and slowest are picked later
+  EXPECT_DOUBLE_EQ(steps0, 28'062'500);
+  EXPECT_EQ(s.stages[3].level, 1);
+  EXPECT_EQ(s.stages[4].level, 1);
+  EXPECT_EQ(s.analysis.baseline, "od");
+  EXPECT_TRUE(s.analysis.has_reference);
+}
+
+namespace {
+
+// A column of a series.csv, by header name.
+std::vector<double> column(const fs::path& csv, const std::string& name) {
+  std::ifstream in(csv);
+  std::string line;
+  std::getline(in, line);
+  std::stringstream hs(line);
+  std::size_t at = 0, k = 0;
+  for (std::string c; std::getline(hs, c, ','); ++k)
+    if (c == name) at = k;
+  std::vector<double> v;
+  while (std::getline(in, line)) {
+    std::stringstream ls(line);
+    std::string c;
+    for (std::size_t i = 0; i <= at; ++i) std::getline(ls, c, ',');
+    v.push_back(std::stod(c));
+  }
+  return v;
+}
+
+std::vector<std::string> stage_run_dirs(const nlohmann::json& m, const std::string& stage) {
+  std::vector<std::string> dirs;
+  for (const auto& r : m["runs"])
+    if (r.value("stage", std::string()) == stage) dirs.push_back(r["dir"]);
+  return dirs;
+}
+
+}  // namespace
+
+// studies/tiny-staged.toml: the sweep (and the reference) run first; then the optimum of each model
+// is picked from the sweep's finished runs, recorded in study.json, and run at the slower rate.
+TEST(StudyStages, PicksTheOptimumOfTheFinishedSweep) {
+  const Reference& ref = staged_reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const auto m = manifest(ref.dir);
+  ASSERT_EQ(m["stages"].size(), 3u);
+  const auto& slow = m["stages"][1];
+  EXPECT_EQ(slow["from"], "sweep");
+  ASSERT_EQ(slow["picks"].size(), 2u);
+  for (const auto& p : slow["picks"]) {
+    const std::string model = p["model"];
+    SCOPED_TRACE(model);
+    EXPECT_EQ(p["runs_used"], 3) << "the pick waits for the whole sweep";
+    // The sweep's mean IMom at its three ratios, through the optimum fit, to 2 significant digits.
+    std::vector<double> xi, imom;
+    for (const char* x : {"0.2", "0.5", "1"}) {
+      const auto s = nlohmann::json::parse(
+          slurp(ref.dir / fmt::format("runs/tiny-seed1/{}/xi-{}%/rate-5e-06/summary.json", model, x)));
+      xi.push_back(std::stod(x) / 100), imom.push_back(s["mean_imom"].get<double>());
+    }
+    const double opt = qsdem::fit_optimum(xi, imom).xi_opt;
+    EXPECT_DOUBLE_EQ(p["xi_opt"].get<double>(), opt);
+    const double picked = std::stod(fmt::format("{:.2g}", opt));
+    ASSERT_EQ(p["ratios"], nlohmann::json::array({picked}));
+    // The run at the picked ratio, at the stage's rate, with exactly that ratio.
+    const fs::path run = ref.dir / fmt::format("runs/tiny-seed1/{}/xi-{:g}%/rate-2.5e-06", model, 100 * picked);
+    ASSERT_TRUE(fs::exists(run / "summary.json")) << run;
+    const auto cfg = nlohmann::json::parse(slurp(run / "summary.json"))["config"]["resolved_si"];
+    EXPECT_EQ(cfg["damping"]["ratio"].get<double>(), picked);
+    EXPECT_EQ(cfg["damping"]["model"], model);
+  }
+  // The order on stderr: the first level finished, then the picks, then the second level.
+  const std::string& err = ref.result.err;
+  const auto first_done = err.find("runs of stage sweep, reference: 7/7 done, 0 running");
+  const auto picked = err.find("stage slow: tiny od: ");
+  const auto second = err.find("runs of stage slow: 0/2 done");
+  ASSERT_NE(first_done, std::string::npos) << err;
+  ASSERT_NE(picked, std::string::npos) << err;
+  EXPECT_LT(first_done, picked);
+  EXPECT_LT(picked, second);
+  // The labelled entry ran the case undamped.
+  const auto undamped = std::find_if(m["runs"].begin(), m["runs"].end(), [](const auto& r) { return r["model"] == "undamped"; });
+  ASSERT_NE(undamped, m["runs"].end());
+  EXPECT_EQ((*undamped)["damping_model"], "none");
+  EXPECT_EQ((*undamped)["stage"], "reference");
+  const fs::path ref_run = ref.dir / (*undamped)["dir"].get<std::string>();
+  EXPECT_EQ(nlohmann::json::parse(slurp(ref_run / "summary.json"))["config"]["resolved_si"]["damping"]["model"], "none");
+  // The damping dependence against the undamped run: one row per run; one RMS dphi by hand (both
+  // runs sample the same strains, so no interpolation is needed).
+  const std::string dev = slurp(ref.dir / "analysis" / "deviation.csv");
+  EXPECT_EQ(std::count(dev.begin(), dev.end(), '\n'), 10);
+  const fs::path run = ref.dir / "runs/tiny-seed1/od/xi-1%/rate-5e-06";
+  const auto e_ref = column(ref_run / "series.csv", "e1"), e_run = column(run / "series.csv", "e1");
+  ASSERT_EQ(e_ref, e_run);
+  const auto p_ref = column(ref_run / "series.csv", "phi_deg"), p_run = column(run / "series.csv", "phi_deg");
+  double sum = 0;
+  for (std::size_t k = 0; k < p_ref.size(); ++k) sum += (p_run[k] - p_ref[k]) * (p_run[k] - p_ref[k]);
+  const std::string row = dev.substr(dev.find("tiny-seed1/od/xi-1%/rate-5e-06,"));
+  std::vector<std::string> cells;
+  std::stringstream rs(row.substr(0, row.find('\n')));
+  for (std::string c; std::getline(rs, c, ',');) cells.push_back(c);
+  ASSERT_GT(cells.size(), 8u);
+  EXPECT_NEAR(std::stod(cells[8]), std::sqrt(sum / double(p_ref.size())), 1e-8 * std::stod(cells[8]));
+  const std::string md = slurp(ref.dir / "analysis" / "tables.md");
+  EXPECT_NE(md.find("### Stages of the design"), std::string::npos);
+  EXPECT_NE(md.find("### Damping ratios picked by later stages"), std::string::npos);
+  EXPECT_TRUE(fs::exists(ref.dir / "analysis/figures/stage_slow_tiny.png"));
+}
+
+// SIGTERM while the second stage runs: `qsdem study` again keeps the recorded picks, finishes the
+// stage and gives the uninterrupted study's study.json and series.
+TEST(StudyStages, KilledInTheSecondStageResumesToTheSameResults) {
+  const Reference& ref = staged_reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const auto m = manifest(ref.dir);
+  const std::vector<std::string> slow = stage_run_dirs(m, "slow");
+  ASSERT_EQ(slow.size(), 2u);
+  const fs::path dir = fresh_dir("staged-killed");
+  const fs::path out = dir / "study";
+  const pid_t pid = spawn({binary, "study", staged_study.string(), "--out", out.string()}, dir / "first");
+  const auto started = [&] {
+    for (const auto& d : slow) {
+      const fs::path p = out / d / "series.csv.partial";
+      if (!fs::exists(p) || fs::exists(out / d / "summary.json")) continue;
+      const std::string rows = slurp(p);
+      if (std::count(rows.begin(), rows.end(), '\n') <= 2) return true;
+    }
+    return false;
+  };
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(3);
+  while (!started() && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  ASSERT_TRUE(started()) << "the second stage never began";
+  ASSERT_EQ(::kill(pid, SIGTERM), 0);
+  const Result first = finish(pid, dir / "first");
+  EXPECT_EQ(first.code, 143) << first.err;
+  ASSERT_TRUE(manifest(out)["stages"][1].contains("picks"));
+  EXPECT_EQ(manifest(out)["stages"][1]["picks"], m["stages"][1]["picks"]) << "picked before the stage began";
+
+  const Result second = study(staged_study, out, dir / "second", false);
+  EXPECT_TRUE(completed(second)) << second.err;
+  EXPECT_EQ(second.err.find("now gives"), std::string::npos) << second.err;
+  EXPECT_EQ(slurp(out / "study.json"), slurp(ref.dir / "study.json"));
+  for (const auto& r : m["runs"]) {
+    const std::string rel = r["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(out / rel)) << rel;
+    EXPECT_EQ(slurp(out / rel), slurp(ref.dir / rel)) << rel;
+  }
+  EXPECT_EQ(analysis_tables(out), analysis_tables(ref.dir));
+  fs::remove_all(dir);
+}
+
+// A re-analysis whose optimum moved after the later stage ran (here: a sweep result edited) does
+// not mix: the stage keeps its recorded ratios and runs, `qsdem study` says so, the report flags it.
+TEST(StudyStages, ChangedOptimumIsFlaggedNotMixed) {
+  const Reference& ref = staged_reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const fs::path dir = fresh_dir("staged-changed");
+  const fs::path out = dir / "study";
+  fs::copy(ref.dir, out, fs::copy_options::recursive);
+  const auto m = manifest(out);
+  std::map<std::string, fs::file_time_type> mtimes;
+  for (const auto& r : m["runs"]) mtimes[r["dir"]] = fs::last_write_time(out / r["dir"].get<std::string>() / "summary.json");
+  // od's lowest index now at the smallest ratio: its optimum moves to the edge, 0.2 %.
+  const fs::path edited = out / "runs/tiny-seed1/od/xi-0.2%/rate-5e-06/summary.json";
+  auto s = nlohmann::json::parse(slurp(edited));
+  s["mean_imom"] = 1e-6;
+  write(edited, s.dump());
+  mtimes["runs/tiny-seed1/od/xi-0.2%/rate-5e-06"] = fs::last_write_time(edited);
+
+  const Result r = study(staged_study, out, dir / "log", false);
+  EXPECT_TRUE(completed(r)) << r.err;
+  EXPECT_NE(r.err.find("stage slow: the optimum of stage sweep for tiny od now gives 0.2 % (picked before: "),
+            std::string::npos)
+      << r.err;
+  EXPECT_EQ(manifest(out)["stages"][1]["picks"], m["stages"][1]["picks"]);
+  EXPECT_EQ(manifest(out)["runs"], m["runs"]) << "no run added or dropped";
+  for (const auto& [d, t] : mtimes) EXPECT_EQ(fs::last_write_time(out / d / "summary.json"), t) << d << " was run again";
+  const std::string md = slurp(out / "analysis" / "tables.md");
+  EXPECT_NE(md.find("CHANGED: the optimum now gives 0.2 %"), std::string::npos) << md;
+  fs::remove_all(dir);
+}
+
+// `mpirun -np 2` on a staged study: every rank takes the picks rank 0 made, and the results are
+// those of one process.
+TEST(StudyStages, MpiRanksRunTheStagesAlike) {
+  if (std::system("command -v mpirun > /dev/null 2>&1") != 0) GTEST_SKIP() << "mpirun is not installed";
+  const Reference& ref = staged_reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const fs::path dir = fresh_dir("staged-mpi");
+  ::setenv("OMPI_ALLOW_RUN_AS_ROOT", "1", 1);
+  ::setenv("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1", 1);
+  const Result r = run({"mpirun", "-np", "2", "--oversubscribe", binary, "study", staged_study.string(), "--out",
+                        (dir / "study").string()},
+                       dir / "log");
+  ASSERT_TRUE(completed(r)) << "exit code " << r.code << "\n" << r.err << r.out;
+  EXPECT_EQ(slurp(dir / "study/study.json"), slurp(ref.dir / "study.json"));
+  const auto m = manifest(ref.dir);  // named: a range over a temporary's member would dangle
+  ASSERT_EQ(m["runs"].size(), 9u);
+  for (const auto& run : m["runs"]) {
+    const std::string rel = run["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(dir / "study" / rel)) << rel;
+    EXPECT_EQ(slurp(dir / "study" / rel), slurp(ref.dir / rel)) << rel;
+    // Run once, by one rank: one start in its log.
+    const std::string log = slurp(dir / "study" / run["dir"].get<std::string>() / "run.log");
+    EXPECT_EQ(log.find("=== qsdem"), log.rfind("=== qsdem")) << rel << " started more than once";
+    EXPECT_NE(log.find("=== qsdem"), std::string::npos) << rel;
+  }
   fs::remove_all(dir);
 }

@@ -12,6 +12,8 @@
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <limits>
+#include <map>
 #include <random>
 #include <regex>
 #include <sstream>
@@ -186,6 +188,7 @@ void write_synthetic_study(const fs::path& dir, const std::vector<std::string>& 
   json m;
   m["name"] = "synthetic-test";
   m["study_file"] = "study.toml";
+  m["analysis"] = {{"baseline", "od"}};  // the paper's ND/OD (the default would be nd, listed first)
   m["samples"] = json::array();
   m["runs"] = json::array();
   for (const auto& s : samples) m["samples"].push_back({{"name", s}, {"seed", 1}, {"dir", "samples/" + s + "-seed1"}});
@@ -302,11 +305,17 @@ TEST_F(StudyAnalysisStudy, RecoversOptimaPowerLawsAndQuasiStaticRates) {
       EXPECT_EQ((*l)["paper"].is_null(), std::string(s) == "Other");
     }
   EXPECT_DOUBLE_EQ((*law("A-syn", "nd"))["paper"]["a"].get<double>(), 629.92);
+  EXPECT_EQ(a["improvements"].size(), 2u);  // nd over the baseline od, per sample
   for (const json& im : a["improvements"]) {
     const std::string s = im["sample"];
+    EXPECT_EQ(im["model"], "nd");
+    EXPECT_EQ(im["baseline"], "od");
     const double expect = std::pow(1e-3 / truth(s, "nd").a, 1 / truth(s, "nd").b) /
                           std::pow(1e-3 / truth(s, "od").a, 1 / truth(s, "od").b);
     EXPECT_NEAR(im["improvement"].get<double>() / expect, 1.0, 1e-6) << s;
+    // The paper's ND/OD next to ours for a sample named A* (Table 4), none for another name.
+    if (s == "A-syn") EXPECT_DOUBLE_EQ(im["paper_improvement"].get<double>(), 2.35);
+    else EXPECT_TRUE(im["paper_improvement"].is_null());
   }
   // Ekin/eps'^2 = 1.3e10 J (1 + mean e1) for every run; mean e1 over rows i/60 * 0.1 = 0.05 (61/60).
   for (const json& r : a["runs"]) {
@@ -413,4 +422,279 @@ TEST(StudyAnalysisGnuplot, MissingGnuplotIsAClearError) {
   EXPECT_NE(md.find("| B5 | 0.05 | 1e-05 |"), std::string::npos);
   EXPECT_NE(md.find("| B7 | 5 | 1e-07 |"), std::string::npos);
   fs::remove_all(d);
+}
+
+// --- the damping dependence: deviation of a curve from the reference's ------------------------
+
+namespace {
+
+// Sample points of a triaxial test: e1 = step, 2 step, ..., n step.
+std::vector<double> strains(double step, int n) {
+  std::vector<double> e;
+  for (int i = 1; i <= n; ++i) e.push_back(step * i);
+  return e;
+}
+
+double phi_curve(double e1) { return 25 * (1 - std::exp(-e1 / 0.01)); }  // a mobilised friction angle (deg)
+
+const std::vector<double> table_strains = {0.02, 0.05, 0.10};
+
+}  // namespace
+
+// A constant offset on the reference's own strains comes back exactly, whatever the curve.
+TEST(StudyAnalysisDeviation, ConstantOffsetOnTheSameStrainsIsExact) {
+  const std::vector<double> e = strains(0.0004, 250);  // SPEC 8: every 0.04 % to 10 %
+  std::vector<double> ref, run;
+  for (double x : e) ref.push_back(phi_curve(x)), run.push_back(phi_curve(x) + 1.5);
+  const auto d = qsdem::curve_deviation(e, ref, e, run, table_strains);
+  EXPECT_EQ(d.n, 250);
+  EXPECT_NEAR(d.rms, 1.5, 1e-12);
+  ASSERT_EQ(d.at.size(), 3u);
+  for (double x : d.at) EXPECT_NEAR(x, 1.5, 1e-12);
+  EXPECT_DOUBLE_EQ(d.e1_hi, 0.1);
+}
+
+// Straight lines are interpolated exactly: on other strains, and over the common range only, the
+// RMS is that of the difference line at the reference's strains, in closed form.
+TEST(StudyAnalysisDeviation, LinesOnOtherStrainsGiveTheClosedFormRms) {
+  const std::vector<double> er = strains(0.0004, 250);  // reference to 10 %
+  const std::vector<double> e = strains(0.0005, 190);   // run to 9.5 %, other strains
+  std::vector<double> ref, run;
+  for (double x : er) ref.push_back(30 - 100 * x);
+  for (double x : e) run.push_back(32 - 50 * x);  // difference 2 + 50 e1
+  const auto d = qsdem::curve_deviation(er, ref, e, run, table_strains);
+  // Reference points in [0.0005, 0.095]: e1 = 0.0004 i for i = 2 ... 237.
+  const double a = 2, b = 50 * 0.0004, i0 = 2, i1 = 237, n = i1 - i0 + 1;
+  const auto sum_i = [](double k) { return k * (k + 1) / 2; };
+  const auto sum_i2 = [](double k) { return k * (k + 1) * (2 * k + 1) / 6; };
+  const double si = sum_i(i1) - sum_i(i0 - 1), si2 = sum_i2(i1) - sum_i2(i0 - 1);
+  const double mean_square = (n * a * a + 2 * a * b * si + b * b * si2) / n;  // sum (a + b i)^2 / n
+  EXPECT_EQ(d.n, 236);
+  EXPECT_NEAR(d.rms, std::sqrt(mean_square), 1e-11);
+  EXPECT_NEAR(d.at[0], 3.0, 1e-11);   // 2 + 50 x 2 %
+  EXPECT_NEAR(d.at[1], 4.5, 1e-11);   // 2 + 50 x 5 %
+  EXPECT_TRUE(std::isnan(d.at[2]));   // 10 % is past the run's end
+  EXPECT_DOUBLE_EQ(d.e1_lo, 0.0005);
+  EXPECT_DOUBLE_EQ(d.e1_hi, 0.095);
+}
+
+// A curved response on coarser strains: linear interpolation errs by at most h^2/8 max|y''|
+// (h = 0.1 %, y'' <= 25 / 0.01^2: 0.031 degrees), so the RMS of a 2-degree offset is 2 within it.
+TEST(StudyAnalysisDeviation, CurvedResponseOnCoarserStrainsWithinInterpolationError) {
+  const std::vector<double> er = strains(0.0004, 250), e = strains(0.001, 100);
+  std::vector<double> ref, run;
+  for (double x : er) ref.push_back(phi_curve(x));
+  for (double x : e) run.push_back(phi_curve(x) + 2);
+  const auto d = qsdem::curve_deviation(er, ref, e, run, table_strains);
+  const double bound = 0.001 * 0.001 / 8 * 25 / (0.01 * 0.01);
+  EXPECT_LE(std::abs(d.rms - 2), bound);
+  for (double x : d.at) EXPECT_LE(std::abs(x - 2), bound);
+}
+
+// Input order does not matter, non-finite points are skipped, disjoint ranges give NaN.
+TEST(StudyAnalysisDeviation, OrderNanAndDisjointRanges) {
+  std::vector<double> e = strains(0.001, 20), ref, run;
+  for (double x : e) ref.push_back(x), run.push_back(x + 0.25);
+  std::vector<double> er(e.rbegin(), e.rend()), rr(ref.rbegin(), ref.rend());
+  run[3] = std::numeric_limits<double>::quiet_NaN();
+  const auto d = qsdem::curve_deviation(er, rr, e, run, table_strains);
+  EXPECT_NEAR(d.rms, 0.25, 1e-12);
+  EXPECT_NEAR(d.at[0], 0.25, 1e-12);
+  const std::vector<double> later = {0.5, 0.6}, y = {1, 2};
+  const auto none = qsdem::curve_deviation(e, ref, later, y, table_strains);
+  EXPECT_EQ(none.n, 0);
+  EXPECT_TRUE(std::isnan(none.rms));
+}
+
+// --- picking a later stage's damping ratios ---------------------------------------------------
+
+TEST(StudyAnalysisPick, OptimumRoundedAndItsSampledNeighbours) {
+  qsdem::StageOptimum o;
+  o.xi_opt = 0.0051234;
+  o.sampled = {0.001, 0.002, 0.005, 0.006, 0.01};
+  EXPECT_EQ(qsdem::pick_ratios(o, "optimum", 2), std::vector<double>{0.0051});
+  EXPECT_EQ(qsdem::pick_ratios(o, "optimum", 3), std::vector<double>{0.00512});
+  EXPECT_EQ(qsdem::pick_ratios(o, "optimum+neighbours", 2), (std::vector<double>{0.005, 0.0051, 0.006}));
+  // Rounded onto a sampled ratio: its neighbours are the next ones.
+  o.xi_opt = 0.00502;
+  EXPECT_EQ(qsdem::pick_ratios(o, "optimum+neighbours", 2), (std::vector<double>{0.002, 0.005, 0.006}));
+  // At the edge of the sampled range: one neighbour.
+  o.xi_opt = 0.001;
+  EXPECT_EQ(qsdem::pick_ratios(o, "optimum+neighbours", 2), (std::vector<double>{0.001, 0.002}));
+  o.xi_opt = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_TRUE(qsdem::pick_ratios(o, "optimum", 2).empty());
+}
+
+// One sampled ratio at a rate (a stage that ran only a picked optimum) is its own value, not an
+// optimum at the edge of a range.
+TEST(StudyAnalysisFit, OneRatioIsASingleValue) {
+  const std::vector<double> xi = {0.0042}, y = {0.0044};
+  const auto f = qsdem::fit_optimum(xi, y);
+  EXPECT_EQ(f.method, "single");
+  EXPECT_FALSE(f.at_edge);
+  EXPECT_DOUBLE_EQ(f.xi_opt, 0.0042);
+  EXPECT_DOUBLE_EQ(f.index_at_opt, 0.0044);
+}
+
+// --- the damping dependence through `qsdem analyze` on a synthetic study ----------------------
+
+namespace {
+
+// Sample S, seeds 1 and 2; models none (xi 0) and nd (0.2 % and 0.8 %) at eps' 1e-6 and 1e-7.
+// Every curve is the reference's plus a known offset: dphi = 200 xi (+3 for none at 1e-6),
+// dev = 0.5 xi, dCn = 100 xi; seed 2's curves all lie 0.3 degrees above seed 1's. Mean IMom: nd
+// 0.05 % at 1e-7, 0.5 % at 1e-6; none 2 %.
+struct DampingRun {
+  std::string model;
+  double xi, rate;
+  long seed;
+};
+
+std::vector<DampingRun> damping_runs() {
+  std::vector<DampingRun> v;
+  for (long seed : {1L, 2L})
+    for (double rate : {1e-6, 1e-7}) {
+      v.push_back({"none", 0.0, rate, seed});
+      for (double xi : {0.002, 0.008}) v.push_back({"nd", xi, rate, seed});
+    }
+  return v;
+}
+
+std::string damping_id(const DampingRun& r) {
+  return fmt::format("S-seed{}/{}/xi-{:g}%/rate-{:g}", r.seed, r.model, 100 * r.xi, r.rate);
+}
+
+double dphi(const DampingRun& r) { return 200 * r.xi + (r.model == "none" && r.rate == 1e-6 ? 3 : 0) + (r.seed == 2 ? 0.3 : 0); }
+
+void write_damping_study(const fs::path& dir) {
+  json m = {{"name", "damping-test"}, {"study_file", "study.toml"}};
+  m["analysis"] = {{"imom_target", 0.001},     {"reference", {{"model", "none"}}}, {"phi_tolerance_deg", 1.0},
+                   {"ev_tolerance", 0.005},    {"cn_tolerance", 0.5}};
+  m["samples"] = json::array({{{"name", "S"}, {"seed", 1}, {"dir", "samples/S-seed1"}},
+                              {{"name", "S"}, {"seed", 2}, {"dir", "samples/S-seed2"}}});
+  m["runs"] = json::array();
+  for (const DampingRun& r : damping_runs()) {
+    const std::string id = damping_id(r), rdir = "runs/" + id;
+    m["runs"].push_back({{"id", id}, {"sample", "S"}, {"seed", r.seed}, {"model", r.model}, {"xi", r.xi},
+                         {"rate", r.rate}, {"dir", rdir}});
+    std::string csv = "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
+                      "ekin_trans_J,ekin_rot_J\n";
+    for (double e1 : strains(0.0004, 250)) {
+      const double ev = -0.01 * e1 + e1 * e1 + 0.5 * r.xi, cn = 0.4 + e1 + 100 * r.xi;
+      csv += fmt::format("0,0,{:.17g},{:.17g},1,1,1,1,1,{:.17g},0.6,{:.17g},0.01,0.01,0.01,1e-6,5e-7,5e-7\n", e1, ev,
+                         phi_curve(e1) + dphi(r), cn);
+    }
+    spit(dir / rdir / "series.csv", csv);
+    const double imom = r.model == "none" ? 0.02 : r.rate == 1e-7 ? 0.0005 : 0.005;
+    spit(dir / rdir / "summary.json", json{{"mean_imom", imom}, {"mean_ufr", 2 * imom}, {"steps", 1000}}.dump());
+  }
+  spit(dir / "study.json", m.dump(2));
+  spit(dir / "study.toml", "name = \"damping-test\"\n");
+}
+
+// deviation.csv by header name: id -> column -> cell.
+std::map<std::string, std::map<std::string, std::string>> read_csv(const fs::path& p) {
+  std::ifstream in(p);
+  std::string line;
+  std::getline(in, line);
+  std::vector<std::string> head;
+  std::stringstream hs(line);
+  for (std::string c; std::getline(hs, c, ',');) head.push_back(c);
+  std::map<std::string, std::map<std::string, std::string>> out;
+  while (std::getline(in, line)) {
+    std::stringstream ls(line);
+    std::map<std::string, std::string> row;
+    std::string c;
+    for (std::size_t k = 0; k < head.size() && std::getline(ls, c, ','); ++k) row[head[k]] = c;
+    out[row["id"]] = row;
+  }
+  return out;
+}
+
+}  // namespace
+
+TEST(StudyAnalysisDamping, QsdemAnalyzeGivesDeviationsAndVerdicts) {
+  const fs::path dir = fresh_temp_dir("analysis-damping");
+  write_damping_study(dir);
+  const std::string cmd = fmt::format("'{}' analyze '{}' > '{}/log' 2>&1", QSDEM_BINARY, dir.string(), dir.string());
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << slurp(dir / "log");
+  const auto rows = read_csv(dir / "analysis" / "deviation.csv");
+  ASSERT_EQ(rows.size(), damping_runs().size());
+  for (const DampingRun& r : damping_runs()) {
+    const std::string id = damping_id(r);
+    SCOPED_TRACE(id);
+    const auto& row = rows.at(id);
+    // The reference: none, of the same seed, at the slowest rate (1e-7), not the none at 1e-6.
+    const DampingRun ref{"none", 0.0, 1e-7, r.seed};
+    EXPECT_EQ(row.at("reference"), damping_id(ref));
+    const double want_phi = dphi(r) - dphi(ref), want_ev = 0.5 * r.xi, want_cn = 100 * r.xi;
+    EXPECT_NEAR(std::stod(row.at("phi_deg_rms")), std::abs(want_phi), 1e-9);
+    EXPECT_NEAR(std::stod(row.at("ev_rms")), want_ev, 1e-12);
+    EXPECT_NEAR(std::stod(row.at("cn_rms")), want_cn, 1e-9);
+    for (const char* at : {"phi_deg_at_2pct", "phi_deg_at_5pct", "phi_deg_at_10pct"})
+      EXPECT_NEAR(std::stod(row.at(at)), want_phi, 1e-9) << at;
+    // Quasi-static: IMom under 0.1 % and every deviation within its tolerance.
+    const bool imom_ok = r.model != "none" && r.rate == 1e-7;
+    const bool qs = imom_ok && std::abs(want_phi) <= 1.0 && want_ev <= 0.005 && want_cn <= 0.5;
+    EXPECT_EQ(row.at("quasi_static"), qs ? "true" : "false") << row.at("verdict");
+  }
+  EXPECT_EQ(rows.at(damping_id({"nd", 0.002, 1e-7, 1})).at("verdict"), "quasi-static");
+  EXPECT_NE(rows.at(damping_id({"nd", 0.008, 1e-7, 1})).at("verdict").find("RMS Δφ 1.6° > 1°"), std::string::npos);
+  EXPECT_NE(rows.at(damping_id({"nd", 0.002, 1e-6, 1})).at("verdict").find("mean IMom 0.5 % ≥ 0.1 %"), std::string::npos);
+  const json a = json::parse(slurp(dir / "analysis" / "analysis.json"));
+  // The scatter between the two seeds' reference runs: 0.3 degrees of phi, nothing else.
+  const json& sc = a["damping_dependence"]["seed_scatter"];
+  ASSERT_EQ(sc.size(), 1u);
+  EXPECT_NEAR(sc[0]["phi_deg"].get<double>(), 0.3, 1e-9);
+  EXPECT_NEAR(sc[0]["ev"].get<double>(), 0.0, 1e-15);
+  EXPECT_EQ(a["settings"]["baseline"], "none") << "default: the first model of the design";
+  bool drawn = false;
+  for (const json& f : a["figures"])
+    if (f["name"] == "deviation_S") drawn = f["drawn"].get<bool>();
+  EXPECT_TRUE(drawn);
+  const std::string md = slurp(dir / "analysis" / "tables.md");
+  EXPECT_NE(md.find("Damping dependence: deviation from the reference run"), std::string::npos);
+  EXPECT_NE(md.find("Reference runs and the scatter between seeds"), std::string::npos);
+  fs::remove_all(dir);
+}
+
+// Without a reference the damping dependence is not assessed, and the report says so.
+TEST_F(StudyAnalysisStudy, NoReferenceNoDampingDependence) {
+  EXPECT_TRUE((*result_)["damping_dependence"].is_null());
+  EXPECT_FALSE(fs::exists(*dir_ / "analysis" / "deviation.csv"));
+  EXPECT_NE(slurp(*dir_ / "report.html").find("No reference run is named"), std::string::npos);
+}
+
+// The committed small study (docs/results) holds no run directories, only its analysis: rebuilt
+// from the per-run means of its analysis.json (a summary.json per finished run, and a one-row
+// series.csv holding the run's mean kinetic energy), it analyses to the committed optimum.csv and
+// power_law.csv byte for byte: no number of docs/results moves with the analysis code.
+TEST(StudyAnalysisResults, CommittedSmallStudyReanalysesToTheSameFits) {
+  const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results";
+  if (!fs::exists(results / "analysis" / "analysis.json")) GTEST_SKIP() << "no committed analysis";
+  const fs::path dir = fresh_temp_dir("analysis-results");
+  for (const char* f : {"study.json", "study.toml"}) fs::copy_file(results / f, dir / f);
+  const json committed = json::parse(slurp(results / "analysis" / "analysis.json"));
+  int rebuilt = 0;
+  for (const json& r : committed["runs"]) {
+    if (!r["finished"].get<bool>()) continue;
+    json s;
+    for (const char* k : {"mean_imom", "mean_ufr", "mean_iuf", "peak_phi_deg", "final_ev", "steps", "wall_s",
+                          "particle_steps_per_s"})
+      s[k] = r[k];
+    s["derived"] = {{"particles", r["particles"]}};
+    const fs::path rd = dir / r["dir"].get<std::string>();
+    spit(rd / "summary.json", s.dump());
+    spit(rd / "series.csv",
+         "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,ekin_trans_J,"
+         "ekin_rot_J\n0,0,0.01,0,1,1,1,1,1,20,0.6,2,0.01,0.01,0.01," +
+             fmt::format("{}", r["mean_ekin_J"].get<double>()) + ",0,0\n");
+    ++rebuilt;
+  }
+  EXPECT_EQ(rebuilt, committed["counts"]["finished"].get<int>());
+  const json a = qsdem::analyze_study(dir);
+  EXPECT_EQ(a["counts"]["finished"], committed["counts"]["finished"]);
+  for (const char* f : {"optimum.csv", "power_law.csv"})
+    EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
+  fs::remove_all(dir);
 }

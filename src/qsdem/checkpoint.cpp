@@ -113,6 +113,27 @@ void io_particles(IO& io, P& p, std::uint32_t version) {
   });
 }
 
+// TriaxialSums field by field (before format 5: the struct's raw bytes, 4 bytes of padding after
+// `rows` on LP64, and no wall time).
+template <class IO, class T>
+void io_sums(IO& io, T& s, std::uint32_t version) {
+  io.pod(s.rows);
+  if (version < 5) {
+    std::uint32_t padding = 0;
+    io.pod(padding);
+  }
+  io.pod(s.ufr);
+  io.pod(s.iuf);
+  io.pod(s.imom);
+  io.pod(s.lateral_error);
+  io.pod(s.max_lateral_error);
+  io.pod(s.peak_phi_deg);
+  io.pod(s.peak_phi_e1);
+  io.pod(s.final_ev);
+  io.pod(s.final_e1);
+  if (version >= 5) io.pod(s.wall_s);
+}
+
 template <class IO, class R>
 void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
   io.pod(r.phase);
@@ -140,16 +161,22 @@ void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
   io.pod(m.volume);
   io.pod(m.solid_volume);
   io.pod(m.void_ratio);
-  io.pod(r.sums);
+  io_sums(io, r.sums, version);
   io.pod(r.wall_s);
   if (version >= 2) io.pod(r.first_step);
+  if (version >= 5) {
+    io.pod(r.prepare_only);
+    io.str(r.changes);
+  }
 }
 
-// The contact history's layout, by its name (contact/law.hpp) from format 5 on; the formats
+// The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats
 // before hold Hertz-Mindlin's tangential force.
-void io_history_layout(Writer& w, const PairHistory& h, std::uint32_t) { w.str(std::string(h.layout->name)); }
+void io_history_layout(Writer& w, const PairHistory& h, std::uint32_t version) {
+  if (version >= 6) w.str(std::string(h.layout->name));
+}
 void io_history_layout(Reader& r, PairHistory& h, std::uint32_t version) {
-  if (version < 5) {
+  if (version < 6) {
     h.layout = &HertzMindlin::history;
     return;
   }
@@ -220,21 +247,24 @@ std::uint64_t fnv1a64(const void* data, std::size_t size) {
 }
 
 void save_checkpoint(const std::filesystem::path& path, const std::string& case_text, const std::string& case_source,
-                     const State& state, const RunProgress& run) {
+                     const State& state, const RunProgress& run, std::uint32_t format) {
   Writer w;
   w.str(case_text);
   w.str(case_source);
-  io_run(w, run);
-  io_state(w, state);
+  io_run(w, run, format);
+  io_state(w, state, format);
   const std::uint64_t size = w.out.size();
   const std::uint64_t sum = fnv1a64(w.out.data(), w.out.size());
 
   std::filesystem::path tmp = path;
   tmp += ".tmp";
   const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  if (fd < 0) throw RunError(fmt::format("cannot write checkpoint '{}': {}", tmp.string(), std::strerror(errno)));
+  const bool has_previous = std::filesystem::exists(path);
+  const char* kept = has_previous ? "the previous checkpoint is kept" : "there is no earlier checkpoint";
+  if (fd < 0)
+    throw RunError(fmt::format("cannot write checkpoint '{}': {}; {}", tmp.string(), std::strerror(errno), kept));
   std::vector<char> head(header_size);
-  const std::uint32_t version = checkpoint_format_version, reserved = 0;
+  const std::uint32_t version = format, reserved = 0;
   std::memcpy(head.data(), magic, 8);
   std::memcpy(head.data() + 8, &version, 4);
   std::memcpy(head.data() + 12, &reserved, 4);
@@ -254,8 +284,7 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   ::close(fd);
   if (!ok) {
     std::filesystem::remove(tmp);
-    throw RunError(fmt::format("writing checkpoint '{}' failed ({}); the previous checkpoint is kept", tmp.string(),
-                               std::strerror(saved_errno)));
+    throw RunError(fmt::format("writing checkpoint '{}' failed: {}; {}", tmp.string(), std::strerror(saved_errno), kept));
   }
   std::filesystem::path prev = path;
   prev += ".prev";
@@ -263,12 +292,13 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   // every instant `path` names a whole checkpoint (renaming path to .prev first left a window in
   // which a SIGKILL found none). Without hard links (some file systems), rename as before.
   std::error_code ec;
-  if (std::filesystem::exists(path)) {
+  if (has_previous) {
     std::filesystem::remove(prev, ec);
     std::filesystem::create_hard_link(path, prev, ec);
     if (ec) std::filesystem::rename(path, prev, ec);
   }
-  std::filesystem::rename(tmp, path);
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) throw RunError(fmt::format("renaming '{}' to '{}' failed: {}; {}", tmp.string(), path.string(), ec.message(), kept));
   fsync_dir(path.parent_path());
 }
 

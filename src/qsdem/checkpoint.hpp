@@ -12,8 +12,10 @@
 namespace qsdem {
 
 // 2: skip state of apart pairs; 3: the same for runs of spheres only (fluctuation_path); 4: the
-// fluctuation_path of runs with ellipsoids too (the skin test's motion bound)
-inline constexpr std::uint32_t checkpoint_format_version = 5;
+// fluctuation_path of runs with ellipsoids too (the skin test's motion bound); 5: the triaxial
+// sums field by field with their wall time, the prepare flag and the `resume --set` changes; 6: the
+// contact history named by its law's layout
+inline constexpr std::uint32_t checkpoint_format_version = 6;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides
@@ -22,8 +24,11 @@ struct Checkpoint {
   State state;
 };
 
+// `format`: an older format version can be written for tests of the reader (a run writes the
+// current one).
 void save_checkpoint(const std::filesystem::path& path, const std::string& case_text, const std::string& case_source,
-                     const State& state, const RunProgress& run);
+                     const State& state, const RunProgress& run,
+                     std::uint32_t format = checkpoint_format_version);
 
 // Reads and verifies one checkpoint file; throws InputError saying what is wrong with it
 // (missing, truncated, not a checkpoint, other format version, checksum mismatch).

@@ -2,7 +2,11 @@
 
 #include <fmt/format.h>
 
+#include <cctype>
+#include <cerrno>
 #include <cmath>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <functional>
 #include <set>
@@ -95,6 +99,14 @@ void apply_override(toml::table& root, const std::string& assignment) {
   }
 }
 
+// Shortest round trip (0.7, not 0.69999999999999996), with ".0" on a whole number: a float
+// written 7284.0 is not shown as the integer 7284.
+std::string format_float(double v) {
+  std::string t = fmt::format("{}", v);
+  if (std::isfinite(v) && t.find_first_of(".eE") == std::string::npos) t += ".0";
+  return t;
+}
+
 std::string describe(const toml::node& n) {
   std::ostringstream os;
   if (n.is_string())
@@ -104,7 +116,7 @@ std::string describe(const toml::node& n) {
   else if (n.is_array())
     os << "(an array)";
   else if (n.is_floating_point())
-    os << fmt::format("{}", *n.value<double>());  // shortest round trip: 0.7, not 0.69999999999999996
+    os << format_float(*n.value<double>());
   else
     n.visit([&](auto&& v) { os << v; });
   return os.str();
@@ -159,9 +171,13 @@ class Reader {
       }
       fail(path, nullptr, why);
     }
+    asked_.insert(path);
     if (n) used_.insert(path);
     return n;
   }
+
+  // Every key some reader asked for, found or not (case_keys).
+  const std::set<std::string>& asked() const { return asked_; }
 
   using Check = std::function<bool(double)>;
 
@@ -199,7 +215,12 @@ class Reader {
   long integer(const std::string& path, std::optional<long> def, long lo, long hi) {
     const toml::node* n = get(path, !def.has_value());
     if (!n) return *def;
-    if (!n->is_integer()) fail(path, n, "expected an integer");
+    if (!n->is_integer()) {
+      const double d = n->is_floating_point() ? *n->value<double>() : 0.5;
+      fail(path, n, d == std::floor(d) && std::abs(d) < 1e15
+                        ? fmt::format("expected a whole number written without a decimal point: {}", long(d))
+                        : std::string("expected a whole number (an integer), e.g. 100"));
+    }
     const long v = static_cast<long>(*n->value<std::int64_t>());
     if (v < lo || v > hi) fail(path, n, fmt::format("out of range: must be in [{}, {}]", lo, hi));
     return v;
@@ -281,6 +302,7 @@ class Reader {
   const toml::table& root_;
   std::string source_;
   std::set<std::string> used_;
+  std::set<std::string> asked_;
 };
 
 const auto positive = [](double v) { return v > 0; };
@@ -320,17 +342,22 @@ ContactSettings read_contact(Reader& r) {
   return c;
 }
 
+// Particle sizes qsdem accepts: from 1 nm to 1 km. Outside, masses and inertias of a double run
+// out of range (a 1e-320 m sphere has a mass of 0) long before the physics has a meaning.
+constexpr double min_particle_size = 1e-9, max_particle_size = 1e3;
+bool particle_size(double v) { return v >= min_particle_size && v <= max_particle_size; }
+
 SizeClass read_size_class(Reader& r, const std::string& p) {
   SizeClass c;
   const std::string shape = r.text(p + ".shape", std::string("sphere"), {"sphere", "spheroid", "ellipsoid"});
-  const std::string allowed = "must be > 0";
+  const std::string allowed = "must be from 1 nm to 1 km";
   if (shape == "sphere") {
-    const double d = r.quantity(p + ".diameter", Dimension::length, std::nullopt, positive, allowed);
+    const double d = r.quantity(p + ".diameter", Dimension::length, std::nullopt, particle_size, allowed);
     c.shape = ShapeKind::sphere;
     c.semi_axes = Vec3::Constant(d / 2);
   } else if (shape == "spheroid") {
-    const double a = r.quantity(p + ".major_semi_axis", Dimension::length, std::nullopt, positive, allowed);
-    const double b = r.quantity(p + ".minor_semi_axis", Dimension::length, std::nullopt, positive, allowed);
+    const double a = r.quantity(p + ".major_semi_axis", Dimension::length, std::nullopt, particle_size, allowed);
+    const double b = r.quantity(p + ".minor_semi_axis", Dimension::length, std::nullopt, particle_size, allowed);
     if (a < b) r.fail(p + ".major_semi_axis", r.find(p + ".major_semi_axis"),
                       "the major semi-axis must be >= the minor one (prolate spheroid, SPEC 2)");
     c.shape = a == b ? ShapeKind::sphere : ShapeKind::ellipsoid;
@@ -347,7 +374,7 @@ SizeClass read_size_class(Reader& r, const std::string& p) {
       } catch (const InputError& err) {
         r.fail(p + ".semi_axes", n, err.what());
       }
-      if (!(c.semi_axes[k] > 0)) r.fail(p + ".semi_axes", n, "semi-axes must be > 0");
+      if (!particle_size(c.semi_axes[k])) r.fail(p + ".semi_axes", n, "each semi-axis must be from 1 nm to 1 km");
     }
     if (!(c.semi_axes[0] >= c.semi_axes[1] && c.semi_axes[1] >= c.semi_axes[2]))
       r.fail(p + ".semi_axes", n, "order them a >= b >= c (SPEC 2)");
@@ -365,8 +392,11 @@ nlohmann::json to_json(const toml::table& tbl) {
 
 }  // namespace
 
-Params parse_case(const std::string& toml_text, const std::string& source,
-                  const std::vector<std::string>& overrides) {
+namespace {
+
+// parse_case; `asked`, when given, receives every key the parser asked for.
+Params parse(const std::string& toml_text, const std::string& source, const std::vector<std::string>& overrides,
+             const std::filesystem::path& base_dir, std::set<std::string>* asked) {
   toml::table root;
   try {
     root = toml::parse(toml_text, source);
@@ -391,6 +421,18 @@ Params parse_case(const std::string& toml_text, const std::string& source,
                                              [](double v) { return v > 0 && v <= 0.2; }, "must be in (0, 0.2] (SPEC 8: a loose sample)");
   p.sample.total_particles = r.integer("sample.total_particles", 0, 0, 100'000'000);
   p.sample.from = r.text("sample.from", std::string(), {});
+  if (!p.sample.from.empty()) {
+    // In the case file: relative to the case file's directory (as study paths are to the study
+    // file); on the command line (--set): relative to the working directory. Kept absolute, in
+    // the case text too, so that a resume elsewhere names the same sample.
+    namespace fs = std::filesystem;
+    const auto& src = r.find("sample.from")->source();
+    const bool in_file = src.path && *src.path == source;
+    fs::path from = p.sample.from;
+    if (from.is_relative() && in_file) from = base_dir / from;
+    p.sample.from = fs::absolute(from).lexically_normal().string();
+    root["sample"].as_table()->insert_or_assign("from", p.sample.from);
+  }
   // A given sample replaces the generated one: then the size table is not needed (nor read).
   if (p.sample.from.empty() || r.find("sample.particles")) {
     const auto* table = r.array_of_tables("sample.particles");
@@ -449,16 +491,57 @@ Params parse_case(const std::string& toml_text, const std::string& source,
       static_cast<int>(r.integer("checkpoint.every_sample_points", 25, 0, 1'000'000));
   p.checkpoint.every_minutes = r.number("checkpoint.every_minutes", 10.0, [](double v) { return v >= 0; }, "must be >= 0");
   p.output.vtk_every = static_cast<int>(r.integer("output.vtk_every", 0, 0, 1'000'000));
-  p.limits.max_overlap = r.quantity("limits.max_overlap", Dimension::ratio, 0.05, [](double v) { return v > 0 && v < 1; },
-                                    "must be in (0, 100 %)");
+  p.limits.max_overlap = r.quantity("limits.max_overlap", Dimension::ratio, 1.0, [](double v) { return v > 0 && v <= 1; },
+                                    "must be in (0, 100 %]");
   p.limits.max_kinetic_ratio = r.number("limits.max_kinetic_ratio", 1.0, positive, "must be > 0");
 
   r.reject_unknown();
+  if (asked) *asked = r.asked();
   p.as_written = to_json(root);
   std::ostringstream text;
   text << root;
   p.case_text = text.str();
   return p;
+}
+
+}  // namespace
+
+Params parse_case(const std::string& toml_text, const std::string& source,
+                  const std::vector<std::string>& overrides, const std::filesystem::path& base_dir) {
+  return parse(toml_text, source, overrides, base_dir, nullptr);
+}
+
+std::vector<std::string> case_keys() {
+  // A case with one size-table row of each shape: the parser then asks for every key it knows.
+  static const char* const every_shape = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    shape = "sphere"
+    diameter = "1 m"
+    count = 1
+    [[sample.particles]]
+    shape = "spheroid"
+    major_semi_axis = "1 m"
+    minor_semi_axis = "1 m"
+    count = 1
+    [[sample.particles]]
+    shape = "ellipsoid"
+    semi_axes = ["1 m", "1 m", "1 m"]
+    count = 1
+  )";
+  std::set<std::string> asked;
+  parse(every_shape, "<case_keys>", {}, {}, &asked);
+  std::set<std::string> keys;
+  const std::string row = "sample.particles.";
+  for (const std::string& k : asked) {
+    if (k.rfind(row, 0) == 0 && k.size() > row.size() && std::isdigit(static_cast<unsigned char>(k[row.size()])))
+      keys.insert(row + k.substr(k.find('.', row.size()) + 1));  // sample.particles.2.count -> sample.particles.count
+    else
+      keys.insert(k);
+  }
+  for (std::string_view law : contact_law_names())  // each law's own keys, read only for that law
+    for (const LawKey& key : contact_law_keys(law)) keys.insert("contact." + std::string(key.name));
+  return {keys.begin(), keys.end()};
 }
 
 nlohmann::json to_json(const Params& p) {
@@ -500,11 +583,15 @@ nlohmann::json to_json(const Params& p) {
 }
 
 Params load_case(const std::string& path, const std::vector<std::string>& overrides) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  if (fs::is_directory(path, ec))
+    throw InputError(fmt::format("case file '{}' is a directory: give a case file (TOML, docs/config.md)", path));
   std::ifstream in(path);
-  if (!in) throw InputError(fmt::format("cannot open case file '{}'", path));
+  if (!in) throw InputError(fmt::format("cannot open case file '{}': {}", path, std::strerror(errno)));
   std::stringstream ss;
   ss << in.rdbuf();
-  return parse_case(ss.str(), path, overrides);
+  return parse_case(ss.str(), path, overrides, fs::path(path).parent_path());
 }
 
 }  // namespace qsdem

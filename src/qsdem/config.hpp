@@ -3,6 +3,7 @@
 // value and what is allowed.
 #pragma once
 #include <cstdint>
+#include <filesystem>
 #include <functional>
 #include <map>
 #include <string>
@@ -55,7 +56,8 @@ struct Params {
     double initial_solid_fraction = 0.15;
     long total_particles = 0;  // 0: the table's counts as written
     std::vector<SizeClass> table;
-    std::string from;          // a prepared sample (directory of `qsdem prepare`) or a packing file
+    std::string from;          // a prepared sample (directory of `qsdem prepare`) or a packing
+                               // file: an absolute path (parse_case resolves it)
   } sample;
 
   double step_ratio = 0.32;  // c_t (SPEC 5)
@@ -109,7 +111,7 @@ struct Params {
   } output;
 
   struct Limits {
-    double max_overlap = 0.05;       // delta / min(R_i, R_j) that stops the run as a blow-up
+    double max_overlap = 1.0;        // delta / min(R_i, R_j) that stops the run (BlowUpWatch)
     double max_kinetic_ratio = 1.0;  // Ekin / (p V) that stops the triaxial test as a blow-up
   } limits;
 
@@ -121,9 +123,15 @@ struct Params {
 nlohmann::json to_json(const Params& p);
 
 // Reads a case from TOML text. `overrides` are "dotted.key=value" strings (value is TOML, or a
-// bare string) applied before validation.
+// bare string) applied before validation. A relative sample.from of the text is relative to
+// `base_dir` (the case file's directory), one of the overrides to the working directory.
 Params parse_case(const std::string& toml_text, const std::string& source,
-                  const std::vector<std::string>& overrides = {});
+                  const std::vector<std::string>& overrides = {}, const std::filesystem::path& base_dir = {});
 Params load_case(const std::string& path, const std::vector<std::string>& overrides = {});
+
+// Every key the parser reads, dotted, sorted ("material.density", ...; the keys of a
+// [[sample.particles]] row as "sample.particles.count"), from the parser itself: docs/config.md
+// documents each of them (tests/test_docs.cpp).
+std::vector<std::string> case_keys();
 
 }  // namespace qsdem

@@ -1,9 +1,13 @@
 #include "qsdem/generate.hpp"
 
 #include <fmt/format.h>
+#include <sys/resource.h>
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
+#include <limits>
+#include <string>
 #include <numeric>
 
 namespace qsdem {
@@ -25,8 +29,40 @@ std::vector<SizeClass> resolve_table(const Params::Sample& sample) {
   return table;
 }
 
-State generate_loose_sample(const Params& params) {
+double run_memory_bytes(double particles) {
+  constexpr double bytes_per_particle = 3 * 1024.0;  // 1.9 KiB peak + 0.9 KiB state serialised, rounded up
+  return particles * bytes_per_particle;
+}
+
+double available_memory_bytes() {
+  double have = std::numeric_limits<double>::infinity();
+  if (std::ifstream in("/proc/meminfo"); in)
+    for (std::string key; in >> key;) {
+      double kib = 0;
+      in >> kib;
+      if (key == "MemAvailable:") have = std::min(have, 1024 * kib);
+      in.ignore(std::numeric_limits<std::streamsize>::max(), '\n');
+    }
+  double max = 0, current = 0;
+  if (std::ifstream in("/sys/fs/cgroup/memory.max"); in >> max)  // "max": no limit, not read
+    if (std::ifstream cur("/sys/fs/cgroup/memory.current"); cur >> current) have = std::min(have, max - current);
+  rlimit lim{};
+  if (getrlimit(RLIMIT_AS, &lim) == 0 && lim.rlim_cur != RLIM_INFINITY)
+    have = std::min(have, static_cast<double>(lim.rlim_cur));
+  return std::max(have, 0.0);
+}
+
+State generate_loose_sample(const Params& params, const std::function<bool()>& stop) {
   const std::vector<SizeClass> table = resolve_table(params.sample);
+  double count = 0;
+  for (const auto& c : table) count += static_cast<double>(c.count);
+  const double need = run_memory_bytes(count), have = available_memory_bytes();
+  if (need > have)
+    throw InputError(fmt::format(
+        "a run of {:.0f} particles needs about {:.3g} GiB of memory ({:.0f} KiB per particle); {:.3g} GiB are "
+        "available (the least of MemAvailable, the cgroup's memory.max and ulimit -v): lower "
+        "sample.total_particles or the counts of sample.particles",
+        count, need / 0x1p30, run_memory_bytes(1) / 1024, have / 0x1p30));
   Random rng(params.sample.seed);
 
   std::vector<const SizeClass*> order;
@@ -61,6 +97,7 @@ State generate_loose_sample(const Params& params) {
 
   constexpr long max_attempts = 100000;
   for (std::size_t k = 0; k < n; ++k) {
+    if (stop && k % 1024 == 0 && stop()) return State{};
     const SizeClass& c = *order[k];
     const double r = c.semi_axes[0];
     bool placed = false;

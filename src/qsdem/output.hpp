@@ -27,14 +27,32 @@ class SeriesWriter {
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;
   void write(const std::string& row);
-  void commit();
+  void sync();    // the rows written so far are on disk (fsync): before each checkpoint
+  void commit();  // sync, close and rename to `path`
 
  private:
   std::filesystem::path path_, partial_;
   std::FILE* file_ = nullptr;
 };
 
+// Renames `path.partial`, complete and synced, to `path` (a phase that ended before a crash).
+void commit_partial(const std::filesystem::path& path);
+
 // Writes text to path atomically (temporary file, fsync, rename).
 void write_file_atomic(const std::filesystem::path& path, const std::string& text);
+
+// An exclusive lock (flock) on the file DIR/name, held while the object lives and released by the
+// system when the process ends, however it ends. Throws InputError(`held_message`) when another
+// process holds it.
+class DirectoryLock {
+ public:
+  DirectoryLock(const std::filesystem::path& dir, const char* name, const std::string& held_message);
+  ~DirectoryLock();
+  DirectoryLock(const DirectoryLock&) = delete;
+  DirectoryLock& operator=(const DirectoryLock&) = delete;
+
+ private:
+  int fd_ = -1;
+};
 
 }  // namespace qsdem

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 
@@ -14,47 +15,82 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-// Stops the run with a diagnostic when the state is no longer finite.
-void check_finite(const Measures& m, const State& st, const char* phase) {
+// Stops the run with a diagnostic when the state is no longer finite. `step`: the phase's step
+// number, counted from 0 as in compaction.csv and series.csv.
+void check_finite(const Measures& m, const State& st, const char* phase, long step) {
   if (std::isfinite(m.stress.sum()) && std::isfinite(m.ekin_trans + m.ekin_rot)) return;
   for (std::size_t i = 0; i < st.particles.size(); ++i)
     if (!st.particles.v[i].allFinite() || !st.particles.s[i].allFinite() || !st.particles.angmom[i].allFinite())
-      throw RunError(fmt::format("{}: blow-up at step {}: the state of particle id {} is not finite (NaN or infinity). "
-                                 "The time step may be too large for the contact stiffness: lower time.step_ratio",
-                                 phase, st.step, st.particles.id[i]));
-  throw RunError(fmt::format("{}: blow-up at step {}: the stress is not finite (NaN or infinity)", phase, st.step));
-}
-
-// Cheap per-step watch: a non-finite stress or an overlap beyond limits.max_overlap.
-void check_step(const State& st, const Params& params, const char* phase) {
-  const double trace = st.stress.trace();
-  if (!std::isfinite(trace)) {
-    Measures m;
-    m.stress = st.stress;
-    check_finite(m, st, phase);
-  }
-  if (st.max_overlap > params.limits.max_overlap) {
-    const std::size_t k = st.max_overlap_pair;
-    throw RunError(fmt::format(
-        "{}: blow-up at step {}: particles id {} and id {} overlap by {:.3g} % of the smaller radius (limit "
-        "limits.max_overlap = {:.3g} %). The time step may be too large (time.step_ratio) or the loading too fast "
-        "(triaxial.strain_rate, compaction.max_strain_rate)",
-        phase, st.step, st.particles.id[st.pairs.i[k]], st.particles.id[st.pairs.j[k]], 100 * st.max_overlap,
-        100 * params.limits.max_overlap));
-  }
+      throw RunError(fmt::format("{}: blow-up at {} step {}: the state of particle id {} is not finite (NaN or "
+                                 "infinity). The time step may be too large for the contact stiffness: lower "
+                                 "time.step_ratio",
+                                 phase, phase, step, st.particles.id[i]));
+  throw RunError(fmt::format("{}: blow-up at {} step {}: the stress is not finite (NaN or infinity)", phase, phase,
+                             step));
 }
 
 // Kinetic energy beyond limits.max_kinetic_ratio * p V: the sample is flying apart, not sheared.
-void check_kinetic(const Measures& m, const Params& params, const State& st) {
+void check_kinetic(const Measures& m, const Params& params, long step) {
   const double ratio = (m.ekin_trans + m.ekin_rot) / (std::max(m.mean_stress, 0.0) * m.volume);
   if (ratio > params.limits.max_kinetic_ratio)
     throw RunError(fmt::format(
-        "triaxial: blow-up at step {}: kinetic energy {:.3g} J is {:.3g} times p V (limit limits.max_kinetic_ratio = "
-        "{:.3g}): the loading is far too fast for the damping; lower triaxial.strain_rate or time.step_ratio",
-        st.step, m.ekin_trans + m.ekin_rot, ratio, params.limits.max_kinetic_ratio));
+        "triaxial: blow-up at triaxial step {}: kinetic energy {:.3g} J is {:.3g} times p V (limit "
+        "limits.max_kinetic_ratio = {:.3g}): the loading is far too fast for the damping; lower "
+        "triaxial.strain_rate or time.step_ratio",
+        step, m.ekin_trans + m.ekin_rot, ratio, params.limits.max_kinetic_ratio));
 }
 
 }  // namespace
+
+void BlowUpWatch::check(const State& st, const Params& params, const char* phase, long step) {
+  if (!std::isfinite(st.stress.trace())) {
+    Measures m;
+    m.stress = st.stress;
+    check_finite(m, st, phase, step);
+  }
+  const double now = st.max_overlap;
+  const auto pair = [&] {
+    const std::size_t k = st.max_overlap_pair;
+    return fmt::format("particles id {} and id {}", st.particles.id[st.pairs.i[k]], st.particles.id[st.pairs.j[k]]);
+  };
+  if (now > watch_level && seen_ > 0) {
+    const auto end = recent_.begin() + std::min(seen_, window);
+    const double low = *std::min_element(recent_.begin(), end);
+    if (now >= 2 * low)
+      throw RunError(fmt::format(
+          "{}: blow-up at {} step {}: the largest overlap ({}, {:.3g} % of the smaller radius) doubled within {} "
+          "steps (from {:.3g} %): a numerical instability, not a load. The time step is too large for the contact "
+          "stiffness: lower time.step_ratio (now {})",
+          phase, phase, step, pair(), 100 * now, std::min(seen_, window), 100 * low, params.step_ratio));
+  }
+  if (now > params.limits.max_overlap)
+    throw RunError(fmt::format(
+        "{}: blow-up at {} step {}: {} overlap by {:.3g} % of the smaller radius (limit limits.max_overlap = {:.3g} "
+        "%: beyond it the contact geometry is meaningless). The time step may be too large (time.step_ratio) or "
+        "the loading too fast (triaxial.strain_rate, compaction.max_strain_rate)",
+        phase, phase, step, pair(), 100 * now, 100 * params.limits.max_overlap));
+  recent_[static_cast<std::size_t>(seen_ % window)] = now;
+  ++seen_;
+}
+
+TriaxialResult triaxial_result(const RunProgress& run) {
+  const TriaxialSums& r = run.sums;
+  const double rows = std::max(1, r.rows);
+  TriaxialResult res;
+  res.steps = run.phase_steps;
+  res.rows = r.rows;
+  res.mean_ufr = r.ufr / rows;
+  res.mean_iuf = r.iuf / rows;
+  res.mean_imom = r.imom / rows;
+  res.peak_phi_deg = r.peak_phi_deg;
+  res.peak_phi_e1 = r.peak_phi_e1;
+  res.final_ev = r.final_ev;
+  res.final_e1 = r.final_e1;
+  res.max_lateral_stress_error = r.max_lateral_error;
+  res.mean_lateral_stress_error = r.lateral_error / (2.0 * rows);
+  res.wall_s = r.wall_s;
+  return res;
+}
 
 Model compaction_model(const Params& params, const State& state) {
   Model m = base_model(params, state.particles);
@@ -111,10 +147,11 @@ CompactionResult compact(const Params& params, State& st, RunProgress& run, Prog
   progress.begin("compaction", 0);
   const double wall_before = run.compaction.wall_s;
   const long run_steps_at_start = run.phase_steps;
+  BlowUpWatch watch;
   Schedule schedule;
   while (run.phase_steps < c.max_steps) {
     step(model, st, schedule);
-    check_step(st, params, "compaction");
+    watch.check(st, params, "compaction", run.phase_steps);
     const long n = ++run.phase_steps;
     if (n % c.check_interval != 0) {
       if (hook) hook(false);
@@ -125,7 +162,7 @@ CompactionResult compact(const Params& params, State& st, RunProgress& run, Prog
       ScopedStage t(st.timers, Stage::measures);
       m = measure(st);
     }
-    check_finite(m, st, "compaction");
+    check_finite(m, st, "compaction", n - 1);
     // Stress error: each normal stress against the target and, when they are servo-controlled,
     // each shear stress against zero, relative to the target.
     double worst = 0;
@@ -176,7 +213,9 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
   assign_damping(model, st.particles);
   const double v0 = run.v0, h0 = run.h0(2, 2);
   TriaxialSums& r = run.sums;
+  const double wall_before = r.wall_s;
   const long steps_at_start = run.phase_steps;
+  BlowUpWatch watch;
   progress.begin("triaxial", static_cast<double>(total - steps_at_start));
   auto sample_step = [&](long k) {
     return std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
@@ -186,8 +225,9 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
   while (run.phase_steps <= total) {
     const long n = run.phase_steps;
     step(model, st, schedule);
-    check_step(st, params, "triaxial");
+    watch.check(st, params, "triaxial", n);
     ++run.phase_steps;
+    r.wall_s = wall_before + seconds_since(t0);  // before the hook, which may save a checkpoint
     if (n != sample_step(run.rows + 1)) {
       if (hook) hook(false);
       continue;
@@ -197,8 +237,8 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
       ScopedStage ts(st.timers, Stage::measures);
       m = measure(st);
     }
-    check_finite(m, st, "triaxial");
-    check_kinetic(m, params, st);
+    check_finite(m, st, "triaxial", n);
+    check_kinetic(m, params, n);
     const double e1 = 1 - st.stress_h(2, 2) / h0;
     const double ev = m.volume / v0 - 1;
     {
@@ -227,19 +267,7 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
     if (run.rows == t.sample_points) break;
     if (hook) hook(true);
   }
-  TriaxialResult out;
-  out.steps = run.phase_steps;
-  out.rows = r.rows;
-  out.mean_ufr = r.ufr / r.rows;
-  out.mean_iuf = r.iuf / r.rows;
-  out.mean_imom = r.imom / r.rows;
-  out.peak_phi_deg = r.peak_phi_deg;
-  out.peak_phi_e1 = r.peak_phi_e1;
-  out.final_ev = r.final_ev;
-  out.final_e1 = r.final_e1;
-  out.max_lateral_stress_error = r.max_lateral_error;
-  out.mean_lateral_stress_error = r.lateral_error / (2.0 * r.rows);
-  out.wall_s = seconds_since(t0);
+  const TriaxialResult out = triaxial_result(run);
   progress.end(fmt::format("triaxial done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean "
                            "IMom {:.3g}, {}",
                            out.steps, out.peak_phi_deg, 100 * out.peak_phi_e1, out.mean_ufr, out.mean_imom,

@@ -2,8 +2,10 @@
 // The phase loops are resumable: everything they need to continue exactly where they stopped is in
 // RunProgress, which checkpoints save with the State.
 #pragma once
+#include <array>
 #include <cstdint>
 #include <functional>
+#include <string>
 
 #include "qsdem/config.hpp"
 #include "qsdem/measures.hpp"
@@ -32,11 +34,12 @@ struct TriaxialResult {
   double mean_lateral_stress_error = 0;
 };
 
-// Running sums over the rows of series.csv.
+// Running sums over the rows of series.csv, and the phase's wall time over every process that ran it.
 struct TriaxialSums {
   int rows = 0;
   double ufr = 0, iuf = 0, imom = 0, lateral_error = 0, max_lateral_error = 0;
   double peak_phi_deg = 0, peak_phi_e1 = 0, final_ev = 0, final_e1 = 0;
+  double wall_s = 0;
 };
 
 // Where a run is.
@@ -50,9 +53,33 @@ struct RunProgress {
   Mat3 h0 = Mat3::Identity();  // cell matrix at the start of the phase (m)
   CompactionResult compaction; // set when compaction ends
   TriaxialSums sums;
-  double wall_s = 0;           // wall time of the run's earlier sessions (s)
+  double wall_s = 0;           // wall time of the processes that ran it before (s)
   long first_step = 0;         // State::step when this run's own work began (a prepared
                                // sample's compaction steps are not this run's)
+  bool prepare_only = false;   // `qsdem prepare`: the run ends with the compacted sample
+  std::string changes;         // `resume --set` changes, one "from triaxial step N: key=value" a line
+};
+
+// The triaxial result of the rows summed so far (SPEC 10's summary).
+TriaxialResult triaxial_result(const RunProgress& run);
+
+// The blow-up watch (docs/runs.md), checked after every step. A numerical instability (a time
+// step too large for the contact stiffness) makes the largest overlap grow geometrically from
+// step to step, then the state NaN; a fine particle pinched in a force chain has a large but
+// steady overlap and runs on. Stops the run (RunError) when the state is not finite, when the
+// largest overlap exceeds limits.max_overlap (the bound beyond which the contact geometry is
+// meaningless), or when, above watch_level, it is at least twice the smallest of the last
+// `window` steps (of the steps so far, in the phase's first ones).
+class BlowUpWatch {
+ public:
+  static constexpr double watch_level = 0.05;  // overlap / smaller radius
+  static constexpr long window = 20;           // steps
+  // `step`: the phase's step number, counted from 0 as in compaction.csv and series.csv.
+  void check(const State& st, const Params& params, const char* phase, long step);
+
+ private:
+  std::array<double, window> recent_{};
+  long seen_ = 0;
 };
 
 // Called after every step; `sample_point` is true when a CSV row was just written. It may save a

@@ -3,18 +3,25 @@
 #include <fmt/format.h>
 #include <omp.h>
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <csignal>
 #include <cstdio>
+#include <cstring>
+#include <sstream>
 
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
+#include "qsdem/neighbor.hpp"
+#include "qsdem/output.hpp"
 #include "qsdem/packing_io.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/step.hpp"
+#include "qsdem/version.hpp"
 #include "qsdem/vtk.hpp"
 
 namespace qsdem {
@@ -53,11 +60,103 @@ nlohmann::json measures_json(const Measures& m) {
           {"cn", m.coordination},   {"contacts", m.contacts},  {"ekin_J", m.ekin_trans + m.ekin_rot}};
 }
 
+nlohmann::json size_table_json(const Params& params) {
+  nlohmann::json counts = nlohmann::json::array();
+  const auto table = resolve_table(params.sample);
+  double solid = 0;
+  for (const auto& c : table) solid += static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes);
+  for (const auto& c : table)
+    counts.push_back({{"shape", to_string(c.shape)},
+                      {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
+                      {"count", c.count},
+                      {"mass_fraction", static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes) / solid}});
+  return counts;
+}
+
+namespace fs = std::filesystem;
+
+// The files a run writes into its directory (besides vtk/): what --force removes.
+constexpr const char* run_files[] = {"summary.json",      "series.csv",      "series.csv.partial",
+                                     "compaction.csv",    "compaction.csv.partial", "compacted.packing",
+                                     "final.packing",     checkpoint_file,   "checkpoint.qsck.prev",
+                                     prepared_sample_file, "case.toml"};
+
+// What `dir` holds, for the checks before a run writes into it.
+enum class DirKind { absent, empty, run_finished, run_unfinished, run_started, foreign };
+
+DirKind classify(const fs::path& dir) {
+  std::error_code ec;
+  if (!fs::exists(dir, ec)) return DirKind::absent;
+  if (fs::exists(dir / "summary.json") && !fs::exists(dir / checkpoint_file)) return DirKind::run_finished;
+  if (fs::exists(dir / checkpoint_file) || fs::exists(dir / "checkpoint.qsck.prev")) return DirKind::run_unfinished;
+  if (fs::exists(dir / "case.toml")) return DirKind::run_started;  // a run stopped before its first checkpoint
+  for (const auto& e : fs::directory_iterator(dir, ec))
+    if (e.path().filename() != run_lock_file) return DirKind::foreign;
+  return DirKind::empty;
+}
+
+// Locks `dir` for this process (DIR/.run.lock): a run, resume or prepare, one at a time.
+DirectoryLock lock_run_directory(const fs::path& dir) {
+  return DirectoryLock(dir, run_lock_file,
+                       fmt::format("another qsdem (run, resume or prepare) is working in '{}' (it holds {}): wait "
+                                   "for it, stop it, or choose another --out",
+                                   dir.string(), (dir / run_lock_file).string()));
+}
+
+// Refuses what --out cannot be, a directory another qsdem works in (unless `locked_here`: this
+// process holds its lock), and one whose results a run would overwrite (unless forced) or that
+// holds files of something else than a qsdem run. Writes nothing.
+void check_out(const fs::path& dir, bool force, bool locked_here) {
+  if (dir.empty()) throw InputError("--out is empty: give the directory for the results");
+  for (const auto& part : fs::absolute(dir))
+    if (part.string().size() > 255)
+      throw InputError(fmt::format("--out '{}': the name '{}' is longer than 255 bytes", dir.string(), part.string()));
+  std::error_code ec;
+  if (fs::exists(dir, ec) && !fs::is_directory(dir, ec))
+    throw InputError(fmt::format("--out '{}' is a file, not a directory", dir.string()));
+  // The nearest existing ancestor must be a directory we may write into.
+  fs::path up = fs::absolute(dir).parent_path();
+  while (!up.empty() && !fs::exists(up, ec) && up != up.root_path()) up = up.parent_path();
+  if (!fs::exists(dir, ec)) {
+    if (!fs::is_directory(up, ec))
+      throw InputError(fmt::format("cannot create --out '{}': '{}' is not a directory", dir.string(), up.string()));
+    if (::access(up.c_str(), W_OK | X_OK) != 0)
+      throw InputError(fmt::format("cannot create --out '{}' in '{}': {}", dir.string(), up.string(),
+                                   std::strerror(errno)));
+  } else if (::access(dir.c_str(), W_OK | X_OK) != 0) {
+    throw InputError(fmt::format("cannot write into --out '{}': {}", dir.string(), std::strerror(errno)));
+  }
+  if (!locked_here && fs::exists(dir / run_lock_file, ec)) {
+    const DirectoryLock probe = lock_run_directory(dir);  // refused now if another qsdem holds it
+  }
+  switch (classify(dir)) {
+    case DirKind::run_finished:
+      if (!force)
+        throw InputError(fmt::format(
+            "'{}' holds a finished run (summary.json): choose another --out or add --force", dir.string()));
+      break;
+    case DirKind::run_unfinished:
+      if (!force)
+        throw InputError(fmt::format(
+            "'{}' holds an unfinished run: continue it with `qsdem resume {}`, or add --force to start over",
+            dir.string(), dir.string()));
+      break;
+    case DirKind::foreign:
+      if (!force)
+        throw InputError(fmt::format(
+            "'{}' is not empty and holds no qsdem run (no case.toml): choose a new or empty --out, or add --force "
+            "(which removes only the files a run writes: {})",
+            dir.string(), "summary.json, series.csv, compaction.csv, *.packing, *.qsck, case.toml, vtk/"));
+      break;
+    default: break;
+  }
+}
+
 volatile std::sig_atomic_t stop_signal = 0;
 
 extern "C" void on_stop_signal(int sig) { stop_signal = sig; }
 
-// SIGINT and SIGTERM ask the step loop to checkpoint and stop; the old handlers come back after.
+// SIGINT and SIGTERM ask the run to checkpoint and stop; the old handlers come back after.
 class SignalGuard {
  public:
   SignalGuard() {
@@ -79,37 +178,10 @@ class SignalGuard {
   struct sigaction old_int_ {}, old_term_ {};
 };
 
-nlohmann::json size_table_json(const Params& params) {
-  nlohmann::json counts = nlohmann::json::array();
-  const auto table = resolve_table(params.sample);
-  double solid = 0;
-  for (const auto& c : table) solid += static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes);
-  for (const auto& c : table)
-    counts.push_back({{"shape", to_string(c.shape)},
-                      {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
-                      {"count", c.count},
-                      {"mass_fraction", static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes) / solid}});
-  return counts;
-}
+const char* signal_name(int sig) { return sig == SIGINT ? "SIGINT" : "SIGTERM"; }
 
-// Refuses to overwrite results unless forced; with force, removes what a new run would leave stale.
-void prepare_directory(const std::filesystem::path& dir, bool force) {
-  namespace fs = std::filesystem;
-  fs::create_directories(dir);
-  const bool finished = fs::exists(dir / "summary.json");
-  const bool unfinished = fs::exists(dir / checkpoint_file);
-  if (!force && finished)
-    throw InputError(fmt::format("'{}' holds a finished run (summary.json): choose another --out or add --force",
-                                 dir.string()));
-  if (!force && unfinished)
-    throw InputError(fmt::format("'{}' holds an unfinished run: continue it with `qsdem resume {}`, or add --force to "
-                                 "start over",
-                                 dir.string(), dir.string()));
-  for (const char* f : {"summary.json", "series.csv", "series.csv.partial", "compaction.csv", "compaction.csv.partial",
-                        "compacted.packing", "final.packing", checkpoint_file, "checkpoint.qsck.prev",
-                        prepared_sample_file})
-    fs::remove(dir / f);
-  fs::remove_all(dir / "vtk");
+const char* phase_name(RunProgress::Phase p) {
+  return p == RunProgress::Phase::compaction ? "compaction" : "triaxial";
 }
 
 // Snapshot k (0: the compacted sample, k: after row k of series.csv) and the .pvd of all snapshots
@@ -132,20 +204,27 @@ void write_snapshot(const std::filesystem::path& dir, const Params& params, cons
   write_pvd(vtk / "series.pvd", entries);
 }
 
+
 // Everything after the sample exists: the phases from wherever `run` stands, checkpoints, results.
+// The end of each phase is ordered so that a crash at any instant leaves a directory that
+// `resume` finishes: the phase's rows are synced, a checkpoint of the phase's end is saved, and
+// only then are the results renamed and written (again, by a resume, when a crash cut that short).
 nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
                        const std::string& note) {
-  namespace fs = std::filesystem;
   const auto t0 = std::chrono::steady_clock::now();
   const fs::path dir = options.out;
   Progress progress(Progress::detect(options.quiet));
-  const SignalGuard signals;
   const double wall_before = run.wall_s;
-  auto session_s = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
+  auto process_s = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
   auto last_save = std::chrono::steady_clock::now();
+  SeriesWriter* rows = nullptr;  // the phase's CSV file: on disk before each checkpoint counts its rows
+  const auto done = [&](const std::string& what) {
+    if (options.after_write) options.after_write(what);
+  };
   auto save = [&](const fs::path& file) {
-    run.wall_s = wall_before + session_s();
+    run.wall_s = wall_before + process_s();
     ScopedStage t(st.timers, Stage::output);
+    if (rows) rows->sync();
     save_checkpoint(file, params.case_text, params.source, st, run);
     last_save = std::chrono::steady_clock::now();
   };
@@ -154,8 +233,8 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     if (stop_signal != 0) {
       const int sig = stop_signal;
       save(dir / checkpoint_file);
-      throw Interrupted(fmt::format("stopped by {} at step {}; checkpoint written: continue with `qsdem resume {}`",
-                                    sig == SIGINT ? "SIGINT" : "SIGTERM", st.step, dir.string()),
+      throw Interrupted(fmt::format("stopped by {} after {} step {}; checkpoint written: continue with `qsdem resume {}`",
+                                    signal_name(sig), phase_name(run.phase), run.phase_steps - 1, dir.string()),
                         sig);
     }
     const auto& c = params.checkpoint;
@@ -168,35 +247,76 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     if (sample_point && vtk > 0 && run.phase == RunProgress::Phase::triaxial && run.rows % vtk == 0)
       write_snapshot(dir, params, st, run.rows);
   };
+  // A phase stopped by what only the run could find (the cell shrank below the size rule of SPEC
+  // 3 during compaction) is a failed run, not a bad case: its checkpoints stay.
+  const auto phase = [&](const auto& body) {
+    try {
+      body();
+    } catch (const InputError& e) {
+      throw RunError(fmt::format("{} stopped after {} step {}: {}", phase_name(run.phase), phase_name(run.phase),
+                                 run.phase_steps - 1, e.what()));
+    }
+  };
+  // Every run that compacted leaves its compacted state as a prepared sample (sample.qsck).
+  const auto finish_compaction = [&](SeriesWriter* log) {
+    if (log) log->commit();
+    else if (fs::exists(dir / "compaction.csv.partial")) commit_partial(dir / "compaction.csv");
+    done("compaction.csv renamed");
+    write_packing(dir / "compacted.packing", st.particles, st.cell);
+    done("compacted.packing written");
+    save(dir / prepared_sample_file);
+    done("sample.qsck written");
+    if (params.output.vtk_every > 0) {
+      write_snapshot(dir, params, st, 0);
+      done("vtk snapshot 0 written");
+    }
+  };
+  const auto finish_triaxial = [&](SeriesWriter* series) {
+    if (series) series->commit();
+    else if (fs::exists(dir / "series.csv.partial")) commit_partial(dir / "series.csv");
+    done("series.csv renamed");
+    write_packing(dir / "final.packing", st.particles, st.cell);
+    done("final.packing written");
+    if (params.output.vtk_every > 0 && run.rows % params.output.vtk_every == 0) {
+      write_snapshot(dir, params, st, run.rows);
+      done("last vtk snapshot written");
+    }
+  };
 
   const Model m0 = compaction_model(params, st);
   if (run.phase == RunProgress::Phase::compaction) {
     SeriesWriter log(dir / "compaction.csv", run.phase_started ? run.rows : -1);
-    compact(params, st, run, progress, &log, hook);
-    log.commit();
-    write_packing(dir / "compacted.packing", st.particles, st.cell);
-    if (params.output.vtk_every > 0) write_snapshot(dir, params, st, 0);
+    rows = &log;
+    phase([&] { compact(params, st, run, progress, &log, hook); });
     run.phase = RunProgress::Phase::triaxial;
     run.phase_started = false;
     run.phase_steps = 0;
     run.rows = 0;
-    if (options.prepare_only) {
-      save(dir / prepared_sample_file);
-    } else {
-      save(dir / checkpoint_file);
-    }
+    log.sync();
+    done("compaction.csv.partial synced");
+    save(dir / checkpoint_file);
+    done("checkpoint at the end of compaction written");
+    rows = nullptr;
+    finish_compaction(&log);
+  } else if (run.phase == RunProgress::Phase::triaxial && !run.phase_started && run.first_step == 0) {
+    finish_compaction(nullptr);  // stopped while writing them
   }
-  TriaxialResult tri;
-  if (!options.prepare_only && run.phase == RunProgress::Phase::triaxial) {
+  if (!run.prepare_only && run.phase == RunProgress::Phase::triaxial) {
     SeriesWriter series(dir / "series.csv", run.phase_started ? run.rows : -1);
-    tri = shear(params, st, run, series, progress, hook);
-    series.commit();
-    write_packing(dir / "final.packing", st.particles, st.cell);
-    if (params.output.vtk_every > 0 && run.rows % params.output.vtk_every == 0) write_snapshot(dir, params, st, run.rows);
+    rows = &series;
+    phase([&] { shear(params, st, run, series, progress, hook); });
     run.phase = RunProgress::Phase::done;
+    series.sync();
+    done("series.csv.partial synced");
+    save(dir / checkpoint_file);
+    done("checkpoint at the end of the triaxial test written");
+    rows = nullptr;
+    finish_triaxial(&series);
+  } else if (run.phase == RunProgress::Phase::done) {
+    finish_triaxial(nullptr);  // stopped while writing them
   }
 
-  const double wall = wall_before + session_s();
+  const double wall = wall_before + process_s();
   const long own_steps = st.step - run.first_step;  // steps this run took (not a prepared sample's)
   const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st.particles.size());
   const CompactionResult& comp = run.compaction;
@@ -213,9 +333,16 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
                   {"threads", omp_get_max_threads()},
                   {"triaxial_strain_rate_per_s", params.triaxial.strain_rate / m0.critical_time}};
   if (!note.empty()) s["note"] = note;
+  if (!run.changes.empty()) {
+    nlohmann::json changes = nlohmann::json::array();
+    std::istringstream lines(run.changes);
+    for (std::string line; std::getline(lines, line);) changes.push_back(line);
+    s["resume_changes"] = changes;
+  }
   s["compaction"] = {{"steps", comp.steps}, {"wall_s", comp.wall_s}, {"final", measures_json(comp.final)}};
   s["void_ratio_after_compaction"] = comp.final.void_ratio;
-  if (!options.prepare_only) {
+  if (!run.prepare_only) {
+    const TriaxialResult tri = triaxial_result(run);
     s["triaxial"] = {{"steps", tri.steps},
                      {"rows", tri.rows},
                      {"wall_s", tri.wall_s},
@@ -230,7 +357,7 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
     s["final_ev"] = tri.final_ev;
   }
   s["steps"] = own_steps;
-  s["steps_cover"] = run.first_step == 0 ? (options.prepare_only ? "compaction" : "compaction + triaxial")
+  s["steps_cover"] = run.first_step == 0 ? (run.prepare_only ? "compaction" : "compaction + triaxial")
                                          : "triaxial of a prepared sample";
   s["wall_s"] = wall;
   s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
@@ -239,18 +366,24 @@ nlohmann::json execute(const Params& params, State& st, RunProgress& run, const 
   s["stages"] = stage_json(st.timers, own_steps);
   s["stage_table"] = format_stage_table(st.timers, own_steps);
   write_file_atomic(dir / "summary.json", s.dump(2) + "\n");
-  // A finished run needs no checkpoint; a prepared sample keeps sample.qsck.
-  fs::remove(dir / checkpoint_file);
+  done("summary.json written");
+  // A finished run needs no checkpoint: the older first, so that a checkpoint.qsck present means
+  // "not finished".
   fs::remove(dir / "checkpoint.qsck.prev");
+  done("checkpoint.qsck.prev removed");
+  fs::remove(dir / checkpoint_file);
+  done("checkpoint.qsck removed");
   return s;
 }
 
-// The sample named by sample.from: a prepared sample (directory of `qsdem prepare`, which skips
-// compaction) or a packing file (which is compacted).
+// The sample named by sample.from: a prepared sample (directory of `qsdem prepare`, or of a run
+// that compacted, which skips compaction) or a packing file (which is compacted).
 State load_sample(const Params& params, RunProgress& run) {
-  namespace fs = std::filesystem;
   const fs::path from = params.sample.from;
   if (fs::is_directory(from)) {
+    if (!fs::exists(from / prepared_sample_file))
+      throw InputError(fmt::format("sample.from = '{}': that directory holds no prepared sample ({})", from.string(),
+                                   prepared_sample_file));
     Checkpoint c = load_checkpoint(from / prepared_sample_file);
     const Params prepared = parse_case(c.case_text, c.case_source);
     const auto& a = prepared.material;
@@ -268,6 +401,8 @@ State load_sample(const Params& params, RunProgress& run) {
     run = c.run;
     run.wall_s = 0;
     run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
+    run.prepare_only = false;
+    run.changes.clear();
     c.state.timers = {};
     return std::move(c.state);
   }
@@ -277,27 +412,86 @@ State load_sample(const Params& params, RunProgress& run) {
   return read_packing(from, params.material.density);
 }
 
+// The sample of a new run, refused (InputError) when it cannot run: too big for the memory, its
+// largest particle not smaller than half the cell (SPEC 3), named by a bad sample.from.
+State make_sample(const Params& params, RunProgress& run) {
+  State st;
+  if (params.sample.from.empty()) {
+    st = generate_loose_sample(params, [] { return stop_signal != 0; });
+    if (stop_signal != 0)
+      throw Interrupted(fmt::format("stopped by {} while generating the sample; nothing was written",
+                                    signal_name(stop_signal)),
+                        stop_signal);
+  } else {
+    st = load_sample(params, run);
+  }
+  const Model m = compaction_model(params, st);
+  try {
+    check_cell_size(st.particles, st.cell, m.skin);
+  } catch (const InputError& e) {
+    throw InputError(params.sample.from.empty() ? fmt::format("{}: the generated sample: {}", params.source, e.what())
+                                                : fmt::format("sample.from = '{}': {}", params.sample.from, e.what()));
+  }
+  return st;
+}
+
 }  // namespace
 
 nlohmann::json run_case(const Params& params, const RunOptions& options) {
-  prepare_directory(options.out, options.force);
-  write_file_atomic(options.out / "case.toml", params.case_text);
+  const fs::path dir = options.out;
+  const SignalGuard signals;
+  check_out(dir, options.force, false);
+  std::error_code ec;
+  if (!params.sample.from.empty() && fs::equivalent(params.sample.from, dir, ec))
+    throw InputError(fmt::format("sample.from = '{}' is the --out directory: a run cannot replace the sample it "
+                                 "shears; choose another --out",
+                                 params.sample.from));
+  // Every input error is found before the directory is touched.
   RunProgress run;
-  State st = params.sample.from.empty() ? generate_loose_sample(params) : load_sample(params, run);
+  State st = make_sample(params, run);
+  run.prepare_only = options.prepare_only;
+  fs::create_directories(dir, ec);
+  if (ec) throw InputError(fmt::format("cannot create --out '{}': {}", dir.string(), ec.message()));
+  const DirectoryLock lock = lock_run_directory(dir);
+  check_out(dir, options.force, true);  // again under the lock: another process may have written since
+  for (const char* f : run_files) fs::remove(dir / f);
+  fs::remove_all(dir / "vtk");
+  write_file_atomic(dir / "case.toml", params.case_text);
   return execute(params, st, run, options, "");
 }
 
-nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& options) {
-  if (std::filesystem::exists(dir / "summary.json") && !std::filesystem::exists(dir / checkpoint_file))
+nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
+  if (!fs::is_directory(dir)) throw InputError(fmt::format("'{}' is not a run directory", dir.string()));
+  const SignalGuard signals;
+  const DirectoryLock lock = lock_run_directory(dir);
+  if (fs::exists(dir / "summary.json") && !fs::exists(dir / checkpoint_file))
     throw InputError(fmt::format("'{}' holds a finished run: nothing to resume", dir.string()));
   std::string note;
   Checkpoint c = load_latest_checkpoint(dir / checkpoint_file, &note);
   if (!note.empty()) std::fprintf(stderr, "qsdem: %s\n", note.c_str());
-  const Params params = parse_case(c.case_text, c.case_source);
+  for (const std::string& set : options.sets) {
+    const std::string key = set.substr(0, set.find('='));
+    if (std::find(resume_keys.begin(), resume_keys.end(), key) == resume_keys.end()) {
+      std::string allowed;
+      for (const auto& k : resume_keys) allowed += (allowed.empty() ? "" : ", ") + k;
+      throw InputError(fmt::format("resume --set '{}': '{}' cannot change in a run under way (the checkpoint's state "
+                                   "depends on it); allowed: {}",
+                                   set, key, allowed));
+    }
+    if (key == "time.step_ratio" && c.run.phase != RunProgress::Phase::compaction)
+      throw InputError(fmt::format("resume --set '{}': the triaxial test takes its rows at fixed step numbers, so "
+                                   "time.step_ratio can change only during compaction; shear the run's compacted "
+                                   "sample anew (sample.from = '{}')",
+                                   set, fs::absolute(dir).string()));
+  }
+  const Params params = parse_case(c.case_text, c.case_source, options.sets);
+  for (const std::string& set : options.sets)
+    c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(c.run.phase), c.run.phase_steps, set);
   RunOptions o = options;
   o.out = dir;
   return execute(params, c.state, c.run, o, note);
 }
+
 
 std::string format_run_table(const nlohmann::json& s) {
   std::string out;
@@ -354,9 +548,72 @@ nlohmann::json memory_kib(const State& st, const Schedule& schedule) {
 
 }  // namespace
 
-nlohmann::json bench_packing(const Params& params, const std::filesystem::path& packing, long steps,
-                             bool as_spheres) {
-  State st = read_packing(packing, params.material.density);
+namespace {
+
+// What `qsdem bench` steps: the state, the case, and which phase's friction and damping apply.
+struct BenchInput {
+  State state;
+  Params params;
+  std::string source;  // "packing" or "checkpoint"
+  std::string phase;   // "compaction" or "triaxial"
+  std::filesystem::path file;
+};
+
+BenchInput bench_input(const std::filesystem::path& source, const std::string& case_path,
+                       const std::vector<std::string>& overrides) {
+  namespace fs = std::filesystem;
+  fs::path file = source;
+  if (fs::is_directory(source)) {
+    file = source / prepared_sample_file;
+    if (!fs::exists(file)) file = source / checkpoint_file;
+    if (!fs::exists(file))
+      throw InputError(fmt::format("'{}' holds neither {} (a prepared sample) nor {} (an unfinished run)",
+                                   source.string(), prepared_sample_file, checkpoint_file));
+  } else if (!fs::is_regular_file(source)) {
+    throw InputError(fmt::format("'{}': no such packing file, checkpoint or run directory", source.string()));
+  }
+  BenchInput in;
+  in.file = file;
+  if (file.extension() != ".qsck") {
+    if (case_path.empty())
+      throw InputError(fmt::format("'{}' is a packing: give the case it is stepped with (--case)", file.string()));
+    in.params = load_case(case_path, overrides);
+    in.state = read_packing(file, in.params.material.density);
+    in.source = "packing";
+    in.phase = "triaxial";
+    return in;
+  }
+  Checkpoint c = load_checkpoint(file);
+  const Params own = parse_case(c.case_text, c.case_source, case_path.empty() ? overrides : std::vector<std::string>{});
+  in.params = case_path.empty() ? own : load_case(case_path, overrides);
+  const auto& a = own.material;
+  const auto& b = in.params.material;
+  // The masses and contacts of the state were made with the checkpoint's material and time step.
+  if (a.density != b.density || a.young_modulus != b.young_modulus || a.poisson_ratio != b.poisson_ratio ||
+      own.step_ratio != in.params.step_ratio)
+    throw InputError(fmt::format("'{}' was made with density {} kg/m^3, E {} Pa, nu {}, time.step_ratio {}; the case "
+                                 "has {}, {}, {}, {}: they must be equal",
+                                 file.string(), a.density, a.young_modulus, a.poisson_ratio, own.step_ratio, b.density,
+                                 b.young_modulus, b.poisson_ratio, in.params.step_ratio));
+  in.state = std::move(c.state);
+  in.source = "checkpoint";
+  in.phase = c.run.phase == RunProgress::Phase::compaction ? "compaction" : "triaxial";
+  return in;
+}
+
+long contact_count(const State& st) {
+  long n = 0;
+  for (const ForceBlock& b : st.blocks) n += b.contacts;
+  return n;
+}
+
+}  // namespace
+
+nlohmann::json bench_packing(const std::filesystem::path& source, const std::string& case_path,
+                             const std::vector<std::string>& overrides, long steps, bool as_spheres) {
+  BenchInput in = bench_input(source, case_path, overrides);
+  State& st = in.state;
+  const Params& params = in.params;
   if (as_spheres) {
     State spheres;
     spheres.cell = st.cell;
@@ -365,30 +622,41 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
       spheres.particles.add(p.id[i], ShapeKind::sphere, Vec3::Constant(p.equiv_radius[i]), params.material.density,
                             p.s[i], Quat::Identity());
     st = std::move(spheres);
+    in.source = "packing";
   }
   long ellipsoids = 0;
   for (ShapeKind k : st.particles.shape) ellipsoids += k == ShapeKind::ellipsoid;
-  // The triaxial phase's friction and damping in a fixed cell: the same physics a peer code runs
-  // on the same packing in a fixed periodic box.
-  Model model = triaxial_model(params, st);
+  // The phase's friction and damping in a fixed cell: a peer code runs the same physics on the
+  // same packing in a fixed periodic box.
+  Model model = in.phase == "compaction" ? compaction_model(params, st) : triaxial_model(params, st);
   for (auto& c : model.control) c = {};
+  model.servo.zero_shear_stress = false;
   assign_damping(model, st.particles);
-  evaluate_forces(model, st);
+  // A packing's first list build is set-up, not stepping (LIGGGHTS' loop time leaves its own
+  // out); at rest it changes no history. A checkpoint's list and history are stepped as they are.
+  if (in.source == "packing") evaluate_forces(model, st);
   st.timers = {};
-  const auto t0 = std::chrono::steady_clock::now();
-  long narrow_tests = 0, pw_iterations = 0;
+  const long builds_before = st.neighbor.builds;
+  long narrow_tests = 0, pw_iterations = 0, contacts_start = 0;
+  double wall = 0;
   Schedule schedule;
   for (long n = 0; n < steps; ++n) {
+    const auto t0 = std::chrono::steady_clock::now();
     step(model, st, schedule);
+    wall += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (n == 0) contacts_start = contact_count(st);  // at the first step's force evaluation
     narrow_tests += st.narrow_tests;
     pw_iterations += st.pw_iterations;
   }
-  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const Measures m = measure(st);
   const double np = static_cast<double>(st.particles.size());
-  return {{"particles", st.particles.size()},
+  return {{"source", in.source},
+          {"file", in.file.string()},
+          {"phase", in.phase},
+          {"particles", st.particles.size()},
           {"ellipsoids", ellipsoids},
-          {"contacts", m.contacts},
+          {"contacts_start", contacts_start},
+          {"contacts_end", m.contacts},
           {"pairs", st.pairs.size()},
           {"narrow_tests_per_step", static_cast<double>(narrow_tests) / static_cast<double>(std::max(1L, steps))},
           {"pw_iterations_per_step", static_cast<double>(pw_iterations) / static_cast<double>(std::max(1L, steps))},
@@ -409,7 +677,9 @@ nlohmann::json bench_packing(const Params& params, const std::filesystem::path& 
           {"young_modulus_Pa", model.material.young_modulus},
           {"poisson_ratio", model.material.poisson_ratio},
           {"friction", model.friction},
-          {"neighbor_builds", st.neighbor.builds},
+          {"damping_model", to_string(model.damping)},
+          {"damping_ratio", model.damping_ratio},
+          {"neighbor_builds", st.neighbor.builds - builds_before},
           {"stages", stage_json(st.timers, steps)}};
 }
 

@@ -1,9 +1,11 @@
+// `qsdem study` (docs/study.md): the study directory set up and checked, the samples prepared and
+// the runs made by child processes (and over MPI ranks), level by level of the stages, then the
+// analysis.
 #include "qsdem/study.hpp"
 
 #include <fcntl.h>
 #include <fmt/format.h>
 #include <mpi.h>
-#include <sched.h>
 #include <sys/file.h>
 #include <sys/prctl.h>
 #include <sys/wait.h>
@@ -11,7 +13,6 @@
 
 #include <algorithm>
 #include <chrono>
-#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -19,19 +20,12 @@
 #include <fstream>
 #include <map>
 #include <optional>
-#include <set>
 #include <sstream>
-#include <thread>
 
-#define TOML_EXCEPTIONS 1
-#include <toml++/toml.h>
-
-#include "qsdem/config.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/study_analysis.hpp"
 #include "qsdem/types.hpp"
-#include "qsdem/units.hpp"
 
 extern char** environ;
 
@@ -40,341 +34,14 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// ---------------------------------------------------------------------------------------------
-// The study file (docs/study.md). Errors name file:line, the key, the value and what is allowed,
-// in the format of config.cpp.
-
-std::string describe(const toml::node& n) {
-  if (n.is_string()) return '"' + *n.value<std::string>() + '"';
-  if (n.is_table()) return "(a table)";
-  if (n.is_array()) return "(an array)";
-  if (n.is_floating_point()) return fmt::format("{}", *n.value<double>());
-  std::ostringstream os;
-  n.visit([&](auto&& v) { os << v; });
-  return os.str();
-}
-
-class StudyReader {
- public:
-  explicit StudyReader(std::string file) : file_(std::move(file)) {}
-
-  std::string where(const toml::node* n) const {
-    if (n && n->source().begin.line > 0) return fmt::format("{}:{}", file_, n->source().begin.line);
-    return file_;
-  }
-
-  [[noreturn]] void fail(const std::string& key, const toml::node* n, const std::string& why) const {
-    if (n) throw InputError(fmt::format("{}: key '{}' = {}: {}", where(n), key, describe(*n), why));
-    throw InputError(fmt::format("{}: key '{}': {}", file_, key, why));
-  }
-
-  // Every key of `t` must be one of `known` (a typo never passes silently).
-  void only(const toml::table& t, const std::string& prefix, std::initializer_list<const char*> known) const {
-    for (const auto& [k, v] : t) {
-      const std::string key(k.str());
-      if (std::find_if(known.begin(), known.end(), [&](const char* x) { return key == x; }) != known.end()) continue;
-      std::string list;
-      for (const char* x : known) list += (list.empty() ? "" : ", ") + std::string(x);
-      throw InputError(fmt::format("{}: unknown key '{}{}' (allowed here: {}; see docs/study.md)", where(&v), prefix,
-                                   key, list));
-    }
-  }
-
-  const toml::table* table(const toml::table& t, const std::string& key, const std::string& path) const {
-    const toml::node* n = t.get(key);
-    if (!n) return nullptr;
-    if (!n->is_table()) fail(path, n, "expected a table ([" + path + "])");
-    return n->as_table();
-  }
-
-  std::string text(const toml::table& t, const std::string& key, const std::string& path,
-                    std::optional<std::string> def) const {
-    const toml::node* n = t.get(key);
-    if (!n) {
-      if (def) return *def;
-      fail(path, nullptr, "is required but missing");
-    }
-    if (!n->is_string()) fail(path, n, "expected a string");
-    return *n->value<std::string>();
-  }
-
-  long integer(const toml::table& t, const std::string& key, const std::string& path, long def, long lo,
-               long hi) const {
-    const toml::node* n = t.get(key);
-    if (!n) return def;
-    if (!n->is_integer()) fail(path, n, "expected an integer");
-    const long v = static_cast<long>(*n->value<std::int64_t>());
-    if (v < lo || v > hi) fail(path, n, fmt::format("out of range: must be in [{}, {}]", lo, hi));
-    return v;
-  }
-
-  // A non-empty array (or, when optional and absent, nullptr).
-  const toml::array* array(const toml::table& t, const std::string& key, const std::string& path,
-                           bool required) const {
-    const toml::node* n = t.get(key);
-    if (!n) {
-      if (required) fail(path, nullptr, "is required but missing");
-      return nullptr;
-    }
-    const toml::array* a = n->as_array();
-    if (!a) fail(path, n, "expected an array, e.g. " + path.substr(path.rfind('.') + 1) + " = [...]");
-    if (a->empty() && required) fail(path, n, "expected at least one entry");
-    return a;
-  }
-
-  // --set overrides: strings "dotted.key=value"; keys the study itself sets are refused.
-  std::vector<std::string> sets(const toml::table& t, const std::string& path,
-                                const std::set<std::string>& reserved) const {
-    std::vector<std::string> out;
-    const toml::array* a = array(t, "set", path, false);
-    if (!a) return out;
-    for (std::size_t i = 0; i < a->size(); ++i) {
-      const toml::node* e = a->get(i);
-      const std::string key = fmt::format("{}.{}", path, i);
-      if (!e->is_string()) fail(key, e, "expected a string \"dotted.key=value\", e.g. \"triaxial.sample_points=100\"");
-      const std::string s = *e->value<std::string>();
-      const auto eq = s.find('=');
-      if (eq == std::string::npos || eq == 0)
-        fail(key, e, "expected \"dotted.key=value\", e.g. \"triaxial.sample_points=100\" (docs/config.md)");
-      if (reserved.count(s.substr(0, eq)))
-        fail(key, e, fmt::format("'{}' is set by the study itself ([design] or sample seeds); remove it here",
-                                 s.substr(0, eq)));
-      out.push_back(s);
-    }
-    return out;
-  }
-
-  const std::string& file() const { return file_; }
-
- private:
-  std::string file_;
-};
-
-std::string slurp(const fs::path& p) {
+// A file's bytes.
+std::string read_bytes(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
-  if (!in) throw InputError(fmt::format("cannot open study file '{}'", p.string()));
+  if (!in) throw std::runtime_error("cannot read " + p.string());
   std::stringstream ss;
   ss << in.rdbuf();
   return ss.str();
 }
-
-bool valid_name(const std::string& s) {
-  return !s.empty() && s[0] != '.' && s.find_first_not_of("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz"
-                                                          "0123456789._+-") == std::string::npos;
-}
-
-// Directory-name forms of a damping ratio (in %) and a strain rate: "{:g}" is deterministic.
-std::string xi_label(double xi) { return fmt::format("xi-{:g}%", xi * 100); }
-std::string rate_label(double rate) { return fmt::format("rate-{:g}", rate); }
-
-// A value for --set that reads back as exactly this double (shortest round trip).
-std::string exact(double v) { return fmt::format("{}", v); }
-
-}  // namespace
-
-Study load_study(const fs::path& file) {
-  Study s;
-  s.file = file;
-  s.text = slurp(file);
-  const std::string name = file.string();
-  const StudyReader r(name);
-  toml::table root;
-  try {
-    root = toml::parse(s.text, name);
-  } catch (const toml::parse_error& e) {
-    throw InputError(fmt::format("{}:{}: TOML syntax error: {}", name, e.source().begin.line, e.description()));
-  }
-  r.only(root, "", {"name", "sample", "design", "execution"});
-  s.name = r.text(root, "name", "name", file.stem().string());
-  if (s.name.empty()) r.fail("name", root.get("name"), "must not be empty");
-
-  // [design]
-  const toml::table* design = r.table(root, "design", "design");
-  if (!design) r.fail("design", nullptr, "is required but missing: a [design] table with models, damping_ratios, strain_rates");
-  r.only(*design, "design.", {"models", "damping_ratios", "strain_rates", "seeds", "set"});
-  std::vector<std::string> models;
-  const toml::array* a = r.array(*design, "models", "design.models", true);
-  for (std::size_t i = 0; i < a->size(); ++i) {
-    const toml::node* e = a->get(i);
-    const std::string key = fmt::format("design.models.{}", i);
-    const auto m = e->value<std::string>();
-    if (!e->is_string() || (*m != "none" && *m != "od" && *m != "nd"))
-      r.fail(key, e, "allowed values: \"none\", \"od\", \"nd\" (docs/config.md, [damping])");
-    if (std::find(models.begin(), models.end(), *m) != models.end()) r.fail(key, e, "listed twice");
-    models.push_back(*m);
-  }
-  std::vector<double> ratios;
-  a = r.array(*design, "damping_ratios", "design.damping_ratios", true);
-  for (std::size_t i = 0; i < a->size(); ++i) {
-    const toml::node* e = a->get(i);
-    const std::string key = fmt::format("design.damping_ratios.{}", i);
-    double xi = 0;
-    if (e->is_string()) {
-      try {
-        xi = parse_quantity(*e->value<std::string>(), Dimension::ratio);
-      } catch (const InputError& err) {
-        r.fail(key, e, err.what());
-      }
-    } else if (e->is_floating_point() || e->is_integer()) {
-      xi = *e->value<double>();
-    } else {
-      r.fail(key, e, "expected a ratio: \"0.5 %\" or a fraction such as 0.005");
-    }
-    if (!std::isfinite(xi) || xi < 0) r.fail(key, e, "out of range: must be >= 0");
-    for (double x : ratios)
-      if (xi_label(x) == xi_label(xi)) r.fail(key, e, fmt::format("same damping ratio as another entry ({})", xi_label(xi)));
-    ratios.push_back(xi);
-  }
-  std::vector<double> rates;
-  a = r.array(*design, "strain_rates", "design.strain_rates", true);
-  for (std::size_t i = 0; i < a->size(); ++i) {
-    const toml::node* e = a->get(i);
-    const std::string key = fmt::format("design.strain_rates.{}", i);
-    if (!(e->is_floating_point() || e->is_integer()))
-      r.fail(key, e, "expected a number (dimensionless eps' = (de1/dt) t_c), e.g. 1e-5");
-    const double rate = *e->value<double>();
-    if (!std::isfinite(rate) || rate <= 0 || rate >= 0.01) r.fail(key, e, "out of range: must be in (0, 0.01)");
-    for (double x : rates)
-      if (rate_label(x) == rate_label(rate)) r.fail(key, e, "listed twice");
-    rates.push_back(rate);
-  }
-  std::vector<std::uint64_t> seeds;
-  if ((a = r.array(*design, "seeds", "design.seeds", false))) {
-    if (a->empty()) r.fail("design.seeds", design->get("seeds"), "expected at least one seed (or leave the key out)");
-    for (std::size_t i = 0; i < a->size(); ++i) {
-      const toml::node* e = a->get(i);
-      const std::string key = fmt::format("design.seeds.{}", i);
-      if (!e->is_integer() || *e->value<std::int64_t>() < 0) r.fail(key, e, "expected an integer >= 0 (sample.seed)");
-      const auto seed = static_cast<std::uint64_t>(*e->value<std::int64_t>());
-      if (std::find(seeds.begin(), seeds.end(), seed) != seeds.end()) r.fail(key, e, "listed twice");
-      seeds.push_back(seed);
-    }
-  }
-  const std::set<std::string> run_keys{"sample.from", "damping.model", "damping.ratio", "triaxial.strain_rate"};
-  const std::vector<std::string> design_sets = r.sets(*design, "design.set", run_keys);
-
-  // [execution]
-  long threads = 1, parallel = 0;
-  if (const toml::table* ex = r.table(root, "execution", "execution")) {
-    r.only(*ex, "execution.", {"parallel_runs", "threads_per_run"});
-    threads = r.integer(*ex, "threads_per_run", "execution.threads_per_run", 1, 1, 1024);
-    parallel = r.integer(*ex, "parallel_runs", "execution.parallel_runs", 0, 1, 4096);
-  }
-  s.threads_per_run = static_cast<int>(threads);
-  if (parallel == 0) {  // the cores of this node, shared by the MPI ranks on it
-    cpu_set_t cpus;
-    const long cores = sched_getaffinity(0, sizeof cpus, &cpus) == 0 ? CPU_COUNT(&cpus)
-                                                                    : long(std::thread::hardware_concurrency());
-    const char* local = std::getenv("OMPI_COMM_WORLD_LOCAL_SIZE");
-    const long ranks = local ? std::max(1L, std::atol(local)) : 1;
-    parallel = std::max(1L, cores / (threads * ranks));
-  }
-  s.parallel_runs = static_cast<int>(parallel);
-
-  // [[sample]]
-  const toml::node* sn = root.get("sample");
-  if (!sn) r.fail("sample", nullptr, "is required but missing: one [[sample]] table per sample (name, case)");
-  const toml::array* sample_arr = sn->as_array();
-  if (!sample_arr || sample_arr->empty() || !sample_arr->is_array_of_tables())
-    r.fail("sample", sn, "expected [[sample]] tables (name = \"...\", case = \"...\")");
-  std::set<std::string> names;
-  for (std::size_t i = 0; i < sample_arr->size(); ++i) {
-    const toml::table& t = *sample_arr->get(i)->as_table();
-    const std::string p = fmt::format("sample.{}.", i);
-    r.only(t, p, {"name", "case", "set"});
-    const std::string sample_name = r.text(t, "name", p + "name", std::nullopt);
-    if (!valid_name(sample_name))
-      r.fail(p + "name", t.get("name"), "allowed: letters, digits, '.', '_', '+', '-' (it names directories)");
-    if (!names.insert(sample_name).second) r.fail(p + "name", t.get("name"), "two samples have this name");
-    const std::string case_text = r.text(t, "case", p + "case", std::nullopt);
-    fs::path case_file = case_text;
-    if (case_file.is_relative()) case_file = file.parent_path() / case_file;  // relative to the study file
-    case_file = fs::weakly_canonical(fs::absolute(case_file));
-    if (!fs::is_regular_file(case_file))
-      r.fail(p + "case", t.get("case"), fmt::format("no such case file ('{}'; a relative path is relative to the study file)",
-                                                    case_file.string()));
-    std::set<std::string> reserved = run_keys;
-    if (!seeds.empty()) reserved.insert("sample.seed");
-    const std::vector<std::string> own = r.sets(t, p + "set", reserved);
-
-    // Check the case with the sample's overrides now, not after hours of other runs.
-    const auto check = [&](const std::vector<std::string>& sets, const std::string& what) {
-      try {
-        return load_case(case_file.string(), sets);
-      } catch (const InputError& e) {
-        throw InputError(fmt::format("{}: sample '{}'{}: {}", name, sample_name, what, e.what()));
-      }
-    };
-    const Params base = check(own, "");
-    const std::vector<std::uint64_t> sample_seeds = seeds.empty() ? std::vector{base.sample.seed} : seeds;
-    for (const std::uint64_t seed : sample_seeds) {
-      StudySample smp;
-      smp.name = sample_name;
-      smp.seed = seed;
-      smp.dir = fmt::format("samples/{}-seed{}", sample_name, seed);
-      smp.case_file = case_file;
-      if (!seeds.empty()) smp.sets.push_back(fmt::format("sample.seed={}", seed));
-      smp.sets.insert(smp.sets.end(), own.begin(), own.end());
-      smp.run_sets = own;
-      check(smp.sets, fmt::format(" seed {}", seed));
-      s.samples.push_back(smp);
-    }
-  }
-
-  // The runs: samples x models x damping ratios x strain rates, in this order.
-  for (std::size_t k = 0; k < s.samples.size(); ++k) {
-    const StudySample& smp = s.samples[k];
-    for (const auto& model : models)
-      for (const double xi : ratios)
-        for (const double rate : rates) {
-          StudyRun run;
-          run.id = fmt::format("{}-seed{}/{}/{}/{}", smp.name, smp.seed, model, xi_label(xi), rate_label(rate));
-          run.sample = k;
-          run.model = model;
-          run.xi = xi;
-          run.rate = rate;
-          run.dir = "runs/" + run.id;
-          run.sets = smp.run_sets;
-          for (const std::string& set : {"damping.model=" + model, "damping.ratio=" + exact(xi),
-                                         "triaxial.strain_rate=" + exact(rate)})
-            run.sets.push_back(set);
-          run.sets.insert(run.sets.end(), design_sets.begin(), design_sets.end());
-          Params params;
-          try {
-            params = load_case(smp.case_file.string(), run.sets);
-          } catch (const InputError& e) {
-            throw InputError(fmt::format("{}: run '{}': {}", name, run.id, e.what()));
-          }
-          run.expected_steps = std::max(1.0, std::round(params.triaxial.final_axial_strain /
-                                                        (params.step_ratio * params.triaxial.strain_rate)));
-          s.runs.push_back(std::move(run));
-        }
-  }
-  return s;
-}
-
-nlohmann::ordered_json study_manifest(const Study& study) {
-  nlohmann::ordered_json m;
-  m["name"] = study.name;
-  m["study_file"] = "study.toml";
-  m["samples"] = nlohmann::ordered_json::array();
-  for (const auto& smp : study.samples)
-    m["samples"].push_back({{"name", smp.name}, {"seed", smp.seed}, {"dir", smp.dir}});
-  m["runs"] = nlohmann::ordered_json::array();
-  for (const auto& run : study.runs) {
-    const StudySample& smp = study.samples[run.sample];
-    m["runs"].push_back({{"id", run.id},
-                         {"sample", smp.name},
-                         {"seed", smp.seed},
-                         {"model", run.model},
-                         {"xi", run.xi},
-                         {"rate", run.rate},
-                         {"dir", run.dir}});
-  }
-  return m;
-}
-
-namespace {
 
 // ---------------------------------------------------------------------------------------------
 // Child processes: `qsdem prepare`, `qsdem run`, `qsdem resume`, one per sample or run.
@@ -508,7 +175,8 @@ bool finished(const Job& j) {
 }
 
 // A run with a checkpoint resumes from it; anything else starts afresh (--force clears what an
-// unfinished start left). An interrupted `prepare` restarts: `resume` would carry on shearing.
+// unfinished start left). An interrupted `prepare` restarts (a prepared sample of checkpoint format
+// 4 or older would be sheared by `resume`).
 std::vector<std::string> command(const Job& j) {
   if (j.kind == Job::Kind::run && (fs::exists(j.dir / checkpoint_file) || fs::exists(j.dir / "checkpoint.qsck.prev")))
     return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet"};
@@ -566,11 +234,15 @@ class StudyProgress {
     if (open_line_) std::fputc('\n', stderr);
     open_line_ = false;
   }
-  // A message between progress lines.
+  // A message between progress lines (printed even when quiet: failures, warnings).
   void message(const std::string& text) {
     end_line();
     std::fprintf(stderr, "%s%s\n", prefix_.c_str(), text.c_str());
     last_.clear();
+  }
+  // Information between progress lines (not when quiet).
+  void note(const std::string& text) {
+    if (!quiet_) message(text);
   }
 
  private:
@@ -613,7 +285,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
     nlohmann::json f = {{"id", j.id}, {"dir", j.rel_dir}, {"log", j.rel_dir + "/" + log_of(j).filename().string()},
                         {"exit_code", code}, {"message", why}};
     result.failures.push_back(f);
-    progress.message(fmt::format("{} {} failed ({}): {}", what == "samples" ? "sample" : "run", j.id,
+    progress.message(fmt::format("{} {} failed ({}): {}", j.kind == Job::Kind::prepare ? "sample" : "run", j.id,
                                  code >= 0 ? fmt::format("exit code {}", code) : "not started", why));
   };
   // Seconds left: remaining steps at each sample's measured time per step, over the processes.
@@ -639,7 +311,8 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
     const double elapsed = std::chrono::duration<double>(clock::now() - t0).count();
     std::string counts = fmt::format("{} {}/{} done, {} running", what, done, jobs.size(), running.size());
     if (!result.failures.empty()) counts += fmt::format(", {} failed", result.failures.size());
-    progress.show(counts, fmt::format(", {} elapsed", format_duration(elapsed)) + (what == "runs" ? eta() : ""));
+    const bool runs = !jobs.empty() && jobs.front().kind == Job::Kind::run;
+    progress.show(counts, fmt::format(", {} elapsed", format_duration(elapsed)) + (runs ? eta() : ""));
   };
 
   for (;;) {
@@ -760,32 +433,103 @@ nlohmann::json mpi_gather_failures(const Mpi& m, const nlohmann::json& mine) {
 
 constexpr const char* lock_file = ".study.lock";
 
-// Creates DIR with study.toml and study.json, or checks that DIR holds this very study. Holds a
-// lock on DIR until the process ends: two studies in one directory would run the same runs twice
-// at once (a second `qsdem study`, or ranks started without MPI, e.g. a plain srun).
-void setup_directory(const Study& study, const fs::path& out) {
+// The recorded manifest of DIR (study.json), or null.
+nlohmann::json recorded_manifest(const fs::path& out) {
+  try {
+    return nlohmann::json::parse(read_bytes(out / "study.json"));
+  } catch (const std::exception&) {
+    return nullptr;
+  }
+}
+
+// Refuses to continue a study whose case files or prepared samples changed since they were
+// recorded in study.json: its runs would mix two cases in one analysis.
+void check_recorded(const Study& study, const fs::path& out, const nlohmann::json& recorded) {
+  if (!recorded.is_object() || !recorded.contains("samples")) return;
+  for (const auto& old : recorded["samples"]) {
+    const auto dir = old.value("dir", std::string());
+    const auto it = std::find_if(study.samples.begin(), study.samples.end(), [&](const StudySample& s) { return s.dir == dir; });
+    if (it == study.samples.end()) continue;
+    if (old.contains("case_fnv1a64") && old["case_fnv1a64"] != it->case_hash)
+      throw InputError(fmt::format(
+          "the case file '{}' of sample '{}' changed since this study recorded it in '{}' (FNV-1a {} then, {} now): "
+          "its runs would mix two cases. Restore the file, or start the changed study in another --out",
+          it->case_file.string(), it->name, (out / "study.json").string(), old["case_fnv1a64"].get<std::string>(),
+          it->case_hash));
+    if (old.contains("compacted_fnv1a64")) {
+      const fs::path file = out / dir / "compacted.packing";
+      const std::string now = fs::exists(file) ? file_fnv1a64(file) : "none (the file is gone)";
+      if (now != old["compacted_fnv1a64"])
+        throw InputError(fmt::format(
+            "the prepared sample '{}' changed since this study recorded it in '{}' (FNV-1a {} then, {} now): the "
+            "runs sheared so far used the other one. Start the study anew in another --out",
+            file.string(), (out / "study.json").string(), old["compacted_fnv1a64"].get<std::string>(), now));
+    }
+  }
+}
+
+// The manifest with the recorded hashes of the prepared samples kept.
+nlohmann::ordered_json manifest_keeping(const Study& study, const nlohmann::json& recorded) {
+  nlohmann::ordered_json m = study_manifest(study);
+  if (recorded.is_object() && recorded.contains("samples"))
+    for (auto& smp : m["samples"])
+      for (const auto& old : recorded["samples"])
+        if (old.value("dir", std::string()) == smp["dir"] && old.contains("compacted_fnv1a64"))
+          smp["compacted_fnv1a64"] = old["compacted_fnv1a64"];
+  return m;
+}
+
+// Creates DIR with study.toml and study.json, or checks that DIR holds this very study with the
+// same case files and prepared samples. Takes the lock on DIR first (two studies started at once:
+// the second is told so) and holds it, in `lock`, for the life of the study: two studies in one
+// directory would run the same runs twice at once.
+void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryLock>& lock) {
   std::error_code ec;
   fs::create_directories(out, ec);
   if (ec) throw InputError(fmt::format("cannot create the study directory '{}': {}", out.string(), ec.message()));
+  const bool had_lock_file = fs::exists(out / lock_file);
+  lock.emplace(out, lock_file,
+               fmt::format("another `qsdem study` is working in '{}' (it holds {}): wait for it or stop it",
+                           out.string(), (out / lock_file).string()));
   const fs::path copy = out / "study.toml";
   const bool empty = std::all_of(fs::directory_iterator(out), fs::directory_iterator(),
                                  [](const fs::directory_entry& e) { return e.path().filename() == lock_file; });
+  const auto refuse = [&](const std::string& why) {
+    if (!had_lock_file) fs::remove(out / lock_file, ec);  // leave a foreign directory as it was
+    lock.reset();
+    throw InputError(why);
+  };
   if (fs::exists(copy)) {
-    if (slurp(copy) != study.text)
-      throw InputError(fmt::format(
+    if (read_bytes(copy) != study.text)
+      refuse(fmt::format(
           "'{}' holds another study: its study.toml differs from '{}'. Continue a study with the study file it was "
           "started with, or choose another --out",
           out.string(), study.file.string()));
   } else if (!empty) {
-    throw InputError(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory",
-                                 out.string()));
+    refuse(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory", out.string()));
   }
-  const int fd = ::open((out / lock_file).c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);  // kept open: the lock
-  if (fd < 0 || ::flock(fd, LOCK_EX | LOCK_NB) != 0)
-    throw InputError(fmt::format("another `qsdem study` is working in '{}' (it holds {}): wait for it or stop it",
-                                 out.string(), (out / lock_file).string()));
+  const nlohmann::json recorded = recorded_manifest(out);
+  check_recorded(study, out, recorded);
+  adopt_recorded_picks(study, recorded);
   if (!fs::exists(copy)) write_file_atomic(copy, study.text);
-  write_file_atomic(out / "study.json", study_manifest(study).dump(2) + "\n");
+  write_file_atomic(out / "study.json", manifest_keeping(study, recorded).dump(2) + "\n");
+}
+
+// Records the FNV-1a of every prepared sample's compacted.packing not yet recorded in study.json
+// (and checks the others again: a sample prepared anew meanwhile, with other settings, is
+// refused). The packing, not sample.qsck: the engine writes it bit-identically for the same
+// sample, while a checkpoint holds wall times.
+void record_samples(const Study& study, const fs::path& out) {
+  const nlohmann::json recorded = recorded_manifest(out);
+  check_recorded(study, out, recorded);
+  nlohmann::ordered_json m = manifest_keeping(study, recorded);
+  for (auto& smp : m["samples"]) {
+    const fs::path dir = out / smp["dir"].get<std::string>();
+    const fs::path file = dir / "compacted.packing";
+    if (!smp.contains("compacted_fnv1a64") && fs::exists(dir / prepared_sample_file) && fs::exists(dir / "summary.json"))
+      smp["compacted_fnv1a64"] = file_fnv1a64(file);
+  }
+  write_file_atomic(out / "study.json", m.dump(2) + "\n");
 }
 
 std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
@@ -807,9 +551,11 @@ std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
   return jobs;
 }
 
-std::vector<Job> run_jobs(const Study& study, const fs::path& out) {
+// The runs of the stages of one level.
+std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level) {
   std::vector<Job> jobs;
   for (const StudyRun& run : study.runs) {
+    if (study.stages[run.stage].level != level) continue;
     const StudySample& smp = study.samples[run.sample];
     Job j;
     j.id = run.id;
@@ -845,6 +591,98 @@ int interrupted(const Mpi& m, int sig, const fs::path& out, const std::string& s
   return 128 + sig;
 }
 
+std::string ratios_text(const std::vector<double>& v) {
+  std::string s;
+  for (double x : v) s += fmt::format("{}{:g} %", s.empty() ? "" : ", ", 100 * x);
+  return s.empty() ? "none" : s;
+}
+
+// Picks the damping ratios of the stages of `level` from their source stages, which have run:
+// records the picks in study.json and adds their runs. A (sample, model) picked before keeps its
+// ratios (its runs may exist); a source optimum that now gives others is reported, and flagged by
+// the analysis. Returns the failures: the (sample, model) pairs without an optimum to pick.
+nlohmann::json pick_level(Study& study, const fs::path& out, int level, StudyProgress& progress) {
+  nlohmann::json failures = nlohmann::json::array();
+  for (std::size_t k = 0; k < study.stages.size(); ++k) {
+    StudyStage& st = study.stages[k];
+    if (st.level != level || st.pick.empty()) continue;
+    const std::string source = study.stages[st.from].name;
+    const std::vector<StageOptimum> optima = stage_optima(out, study_manifest(study), source, st.at_rate);
+    for (std::size_t smp : st.samples)
+      for (std::size_t m : st.models) {
+        const std::string& sample = study.sample_names[smp];
+        const std::string& model = study.models[m].label;
+        const auto o = std::find_if(optima.begin(), optima.end(),
+                                    [&](const StageOptimum& x) { return x.sample == sample && x.model == model; });
+        const std::vector<double> ratios = o != optima.end() ? pick_ratios(*o, st.pick, st.digits) : std::vector<double>{};
+        const auto rec = std::find_if(st.picks.begin(), st.picks.end(),
+                                      [&](const StudyPick& p) { return p.sample == sample && p.model == model; });
+        if (rec != st.picks.end()) {
+          if (ratios != rec->ratios)
+            progress.message(fmt::format(
+                "stage {}: the optimum of stage {} for {} {} now gives {} (picked before: {}); the stage keeps the "
+                "ratios its runs were made with, and the report flags the change",
+                st.name, source, sample, model, ratios_text(ratios), ratios_text(rec->ratios)));
+        } else if (ratios.empty()) {
+          const std::string why = fmt::format("no optimum of stage {} for {} {}: none of its runs finished", source,
+                                              sample, model);
+          failures.push_back({{"id", fmt::format("stage {}: {} {}", st.name, sample, model)},
+                              {"dir", ""}, {"log", ""}, {"exit_code", -1}, {"message", why}});
+          progress.message(fmt::format("stage {}: {} {} not started: {}", st.name, sample, model, why));
+        } else {
+          st.picks.push_back({sample, model, o->xi_opt, o->method, o->runs_used, ratios});
+          progress.note(fmt::format("stage {}: {} {}: {} of stage {} ({}: ξopt = {:.4g} %)", st.name, sample, model,
+                                       ratios_text(ratios), source, o->method, 100 * o->xi_opt));
+        }
+      }
+    add_stage_runs(study, k);
+  }
+  write_file_atomic(out / "study.json", manifest_keeping(study, recorded_manifest(out)).dump(2) + "\n");
+  return failures;
+}
+
+int max_level(const Study& study) {
+  int level = 0;
+  for (const StudyStage& st : study.stages) level = std::max(level, st.level);
+  return level;
+}
+
+std::string level_label(const Study& study, int level) {
+  if (!study.staged) return "runs";
+  std::string names;
+  for (const StudyStage& st : study.stages)
+    if (st.level == level) names += (names.empty() ? "" : ", ") + st.name;
+  return "runs of stage " + names + ":";
+}
+
+// Writes failures.json (or removes an old one) and analyses the directory. Returns 0 or 3.
+int finish_study(const Study& study, const fs::path& out, nlohmann::json failures, bool quiet) {
+  int code = 0;
+  std::sort(failures.begin(), failures.end(),
+            [](const auto& a, const auto& b) { return a["id"].template get<std::string>() < b["id"].template get<std::string>(); });
+  const fs::path failures_file = out / "failures.json";
+  if (failures.empty()) {
+    fs::remove(failures_file);
+  } else {
+    write_file_atomic(failures_file, failures.dump(2) + "\n");
+    std::fprintf(stderr, "qsdem: %zu of %zu samples and runs failed (listed in %s, logs in their directories); "
+                         "the analysis uses the runs that finished\n",
+                 failures.size(), study.samples.size() + study.runs.size(), failures_file.string().c_str());
+    code = 3;
+  }
+  try {
+    analyze_study(out);
+    if (!quiet) std::fprintf(stderr, "qsdem: analysis written to %s/analysis/\n", out.string().c_str());
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "qsdem: analysis failed: %s\n", e.what());
+    code = 3;
+  }
+  if (!quiet)
+    std::printf("study %s: %zu runs, %zu failed; results in %s\n", study.name.c_str(), study.runs.size(),
+                failures.size(), out.string().c_str());
+  return code;
+}
+
 int study_main(const fs::path& study_file, const StudyOptions& options, const Mpi& mpi) {
   Study study;
   try {
@@ -856,28 +694,36 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   if (options.parallel > 0) study.parallel_runs = options.parallel;
   const fs::path out = fs::absolute(options.out);
 
-  // Rank 0 sets the directory up; the others wait for its verdict.
+  // Rank 0 sets the directory up; the others wait for its verdict, then read the picks it kept.
   int status = 0;
-  if (mpi.rank == 0) {
-    try {
-      setup_directory(study, out);
-    } catch (const InputError& e) {
-      std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
-      status = 2;
-    } catch (const std::exception& e) {
-      std::fprintf(stderr, "qsdem: error: %s\n", e.what());
-      status = 3;
+  std::optional<DirectoryLock> lock;  // rank 0's, for the life of the study
+  const auto on_rank0 = [&](const auto& work) {
+    if (mpi.rank == 0) {
+      try {
+        work();
+      } catch (const InputError& e) {
+        std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
+        status = 2;
+      } catch (const std::exception& e) {
+        std::fprintf(stderr, "qsdem: error: %s\n", e.what());
+        status = 3;
+      }
     }
-  }
-  status = mpi_bcast(mpi, status);
-  if (status != 0) return status;
+    status = mpi_bcast(mpi, status);
+    if (status == 0 && mpi.rank != 0) adopt_recorded_picks(study, recorded_manifest(out));
+    return status;
+  };
+  if (on_rank0([&] { setup_directory(study, out, lock); }) != 0) return status;
 
   const StopSignals signals;
   const Launcher launcher = make_launcher();
   StudyProgress progress(options.quiet, mpi.active ? fmt::format("[rank {}/{}] ", mpi.rank, mpi.size) : "");
   if (!options.quiet && mpi.rank == 0)
-    std::fprintf(stderr, "qsdem study %s: %s, %s, %s x %s%s -> %s\n", study.name.c_str(),
+    std::fprintf(stderr, "qsdem study %s: %s, %s%s, %s x %s%s -> %s\n", study.name.c_str(),
                  plural(study.samples.size(), "sample").c_str(), plural(study.runs.size(), "run").c_str(),
+                 study.staged ? fmt::format(" in {} (a stage that picks its ratios adds its runs when it starts)",
+                                            plural(study.stages.size(), "stage")).c_str()
+                              : "",
                  plural(std::size_t(study.parallel_runs), "process", "processes").c_str(),
                  plural(std::size_t(study.threads_per_run), "thread").c_str(),
                  mpi.active ? fmt::format(" on each of {} MPI ranks", mpi.size).c_str() : "", out.string().c_str());
@@ -887,38 +733,33 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   failures.insert(failures.end(), r.failures.begin(), r.failures.end());
   if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
   if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+  if (on_rank0([&] { record_samples(study, out); }) != 0) return status;
 
-  r = run_pool(share(run_jobs(study, out), mpi), "runs", study.parallel_runs, launcher, progress);
-  failures.insert(failures.end(), r.failures.begin(), r.failures.end());
-  if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
-  if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+  // The stages, level by level: a stage that picks its ratios starts when its source has run and
+  // the study directory has been analysed.
+  for (int level = 0; level <= max_level(study); ++level) {
+    if (level > 0) {
+      nlohmann::json picked;
+      const auto pick = [&] {
+        try {
+          analyze_study(out);
+        } catch (const std::exception& e) {
+          progress.message(fmt::format("the analysis before the next stage failed (the stage goes on): {}", e.what()));
+        }
+        picked = pick_level(study, out, level, progress);
+      };
+      if (on_rank0(pick) != 0) return status;
+      failures.insert(failures.end(), picked.begin(), picked.end());
+    }
+    r = run_pool(share(run_jobs(study, out, level), mpi), level_label(study, level), study.parallel_runs, launcher,
+                 progress);
+    failures.insert(failures.end(), r.failures.begin(), r.failures.end());
+    if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
+    if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+  }
 
   failures = mpi_gather_failures(mpi, failures);
-  int code = 0;
-  if (mpi.rank == 0) {
-    std::sort(failures.begin(), failures.end(),
-              [](const auto& a, const auto& b) { return a["id"].template get<std::string>() < b["id"].template get<std::string>(); });
-    const fs::path failures_file = out / "failures.json";
-    if (failures.empty()) {
-      fs::remove(failures_file);
-    } else {
-      write_file_atomic(failures_file, failures.dump(2) + "\n");
-      std::fprintf(stderr, "qsdem: %zu of %zu samples and runs failed (listed in %s, logs in their directories); "
-                           "the analysis uses the runs that finished\n",
-                   failures.size(), study.samples.size() + study.runs.size(), failures_file.string().c_str());
-      code = 3;
-    }
-    try {
-      analyze_study(out);
-      if (!options.quiet) std::fprintf(stderr, "qsdem: analysis written to %s/analysis/\n", out.string().c_str());
-    } catch (const std::exception& e) {
-      std::fprintf(stderr, "qsdem: analysis failed: %s\n", e.what());
-      code = 3;
-    }
-    if (!options.quiet)
-      std::printf("study %s: %zu runs, %zu failed; results in %s\n", study.name.c_str(), study.runs.size(),
-                  failures.size(), out.string().c_str());
-  }
+  const int code = mpi.rank == 0 ? finish_study(study, out, failures, options.quiet) : 0;
   return std::max(code, mpi_bcast(mpi, code));
 }
 

@@ -1,13 +1,17 @@
 // A study (SPEC 9): samples x damping models x damping ratios x strain rates (x seeds), each sample
-// prepared once, runs executed in parallel processes (and over MPI ranks), resumable. The study
+// prepared once, runs executed in parallel processes (and over MPI ranks), resumable; optionally
+// in stages, a later stage taking its damping ratios from an earlier stage's optimum. The study
 // file and the layout of the study directory are documented in docs/study.md.
 #pragma once
 #include <cstdint>
 #include <filesystem>
+#include <limits>
 #include <string>
 #include <vector>
 
 #include <nlohmann/json.hpp>
+
+#include "qsdem/study_analysis.hpp"
 
 namespace qsdem {
 
@@ -17,28 +21,77 @@ struct StudySample {
   std::uint64_t seed = 1;             // sample.seed it is prepared with
   std::string dir;                    // relative to the study directory: samples/<name>-seed<S>
   std::filesystem::path case_file;    // absolute
+  std::string case_hash;              // FNV-1a 64 of the case file's bytes, 16 hex digits
   std::vector<std::string> sets;      // --set overrides of `qsdem prepare` (seed first)
   std::vector<std::string> run_sets;  // the sample's own overrides, also given to its runs
+};
+
+// One entry of the model axis: a damping model's name ("nd"), or a label with case overrides
+// ({ label = "nd-t", set = ["damping.model=nd", "damping.acts_on=translation"] }).
+struct StudyModel {
+  std::string label;              // names the runs' directories and the analysis' groups
+  std::vector<std::string> sets;  // the entry's overrides (a name: none; damping.model is set from it)
+  bool named = true;              // given as a bare model name
 };
 
 // One triaxial test of a prepared sample.
 struct StudyRun {
   std::string id;  // <sample>-seed<S>/<model>/xi-<xi %>/rate-<rate>, also its directory under runs/
   std::size_t sample = 0;  // index into Study::samples
-  std::string model;       // none | od | nd
+  std::size_t model = 0;   // index into Study::models
   double xi = 0;           // damping ratio, as a fraction
   double rate = 0;         // dimensionless strain rate eps'
+  std::size_t stage = 0;   // index into Study::stages: the first stage that lists it
   std::string dir;         // relative to the study directory: runs/<id>
   std::vector<std::string> sets;  // --set overrides of `qsdem run`, except sample.from
+  std::string damping_model;      // the case's damping.model with these overrides
   double expected_steps = 0;      // triaxial steps, final_axial_strain / (c_t eps') (for the ETA)
+};
+
+// The damping ratios of one (sample, model) that a stage picked from its source's optimum.
+struct StudyPick {
+  std::string sample, model;   // sample name and model label
+  double xi_opt = std::numeric_limits<double>::quiet_NaN();
+  std::string method;          // how xi_opt was obtained (StageOptimum::method)
+  int runs_used = 0;
+  std::vector<double> ratios;  // what the stage runs
+};
+
+// A stage of the design: a grid of samples x models x ratios x rates, or a list of runs. Without
+// [[stage]] tables the design is one stage. Stages of one level run together; a stage that picks
+// its ratios from another is one level after it.
+struct StudyStage {
+  std::string name;
+  std::vector<std::size_t> samples;  // indices of the [[sample]] tables (names)
+  std::vector<std::size_t> models;   // indices into Study::models
+  std::vector<double> rates;
+  std::vector<double> ratios;        // fixed ratios (empty when picked or listed)
+  struct Listed {
+    std::size_t model;
+    double xi, rate;
+  };
+  std::vector<Listed> listed;        // a list of runs instead of a grid
+  std::size_t from = 0;              // with `pick`: the stage the ratios are picked from
+  std::string pick;                  // "" | "optimum" | "optimum+neighbours"
+  double at_rate = std::numeric_limits<double>::quiet_NaN();  // optimum at this rate of `from`
+  int digits = 2;                    // significant digits of the picked optimum
+  int level = 0;
+  std::vector<StudyPick> picks;      // recorded picks (study.json)
 };
 
 struct Study {
   std::string name;
   std::filesystem::path file;  // the study file as given
   std::string text;            // its contents (copied to DIR/study.toml)
-  std::vector<StudySample> samples;
-  std::vector<StudyRun> runs;
+  std::vector<std::string> sample_names;  // the [[sample]] tables, in file order
+  std::vector<StudySample> samples;       // one per [[sample]] and seed
+  std::vector<StudyModel> models;
+  std::vector<StudyStage> stages;
+  bool staged = false;                    // [[stage]] tables (else one stage from [design])
+  bool has_analysis = false;              // an [analysis] table
+  AnalysisSettings analysis;
+  std::vector<std::string> design_sets;   // design.set: overrides of every run
+  std::vector<StudyRun> runs;             // those known so far (a picking stage adds its own)
   int parallel_runs = 1;    // processes at once (per MPI rank)
   int threads_per_run = 1;  // --threads of every child
 };
@@ -46,6 +99,18 @@ struct Study {
 // Reads and checks a study file, and every case it names with every override of every run.
 // Throws InputError naming the file, line, key, value and what is allowed.
 Study load_study(const std::filesystem::path& file);
+
+// Adds the runs of stage `stage` whose ratios are known (given, listed, or picked so far) and that
+// the study does not hold yet. Throws InputError when two stages of given ratios list one run.
+void add_stage_runs(Study& study, std::size_t stage);
+
+// FNV-1a 64 of a file's bytes, 16 hex digits (the hashes of study.json).
+std::string file_fnv1a64(const std::filesystem::path& file);
+
+// Adds the picks recorded in a manifest (study.json) that the study does not hold yet, and their
+// runs: a continued study uses the ratios its stages picked before. Throws InputError when a
+// recorded pick has no ratios.
+void adopt_recorded_picks(Study& study, const nlohmann::json& manifest);
 
 // The manifest DIR/study.json (the contract with the analysis, docs/study.md); keys in the
 // documented order.

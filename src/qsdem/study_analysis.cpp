@@ -1,5 +1,6 @@
 // Analysis of a study (SPEC 9, paper sections 4-5). Choices and formulas: docs/analysis.md.
 #include "qsdem/study_analysis.hpp"
+#include "qsdem/study_analysis_data.hpp"
 
 #include <algorithm>
 #include <chrono>
@@ -21,6 +22,7 @@
 #include <fmt/format.h>
 
 #include "qsdem/output.hpp"
+#include "qsdem/version.hpp"
 
 namespace qsdem {
 
@@ -49,6 +51,14 @@ OptimumFit fit_optimum(std::span<const double> xi, std::span<const double> index
       std::min_element(p.begin(), p.end(), [](auto& l, auto& r) { return l.second < r.second; }) - p.begin());
   f.xi_min = p[imin].first;
   f.index_min = p[imin].second;
+  if (p.size() == 1) {
+    // One ratio (e.g. a stage that ran only the optimum picked from another): no minimum to find.
+    f.xi_opt = f.xi_min;
+    f.index_at_opt = f.index_min;
+    f.method = "single";
+    f.flag = "one damping ratio at this rate: its value, not a minimum";
+    return f;
+  }
   if (imin == 0 || imin + 1 == p.size()) {
     // The minimum may lie outside the sampled range: report the end value, never extrapolate.
     f.xi_opt = f.xi_min;
@@ -128,6 +138,99 @@ double quasi_static_rate(const PowerLawFit& fit, double imom_qs) {
   return std::pow(imom_qs / fit.a, 1.0 / fit.b);
 }
 
+namespace {
+
+// A curve y(e1), finite points only, sorted by e1.
+std::vector<std::pair<double, double>> sorted_curve(std::span<const double> e1, std::span<const double> y) {
+  if (e1.size() != y.size()) throw std::invalid_argument("curve_deviation: e1 and y differ in length");
+  std::vector<std::pair<double, double>> c;
+  for (std::size_t i = 0; i < e1.size(); ++i)
+    if (std::isfinite(e1[i]) && std::isfinite(y[i])) c.emplace_back(e1[i], y[i]);
+  std::stable_sort(c.begin(), c.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  return c;
+}
+
+// A strain within this of a curve's end counts as on the curve: the last sample point of a run to
+// 10 % is at 10 % up to rounding.
+constexpr double strain_slack = 1e-9;
+
+double interpolate(const std::vector<std::pair<double, double>>& c, double x) {
+  if (c.empty() || x < c.front().first - strain_slack || x > c.back().first + strain_slack)
+    return std::numeric_limits<double>::quiet_NaN();
+  x = std::clamp(x, c.front().first, c.back().first);
+  const auto hi = std::lower_bound(c.begin(), c.end(), x, [](const auto& p, double v) { return p.first < v; });
+  if (hi == c.begin()) return hi->second;
+  const auto lo = hi - 1;
+  if (hi->first == x || hi->first == lo->first) return hi->second;
+  return lo->second + (hi->second - lo->second) * (x - lo->first) / (hi->first - lo->first);
+}
+
+}  // namespace
+
+CurveDeviation curve_deviation(std::span<const double> e1_ref, std::span<const double> y_ref,
+                               std::span<const double> e1, std::span<const double> y,
+                               std::span<const double> at_strains) {
+  const auto ref = sorted_curve(e1_ref, y_ref), run = sorted_curve(e1, y);
+  CurveDeviation d;
+  for (double s : at_strains) d.at.push_back(interpolate(run, s) - interpolate(ref, s));
+  if (ref.empty() || run.empty()) return d;
+  const double lo = std::max(ref.front().first, run.front().first);
+  const double hi = std::min(ref.back().first, run.back().first);
+  if (lo > hi + strain_slack) return d;
+  d.e1_lo = lo, d.e1_hi = hi;
+  double sum = 0;
+  for (const auto& [x, yr] : ref) {
+    if (x < lo - strain_slack || x > hi + strain_slack) continue;
+    const double diff = interpolate(run, x) - yr;
+    sum += diff * diff;
+    ++d.n;
+  }
+  if (d.n > 0) d.rms = std::sqrt(sum / d.n);
+  return d;
+}
+
+nlohmann::ordered_json to_json(const AnalysisSettings& s) {
+  const auto opt = [](double v) { return std::isfinite(v) ? nlohmann::ordered_json(v) : nlohmann::ordered_json(nullptr); };
+  nlohmann::ordered_json j;
+  j["baseline"] = s.baseline;
+  j["imom_target"] = s.imom_target;
+  if (s.has_reference) {
+    nlohmann::ordered_json r = nlohmann::ordered_json::object();
+    if (!s.reference_model.empty()) r["model"] = s.reference_model;
+    if (std::isfinite(s.reference_ratio)) r["ratio"] = s.reference_ratio;
+    if (std::isfinite(s.reference_rate)) r["rate"] = s.reference_rate;
+    j["reference"] = r;
+  } else {
+    j["reference"] = nullptr;
+  }
+  j["phi_tolerance_deg"] = s.phi_tolerance_deg;
+  j["ev_tolerance"] = s.ev_tolerance;
+  j["cn_tolerance"] = opt(s.cn_tolerance);
+  return j;
+}
+
+AnalysisSettings analysis_settings_from_json(const nlohmann::json& j) {
+  AnalysisSettings s;
+  if (!j.is_object()) return s;
+  const auto number = [&](const nlohmann::json& o, const char* key, double def) {
+    const auto it = o.find(key);
+    return it != o.end() && it->is_number() ? it->get<double>() : def;
+  };
+  if (j.contains("baseline") && j["baseline"].is_string()) s.baseline = j["baseline"];
+  s.imom_target = number(j, "imom_target", s.imom_target);
+  if (j.contains("reference") && j["reference"].is_object()) {
+    const auto& r = j["reference"];
+    s.has_reference = true;
+    if (r.contains("model") && r["model"].is_string()) s.reference_model = r["model"];
+    s.reference_ratio = number(r, "ratio", s.reference_ratio);
+    s.reference_rate = number(r, "rate", s.reference_rate);
+  }
+  s.phi_tolerance_deg = number(j, "phi_tolerance_deg", s.phi_tolerance_deg);
+  s.ev_tolerance = number(j, "ev_tolerance", s.ev_tolerance);
+  s.cn_tolerance = number(j, "cn_tolerance", s.cn_tolerance);
+  return s;
+}
+
 void require_gnuplot() {
   if (std::system("gnuplot --version > /dev/null 2>&1") != 0)
     throw std::runtime_error(
@@ -135,10 +238,7 @@ void require_gnuplot() {
         "Debian package gnuplot-nox (apt-get install gnuplot-nox)");
 }
 
-namespace {
-
-constexpr double nan = std::numeric_limits<double>::quiet_NaN();
-constexpr double imom_qs = 1e-3;  // 0.1 %, the paper's quasi-static threshold (section 5.5)
+namespace analysis {
 
 // ---------------------------------------------------------------------------------------------
 // Small helpers
@@ -158,68 +258,18 @@ std::string read_text(const fs::path& p) {
   return s.str();
 }
 
-void write_plain(const fs::path& p, const std::string& text) {
-  std::ofstream out(p, std::ios::binary);
-  out << text;
-  if (!out) throw std::runtime_error("cannot write " + p.string());
-}
-
 // Numbers in tables: NaN shown as a dash (md/html) or empty (CSV).
-std::string sig(double v, int digits = 3) {
+std::string sig(double v, int digits) {
   if (!std::isfinite(v)) return "—";
   return fmt::format("{:.{}g}", v, digits);
 }
-std::string pct(double v, int digits = 3) { return std::isfinite(v) ? sig(100 * v, digits) : "—"; }
+std::string pct(double v, int digits) { return std::isfinite(v) ? sig(100 * v, digits) : "—"; }
 std::string csvnum(double v) { return std::isfinite(v) ? fmt::format("{:.9g}", v) : ""; }
 std::string csvstr(const std::string& s) {
   if (s.find_first_of(",\"\n") == std::string::npos) return s;
   std::string r = "\"";
   for (char c : s) r += c == '"' ? std::string("\"\"") : std::string(1, c);
   return r + "\"";
-}
-
-std::string html_escape(const std::string& s) {
-  std::string r;
-  for (char c : s) {
-    switch (c) {
-      case '&': r += "&amp;"; break;
-      case '<': r += "&lt;"; break;
-      case '>': r += "&gt;"; break;
-      case '"': r += "&quot;"; break;
-      case '\'': r += "&#39;"; break;
-      default: r += c;
-    }
-  }
-  return r;
-}
-
-std::string md_escape(const std::string& s) {
-  std::string r;
-  for (char c : s) r += c == '|' ? std::string("\\|") : std::string(1, c);
-  return r;
-}
-
-// A double-quoted gnuplot string (terminals run with `noenhanced`, so only \ and " matter).
-std::string gp_str(const std::string& s) {
-  std::string r = "\"";
-  for (char c : s) {
-    if (c == '\\' || c == '"') r += '\\';
-    r += c;
-  }
-  return r + "\"";
-}
-
-std::string shell_quote(const std::string& s) {
-  std::string r = "'";
-  for (char c : s) r += c == '\'' ? std::string("'\\''") : std::string(1, c);
-  return r + "'";
-}
-
-// File-name-safe tag for sample/model names.
-std::string tag(const std::string& s) {
-  std::string r;
-  for (char c : s) r += (std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_') ? c : '_';
-  return r.empty() ? "_" : r;
 }
 
 std::string utc_string(std::time_t t) {
@@ -235,22 +285,6 @@ double log_distance(double a, double b) { return std::abs(std::log10(a) - std::l
 // ---------------------------------------------------------------------------------------------
 // Inputs
 // ---------------------------------------------------------------------------------------------
-
-struct Series {
-  std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
-};
-
-struct Run {
-  std::string id, sample, model, dir;
-  long seed = 0;
-  double xi = nan, rate = nan;
-  bool finished = false;
-  std::string problem;  // why a run counts as missing
-  double mean_imom = nan, mean_ufr = nan, mean_iuf = nan, peak_phi = nan, final_ev = nan;
-  double mean_ekin = nan, ekin_norm = nan;  // mean ekin_J, and divided by eps'^2 (paper Table 6)
-  double steps = nan, wall_s = nan, particles = nan, psps = nan;
-  Series s;
-};
 
 // series.csv by header name (SPEC 10; more columns may follow, order is not assumed).
 Series read_series(const fs::path& p) {
@@ -308,6 +342,8 @@ Run load_run(const fs::path& dir, const json& m) {
   r.id = m.value("id", std::string());
   r.sample = m.value("sample", std::string());
   r.model = m.value("model", std::string());
+  r.damping_model = m.value("damping_model", r.model);
+  r.stage = m.value("stage", std::string());
   r.dir = m.value("dir", std::string());
   r.seed = m.value("seed", 0L);
   r.xi = num(m, "xi");
@@ -351,10 +387,6 @@ Run load_run(const fs::path& dir, const json& m) {
 // Paper reference values (SPEC 9: Table 4, Fig. 9, Table 6)
 // ---------------------------------------------------------------------------------------------
 
-struct PaperRef {
-  double xi_opt, eps_qs, improvement, a, b, r2;
-};
-
 std::optional<PaperRef> paper_ref(const std::string& sample, const std::string& model) {
   if (sample.empty()) return std::nullopt;
   const char s = sample[0];
@@ -362,13 +394,6 @@ std::optional<PaperRef> paper_ref(const std::string& sample, const std::string& 
   if (s == 'A' && model == "nd") return PaperRef{0.0051, 1.03e-7, 2.35, 629.92, 0.8300, 0.9995};
   if (s == 'B' && model == "od") return PaperRef{0.0034, 5.46e-7, 1.0, 1124.07, 0.9661, 0.9997};
   if (s == 'B' && model == "nd") return PaperRef{0.0040, 5.42e-7, 0.99, 1047.28, 0.9607, 0.9990};
-  return std::nullopt;
-}
-
-std::optional<double> paper_improvement(const std::string& sample) {
-  if (sample.empty()) return std::nullopt;
-  if (sample[0] == 'A') return 2.35;
-  if (sample[0] == 'B') return 0.99;
   return std::nullopt;
 }
 
@@ -396,30 +421,6 @@ json paper_reference_json() {
 // ---------------------------------------------------------------------------------------------
 // Grouping and fits
 // ---------------------------------------------------------------------------------------------
-
-// One sampled damping ratio at one (sample, model, eps'): the mean over its finished seeds.
-struct Point {
-  double xi = nan;
-  int n_runs = 0, n_finished = 0;
-  double imom = nan, ufr = nan, iuf = nan, phi = nan, ekin_norm = nan;
-};
-
-struct Group {
-  std::string sample, model;
-  double rate = nan;
-  std::vector<Point> points;  // sorted by xi
-  OptimumFit opt_imom, opt_ufr;
-  const Run* chosen = nullptr;  // the finished run closest to xi_opt (IMom), for Figs. 10-11, 15-19
-};
-
-struct Law {
-  std::string sample, model;
-  PowerLawFit fit;
-  double eps_qs = nan;
-  std::vector<double> rates, imom_at_opt, xi_opt;  // the points of the fit (Fig. 9) and Fig. 7
-  int n_flagged = 0;
-  double xi_opt_geomean = nan, xi_opt_lo = nan, xi_opt_hi = nan;
-};
 
 double avg(const std::vector<double>& v) { return mean_finite(v); }
 
@@ -472,7 +473,7 @@ std::vector<Group> make_groups(const std::vector<Run>& runs) {
   return out;
 }
 
-std::vector<Law> make_laws(const std::vector<Group>& groups) {
+std::vector<Law> make_laws(const std::vector<Group>& groups, double imom_target) {
   std::vector<Law> laws;
   for (const Group& g : groups) {
     auto it = std::find_if(laws.begin(), laws.end(),
@@ -489,7 +490,7 @@ std::vector<Law> make_laws(const std::vector<Group>& groups) {
   }
   for (Law& l : laws) {
     l.fit = fit_power_law(l.rates, l.imom_at_opt);
-    l.eps_qs = quasi_static_rate(l.fit, imom_qs);
+    l.eps_qs = quasi_static_rate(l.fit, imom_target);
     if (!l.xi_opt.empty()) {
       double s = 0;
       for (double x : l.xi_opt) s += std::log10(x);
@@ -501,25 +502,25 @@ std::vector<Law> make_laws(const std::vector<Group>& groups) {
   return laws;
 }
 
-struct Improvement {
-  std::string sample;
-  double eps_qs_nd = nan, eps_qs_od = nan, ratio = nan;
-};
-
-std::vector<Improvement> make_improvements(const std::vector<Law>& laws) {
+// One per (sample, model) with a law, the baseline's own row included (ratio 1 when its eps'_QS
+// is finite).
+std::vector<Improvement> make_improvements(const std::vector<Law>& laws, const std::string& baseline) {
   std::vector<Improvement> out;
   for (const Law& l : laws) {
-    if (std::any_of(out.begin(), out.end(), [&](auto& i) { return i.sample == l.sample; })) continue;
-    Improvement im{l.sample};
-    for (const Law& k : laws) {
-      if (k.sample != l.sample) continue;
-      if (k.model == "nd") im.eps_qs_nd = k.eps_qs;
-      if (k.model == "od") im.eps_qs_od = k.eps_qs;
-    }
-    im.ratio = im.eps_qs_nd / im.eps_qs_od;
+    Improvement im{l.sample, l.model, baseline, l.eps_qs};
+    for (const Law& k : laws)
+      if (k.sample == l.sample && k.model == baseline) im.eps_qs_baseline = k.eps_qs;
+    im.ratio = im.eps_qs / im.eps_qs_baseline;
     out.push_back(im);
   }
   return out;
+}
+
+const Improvement* find_improvement(const std::vector<Improvement>& imps, const std::string& sample,
+                                    const std::string& model) {
+  for (const Improvement& im : imps)
+    if (im.sample == sample && im.model == model) return &im;
+  return nullptr;
 }
 
 const OptimumFit* find_opt(const std::vector<Group>& groups, const Run& r) {
@@ -527,13 +528,6 @@ const OptimumFit* find_opt(const std::vector<Group>& groups, const Run& r) {
     if (g.sample == r.sample && g.model == r.model && g.rate == r.rate) return &g.opt_imom;
   return nullptr;
 }
-
-// Paper Table 6: runs of one (sample, model) with equal xi*eps' (3 significant digits) at
-// different rates.
-struct EqualSet {
-  std::string sample, model, product;
-  std::vector<const Run*> runs;
-};
 
 std::vector<EqualSet> make_equal_sets(const std::vector<Run>& runs) {
   std::vector<EqualSet> out;
@@ -557,436 +551,202 @@ std::vector<EqualSet> make_equal_sets(const std::vector<Run>& runs) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Tables (rendered both as Markdown and as HTML from the same cells)
+// Stages of a staged design (docs/study.md): which runs each lists, the ratios picked
 // ---------------------------------------------------------------------------------------------
 
-struct Table {
-  std::string title, note;
-  std::vector<std::string> head;
-  std::vector<std::vector<std::string>> rows;
-  bool detail = false;  // folded (<details>) in the report
-};
-
-std::string to_markdown(const Table& t) {
-  std::string s = "### " + t.title + "\n\n";
-  if (!t.note.empty()) s += t.note + "\n\n";
-  auto line = [&](const std::vector<std::string>& cells) {
-    s += "|";
-    for (const auto& c : cells) {
-      s += ' ';  // appended piecewise: GCC 12 warns (-Wrestrict, false positive) on " " + x + " |"
-      s += md_escape(c);
-      s += " |";
-    }
-    s += "\n";
-  };
-  line(t.head);
-  s += "|";
-  for (std::size_t i = 0; i < t.head.size(); ++i) s += " --- |";
-  s += "\n";
-  for (const auto& r : t.rows) line(r);
-  if (t.rows.empty()) s += "\n(no rows)\n";
-  return s + "\n";
+std::vector<double> numbers(const json& j, const char* key) {
+  std::vector<double> v;
+  if (j.contains(key) && j[key].is_array())
+    for (const json& x : j[key])
+      if (x.is_number()) v.push_back(x.get<double>());
+  return v;
 }
 
-std::string to_html(const Table& t) {
-  std::string s = t.detail ? "<details><summary>" + html_escape(t.title) + "</summary>\n"
-                           : "<h3>" + html_escape(t.title) + "</h3>\n";
-  if (!t.note.empty()) s += "<p class=\"note\">" + html_escape(t.note) + "</p>\n";
-  s += "<table>\n<thead><tr>";
-  for (const auto& c : t.head) s += "<th>" + html_escape(c) + "</th>";
-  s += "</tr></thead>\n<tbody>\n";
-  for (const auto& r : t.rows) {
-    s += "<tr>";
-    for (const auto& c : r) s += "<td>" + html_escape(c) + "</td>";
-    s += "</tr>\n";
-  }
-  if (t.rows.empty()) s += "<tr><td colspan=\"" + std::to_string(t.head.size()) + "\">(no rows)</td></tr>\n";
-  return s + "</tbody></table>\n" + (t.detail ? "</details>\n" : "");
+std::vector<std::string> names(const json& j, const char* key) {
+  std::vector<std::string> v;
+  if (j.contains(key) && j[key].is_array())
+    for (const json& x : j[key])
+      if (x.is_string()) v.push_back(x.get<std::string>());
+  return v;
 }
 
-std::string fit_text(double a, double b) {
-  return std::isfinite(a) ? fmt::format("{} ε'^{}", sig(a, 5), sig(b, 4)) : "—";
+// The stages of study.json ("stages"); none for a design without [[stage]] tables.
+std::vector<DesignStage> read_stages(const json& manifest) {
+  std::vector<DesignStage> out;
+  if (!manifest.contains("stages") || !manifest["stages"].is_array()) return out;
+  for (const json& j : manifest["stages"]) {
+    DesignStage s;
+    s.name = j.value("name", std::string());
+    s.samples = names(j, "samples");
+    s.models = names(j, "models");
+    s.rates = numbers(j, "strain_rates");
+    s.ratios = numbers(j, "damping_ratios");
+    if (j.contains("runs") && j["runs"].is_array())
+      for (const json& r : j["runs"]) s.listed.push_back({r.value("model", std::string()), num(r, "xi"), num(r, "rate")});
+    s.from = j.value("from", std::string());
+    s.pick = j.value("pick", std::string());
+    s.at_rate = num(j, "at_rate");
+    s.digits = j.value("digits", 2);
+    if (j.contains("picks") && j["picks"].is_array())
+      for (const json& p : j["picks"])
+        s.picks.push_back({p.value("sample", std::string()), p.value("model", std::string()), num(p, "xi_opt"),
+                           p.value("method", std::string()), p.value("runs_used", 0), numbers(p, "ratios")});
+    out.push_back(std::move(s));
+  }
+  return out;
 }
 
-std::vector<Table> make_tables(const std::vector<Run>& runs, const std::vector<Group>& groups,
-                               const std::vector<Law>& laws, const std::vector<Improvement>& imps,
-                               const std::vector<EqualSet>& equal) {
-  std::vector<Table> tables;
-  // Table 4 of the paper, one row per (sample, model).
-  {
-    Table t{"Optimum damping ratio, power law and quasi-static rate (paper Table 4, Fig. 9)",
-            "ξopt: geometric mean over the rates of the IMom optimum [range]; IMom at ξopt: at the "
-            "lowest and highest rate; fit IMom = a ε'^b over the rates (log-log least squares); "
-            "ε'QS where the fit gives IMom = 0.1 %; improvement = ε'QS(nd)/ε'QS(od). Paper columns "
-            "only for samples named A*/B*.",
-            {"sample", "model", "ξopt (%)", "paper ξopt (%)", "IMom at ξopt (%)", "a", "b", "R²",
-             "paper fit (Fig. 9)", "ε'QS", "paper ε'QS", "improvement", "paper improvement"},
-            {}};
-    for (const Law& l : laws) {
-      const auto ref = paper_ref(l.sample, l.model);
-      std::string imr = "—";
-      if (!l.imom_at_opt.empty())
-        imr = fmt::format("{} (ε' {}) … {} (ε' {})", pct(l.imom_at_opt.front()), sig(l.rates.front()),
-                          pct(l.imom_at_opt.back()), sig(l.rates.back()));
-      std::string r2 = sig(l.fit.r2, 4);
-      if (!l.fit.note.empty()) r2 += " (" + l.fit.note + ")";
-      if (l.n_flagged) r2 += fmt::format(" [{} of {} optima not from the parabola]", l.n_flagged, l.rates.size());
-      std::string improvement = "—", paper_imp;
-      for (const Improvement& im : imps)
-        if (im.sample == l.sample && l.model == "nd") improvement = sig(im.ratio);
-      if (l.model == "od" && std::isfinite(l.eps_qs)) improvement = "1";
-      if (ref && l.model == "nd") paper_imp = sig(ref->improvement);
-      if (ref && l.model == "od") paper_imp = "1";
-      t.rows.push_back({l.sample, l.model,
-                        std::isfinite(l.xi_opt_geomean)
-                            ? fmt::format("{} [{}–{}]", pct(l.xi_opt_geomean), pct(l.xi_opt_lo), pct(l.xi_opt_hi))
-                            : "—",
-                        ref ? pct(ref->xi_opt) : "", imr, sig(l.fit.a, 5), sig(l.fit.b, 4), r2,
-                        ref ? fmt::format("{}, R² = {}", fit_text(ref->a, ref->b), sig(ref->r2, 4)) : "",
-                        sig(l.eps_qs), ref ? sig(ref->eps_qs) : "", improvement, paper_imp});
+// The optimum of each (sample, model) over `runs` (one stage's), in their order.
+std::vector<StageOptimum> optima_of(const std::vector<Run>& runs, double at_rate) {
+  const std::vector<Group> groups = make_groups(runs);
+  std::vector<StageOptimum> out;
+  for (const Run& r : runs) {
+    auto it = std::find_if(out.begin(), out.end(), [&](const StageOptimum& o) { return o.sample == r.sample && o.model == r.model; });
+    if (it == out.end()) {
+      out.push_back(StageOptimum{r.sample, r.model, nan, {}, {}, 0});
+      it = out.end() - 1;
     }
-    tables.push_back(std::move(t));
+    if (r.xi > 0 && !has_value(it->sampled, r.xi)) it->sampled.push_back(r.xi);
+    it->runs_used += r.finished;
   }
-  // The optimum at each rate (paper Figs. 7-8).
-  {
-    Table t{"Optimum damping ratio at each rate (paper Figs. 7 and 8)",
-            "Parabola in (log10 ξ, log10 index) through the sampled minimum and its neighbours; "
-            "flags say when the sampled minimum is reported instead.",
-            {"sample", "model", "ε'", "ξopt IMom (%)", "IMom at ξopt (%)", "IMom fit", "ξopt UFR (%)",
-             "UFR at ξopt (%)", "UFR fit", "run shown in curves"},
-            {}};
-    auto how = [](const OptimumFit& f) { return f.flag.empty() ? f.method : f.method + ": " + f.flag; };
-    for (const Group& g : groups)
-      t.rows.push_back({g.sample, g.model, sig(g.rate), pct(g.opt_imom.xi_opt), pct(g.opt_imom.index_at_opt),
-                        how(g.opt_imom), pct(g.opt_ufr.xi_opt), pct(g.opt_ufr.index_at_opt), how(g.opt_ufr),
-                        g.chosen ? g.chosen->id : "—"});
-    tables.push_back(std::move(t));
-  }
-  // Per (sample, model, rate): every xi (paper Figs. 3-6, 13-14).
-  for (const Group& g : groups) {
-    Table t{fmt::format("{} {} ε' = {}: indices against the damping ratio", g.sample, g.model, sig(g.rate)),
-            "",
-            {"ξ (%)", "runs finished", "mean IMom (%)", "mean UFR (%)", "mean Iuf (%)", "peak φ (°)",
-             "Ekin/ε'² (J)"},
-            {}};
-    for (const Point& p : g.points) {
-      const std::string fin = fmt::format("{}/{}", p.n_finished, p.n_runs) + (p.n_finished ? "" : " missing");
-      t.rows.push_back({pct(p.xi), fin, pct(p.imom), pct(p.ufr), pct(p.iuf), sig(p.phi, 4), sig(p.ekin_norm)});
-    }
-    t.detail = true;
-    tables.push_back(std::move(t));
-  }
-  // Table 6 of the paper: runs with equal xi*eps'.
-  {
-    Table t{"Runs with equal ξ·ε' (paper Table 6)",
-            "Ekin/ε'²: mean kinetic energy over the series rows divided by ε'². ξopt: the IMom optimum "
-            "at the run's rate.",
-            {"run", "ξ (%)", "ε'", "ξ·ε'", "ξopt (%)", "peak φ (°)", "Ekin/ε'² (J)", "mean IMom (%)",
-             "mean UFR (%)"},
-            {}};
-    for (const EqualSet& e : equal)
-      for (const Run* r : e.runs) {
-        const OptimumFit* o = find_opt(groups, *r);
-        t.rows.push_back({r->id, pct(r->xi), sig(r->rate), sig(r->xi * r->rate), o ? pct(o->xi_opt) : "—",
-                          sig(r->peak_phi, 4), sig(r->ekin_norm), pct(r->mean_imom), pct(r->mean_ufr)});
+  for (StageOptimum& o : out) {
+    std::sort(o.sampled.begin(), o.sampled.end());
+    std::vector<double> xs;
+    for (const Group& g : groups) {
+      if (g.sample != o.sample || g.model != o.model || !std::isfinite(g.opt_imom.index_at_opt)) continue;
+      if (std::isfinite(at_rate)) {
+        if (!same_value(g.rate, at_rate)) continue;
+        o.xi_opt = g.opt_imom.xi_opt;
+        o.method = fmt::format("at eps' {}: {}", sig(g.rate), g.opt_imom.method);
       }
-    tables.push_back(std::move(t));
-  }
-  if (std::any_of(runs.begin(), runs.end(), [](const Run& r) { return !r.sample.empty() && r.sample[0] == 'B'; })) {
-    Table t{"Paper Table 6 (Sample B, OD), for comparison", "",
-            {"model", "ξ (%)", "ε'", "ξ·ε'", "ξopt (%)", "peak φ (°)", "Ekin/ε'² (J)", "mean IMom (%)",
-             "mean UFR (%)"},
-            {}};
-    const json paper = paper_reference_json();  // named: a temporary's member would dangle in the loop
-    for (const json& p : paper["table6_B_od"]) {
-      const double xi = p["xi"], rate = p["rate"];
-      t.rows.push_back({p["model"].get<std::string>(), pct(xi), sig(rate), sig(xi * rate),
-                        pct(p["xi_opt"].get<double>()), sig(p["peak_phi_deg"].get<double>(), 4),
-                        sig(p["ekin_over_rate2_J"].get<double>()), pct(p["mean_imom"].get<double>()),
-                        pct(p["mean_ufr"].get<double>())});
+      xs.push_back(g.opt_imom.xi_opt);
     }
-    tables.push_back(std::move(t));
+    if (!std::isfinite(at_rate) && !xs.empty()) {
+      // The Table 4 value: the geometric mean of the per-rate optima (section 3).
+      double sum = 0;
+      for (double x : xs) sum += std::log10(x);
+      o.xi_opt = std::pow(10.0, sum / static_cast<double>(xs.size()));
+      o.method = fmt::format("geometric mean over {} rate{}", xs.size(), xs.size() == 1 ? "" : "s");
+    }
   }
-  // Missing runs.
-  {
-    Table t{"Missing runs", "Runs of the manifest without a usable summary.json; left out of every fit.",
-            {"run", "directory", "reason"}, {}};
+  return out;
+}
+
+std::vector<PickCheck> check_picks(const std::vector<DesignStage>& stages, const std::vector<Run>& runs) {
+  std::vector<PickCheck> out;
+  for (const DesignStage& st : stages) {
+    if (st.from.empty()) continue;
+    const auto src = std::find_if(stages.begin(), stages.end(), [&](const DesignStage& s) { return s.name == st.from; });
+    if (src == stages.end()) continue;
+    std::vector<Run> members;
     for (const Run& r : runs)
-      if (!r.finished) t.rows.push_back({r.id, r.dir, r.problem});
-    tables.push_back(std::move(t));
+      if (src->lists(r.sample, r.model, r.xi, r.rate)) members.push_back(r);
+    for (const StageOptimum& o : optima_of(members, st.at_rate)) {
+      if (!has_name(st.samples, o.sample) || !has_name(st.models, o.model)) continue;
+      PickCheck c{&st, st.pick_of(o.sample, o.model), o, pick_ratios(o, st.pick, st.digits)};
+      if (c.recorded) {
+        c.changed = c.now_ratios.size() != c.recorded->ratios.size();
+        for (std::size_t k = 0; !c.changed && k < c.now_ratios.size(); ++k)
+          c.changed = !same_value(c.now_ratios[k], c.recorded->ratios[k]);
+      }
+      out.push_back(std::move(c));
+    }
   }
-  return tables;
+  return out;
 }
 
 // ---------------------------------------------------------------------------------------------
-// Figures (gnuplot; paper Figs. 2-19)
+// Damping dependence: each run against the reference run of its (sample, seed) (docs/analysis.md)
 // ---------------------------------------------------------------------------------------------
 
-struct Curve {
-  std::string title;  // empty: no key entry
-  std::vector<double> x, y;
-  std::string style;  // gnuplot `with ...` clause
-};
-
-struct Panel {
-  std::string title, xlabel, ylabel;
-  bool logx = false, logy = false;
-  std::vector<Curve> curves;
-  std::string extra = "";  // more gnuplot commands before `plot` (ranges)
-};
-
-struct Figure {
-  std::string name, title, caption;
-  std::vector<Panel> panels;  // 1 or 4 (2x2)
-};
-
-bool usable(double v, bool log) { return std::isfinite(v) && (!log || v > 0); }
-
-// Drops points a log axis cannot show (SPEC 9: NaN and zero are skipped, never plotted as 0).
-void clean(Panel& p) {
-  for (Curve& c : p.curves) {
-    Curve k{c.title, {}, {}, c.style};
-    for (std::size_t i = 0; i < c.x.size() && i < c.y.size(); ++i)
-      if (usable(c.x[i], p.logx) && usable(c.y[i], p.logy)) k.x.push_back(c.x[i]), k.y.push_back(c.y[i]);
-    c = std::move(k);
+// The reference run of each (sample, seed), from every run of the manifest (finished or not: the
+// choice must not depend on which runs have finished).
+std::map<std::pair<std::string, long>, const Run*> find_references(const std::vector<Run>& runs,
+                                                                   const AnalysisSettings& st) {
+  std::map<std::pair<std::string, long>, const Run*> out;
+  if (!st.has_reference) return out;
+  std::map<std::pair<std::string, long>, std::vector<const Run*>> candidates;
+  for (const Run& r : runs) {
+    if (!std::isfinite(r.xi) || !std::isfinite(r.rate)) continue;
+    if (!st.reference_model.empty() && r.model != st.reference_model) continue;
+    if (std::isfinite(st.reference_ratio) && !same_value(r.xi, st.reference_ratio)) continue;
+    if (std::isfinite(st.reference_rate) && !same_value(r.rate, st.reference_rate)) continue;
+    candidates[{r.sample, r.seed}].push_back(&r);
   }
-  std::erase_if(p.curves, [](const Curve& c) { return c.x.empty(); });
+  // The slowest rate, then the least damped (no damping counts as xi = 0), then manifest order.
+  const auto damping = [](const Run* r) { return r->damping_model == "none" ? 0.0 : r->xi; };
+  for (const auto& [key, c] : candidates)
+    out[key] = *std::min_element(c.begin(), c.end(), [&](const Run* a, const Run* b) {
+      if (a->rate != b->rate) return a->rate < b->rate;
+      return damping(a) < damping(b);
+    });
+  return out;
 }
 
-std::string panel_commands(const Panel& p, const std::string& datafile, std::size_t& block) {
-  std::string s;
-  s += "set title " + gp_str(p.title) + "\n";
-  s += "set xlabel " + gp_str(p.xlabel) + "\nset ylabel " + gp_str(p.ylabel) + "\n";
-  s += p.logx ? "set logscale x\nset format x '%g'\n" : "unset logscale x\nset format x '%g'\n";
-  s += p.logy ? "set logscale y\nset format y '%g'\n" : "unset logscale y\nset format y '%g'\n";
-  // Margins so that points do not sit on the frame (graph units work on log axes too).
-  s += "set autoscale\nset offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06\n" + p.extra;
-  if (p.curves.empty()) {
-    // An empty panel of a multiplot: say so instead of failing on "all points undefined".
-    s += "set xrange [1:10]\nset yrange [1:10]\nset label 99 'no data' at graph 0.5,0.5 center\n"
-         "plot 1/0 notitle\nunset label 99\nset autoscale\n";
-    return s;
-  }
-  s += "plot ";
-  for (std::size_t i = 0; i < p.curves.size(); ++i) {
-    const Curve& c = p.curves[i];
-    s += fmt::format("{}'{}' index {} using 1:2 with {} {}", i ? ", \\\n     " : "", datafile, block++, c.style,
-                     c.title.empty() ? std::string("notitle") : "title " + gp_str(c.title));
-  }
-  return s + "\n";
+CurveDeviation deviation_of(const std::vector<double>& e1_ref, const std::vector<double>& y_ref,
+                            const std::vector<double>& e1, const std::vector<double>& y) {
+  return curve_deviation(e1_ref, y_ref, e1, y, deviation_strains);
 }
 
-// Writes NAME.dat and NAME.gp into figdir and runs gnuplot there (.svg and .png).
-// Returns false (and nothing is drawn) when the figure has no usable point.
-bool render(const fs::path& figdir, Figure& f) {
-  for (Panel& p : f.panels) clean(p);
-  if (std::all_of(f.panels.begin(), f.panels.end(), [](const Panel& p) { return p.curves.empty(); })) return false;
-  std::string dat;
-  for (const Panel& p : f.panels)
-    for (const Curve& c : p.curves) {
-      dat += "# " + c.title + "\n";
-      for (std::size_t i = 0; i < c.x.size(); ++i) dat += fmt::format("{:.9g} {:.9g}\n", c.x[i], c.y[i]);
-      dat += "\n\n";  // two blank lines: a new gnuplot `index`
+// Every finished run of a (sample, seed) that has a reference, with its verdict: quasi-static
+// only if its mean IMom is under the target AND its RMS deviations are within the tolerances.
+std::vector<Deviation> make_deviations(const std::vector<Run>& runs,
+                                       const std::map<std::pair<std::string, long>, const Run*>& refs,
+                                       const AnalysisSettings& st) {
+  std::vector<Deviation> out;
+  for (const Run& r : runs) {
+    const auto it = refs.find({r.sample, r.seed});
+    if (!r.finished || it == refs.end()) continue;
+    Deviation d;
+    d.run = &r;
+    d.ref = it->second;
+    if (!d.ref->finished || d.ref->s.e1.empty()) {
+      d.verdict = "not decided: the reference run has not finished";
+      out.push_back(d);
+      continue;
     }
-  write_plain(figdir / (f.name + ".dat"), dat);
-  const bool multi = f.panels.size() > 1;
-  std::string body = "reset\nset grid\nset key top left Left reverse samplen 2 font ',9'\n";
-  if (multi) body += "set multiplot layout 2,2 title " + gp_str(f.title) + "\n";
-  std::size_t block = 0;
-  for (const Panel& p : f.panels) body += panel_commands(p, f.name + ".dat", block);
-  if (multi) body += "unset multiplot\n";
-  const std::string size = multi ? "1100,820" : "820,560";
-  std::string gp = "# " + f.title + " (generated by qsdem, SPEC 9)\nset encoding utf8\n";
-  gp += "set terminal svg size " + size + " noenhanced font 'DejaVu Sans,12' background '#ffffff'\n";
-  gp += "set output '" + f.name + ".svg'\n" + body + "unset output\n";
-  gp += "set terminal pngcairo size " + size + " noenhanced font 'DejaVu Sans,10' background '#ffffff'\n";
-  gp += "set output '" + f.name + ".png'\n" + body + "unset output\n";
-  write_plain(figdir / (f.name + ".gp"), gp);
-  const std::string cmd = fmt::format("cd {} && gnuplot {} > {} 2>&1", shell_quote(figdir.string()),
-                                      shell_quote(f.name + ".gp"), shell_quote(f.name + ".log"));
-  if (std::system(cmd.c_str()) != 0) {
-    std::string log;
-    try {
-      log = read_text(figdir / (f.name + ".log"));
-    } catch (...) {
-    }
-    throw std::runtime_error(fmt::format("gnuplot failed on {}: {}", (figdir / (f.name + ".gp")).string(), log));
+    const Series& a = d.ref->s;
+    d.phi = deviation_of(a.e1, a.phi, r.s.e1, r.s.phi);
+    d.ev = deviation_of(a.e1, a.ev, r.s.e1, r.s.ev);
+    d.cn = deviation_of(a.e1, a.cn, r.s.e1, r.s.cn);
+    std::vector<std::string> why;
+    if (!(r.mean_imom < st.imom_target))
+      why.push_back(fmt::format("mean IMom {} % ≥ {} %", pct(r.mean_imom), pct(st.imom_target)));
+    const auto check = [&](const CurveDeviation& c, double tol, const std::string& what, const std::string& unit,
+                           double scale) {
+      if (!std::isfinite(tol)) return;
+      if (!(c.rms <= tol))
+        why.push_back(fmt::format("RMS Δ{} {}{} > {}{}", what, sig(scale * c.rms), unit, sig(scale * tol), unit));
+    };
+    check(d.phi, st.phi_tolerance_deg, "φ", "°", 1);
+    check(d.ev, st.ev_tolerance, "εv", " %", 100);
+    check(d.cn, st.cn_tolerance, "Cn", "", 1);
+    d.quasi_static = why.empty() ? 1 : 0;
+    for (const std::string& w : why) d.verdict += (d.verdict.empty() ? "" : "; ") + w;
+    if (why.empty()) d.verdict = "quasi-static";
+    out.push_back(d);
   }
-  for (const char* ext : {".svg", ".png"})
-    if (!fs::exists(figdir / (f.name + ext)) || fs::file_size(figdir / (f.name + ext)) == 0)
-      throw std::runtime_error("gnuplot wrote no " + (figdir / (f.name + ext)).string());
-  fs::remove(figdir / (f.name + ".log"));
-  return true;
+  return out;
 }
 
-std::string lc(std::size_t i) { return fmt::format("lc {}", i + 1); }
-
-std::vector<Figure> make_figures(const std::vector<Run>& runs, const std::vector<Group>& groups,
-                                 const std::vector<Law>& laws) {
-  std::vector<Figure> figs;
-  std::vector<std::string> samples;
-  for (const Law& l : laws)
-    if (std::find(samples.begin(), samples.end(), l.sample) == samples.end()) samples.push_back(l.sample);
-
-  // (a) mean index against xi at each rate, one figure per (sample, model), paper Figs. 3-6.
-  for (const Law& l : laws)
-    for (const bool is_imom : {true, false}) {
-      const std::string idx = is_imom ? "IMom" : "UFR";
-      Figure f{fmt::format("{}_vs_xi_{}_{}", is_imom ? "imom" : "ufr", tag(l.sample), tag(l.model)),
-               fmt::format("{} {}: mean {} against the damping ratio", l.sample, l.model, idx),
-               fmt::format("Mean {} over the run against ξ at each ε' (log-log; ξ = 0 not shown); open "
-                           "circles: ξopt from the parabola fit (paper Figs. 3-6 for IMom).",
-                           idx),
-               {}};
-      Panel p{f.title, "damping ratio ξ (%)", "mean " + idx + " (%)", true, true, {}};
-      std::size_t k = 0;
-      for (const Group& g : groups) {
-        if (g.sample != l.sample || g.model != l.model) continue;
-        Curve c{"ε' = " + sig(g.rate), {}, {}, "linespoints pt 7 ps 0.8 " + lc(k)};
-        for (const Point& q : g.points) c.x.push_back(100 * q.xi), c.y.push_back(100 * (is_imom ? q.imom : q.ufr));
-        const OptimumFit& o = is_imom ? g.opt_imom : g.opt_ufr;
-        p.curves.push_back(std::move(c));
-        p.curves.push_back(Curve{k == 0 ? "ξopt" : "", {100 * o.xi_opt}, {100 * o.index_at_opt},
-                                 "points pt 6 ps 2.2 lw 2 " + lc(k)});
-        ++k;
+std::vector<SeedScatter> make_seed_scatter(const std::map<std::pair<std::string, long>, const Run*>& refs) {
+  std::map<std::string, std::vector<const Run*>> by_sample;
+  for (const auto& [key, r] : refs)
+    if (r->finished && !r->s.e1.empty()) by_sample[key.first].push_back(r);
+  std::vector<SeedScatter> out;
+  for (const auto& [sample, rs] : by_sample) {
+    if (rs.size() < 2) continue;
+    SeedScatter s{sample, static_cast<int>(rs.size()), 0, 0, 0};
+    for (std::size_t i = 0; i < rs.size(); ++i)
+      for (std::size_t j = i + 1; j < rs.size(); ++j) {
+        const Series &a = rs[i]->s, &b = rs[j]->s;
+        s.phi = std::max(s.phi, deviation_of(a.e1, a.phi, b.e1, b.phi).rms);
+        s.ev = std::max(s.ev, deviation_of(a.e1, a.ev, b.e1, b.ev).rms);
+        s.cn = std::max(s.cn, deviation_of(a.e1, a.cn, b.e1, b.cn).rms);
       }
-      f.panels.push_back(std::move(p));
-      figs.push_back(std::move(f));
-    }
-
-  for (const std::string& s : samples) {
-    // (b) xi_opt against the rate, both models and both indices, paper Figs. 7-8.
-    {
-      Figure f{"xiopt_vs_rate_" + tag(s), s + ": optimum damping ratio against the strain rate",
-               "ξopt from IMom (solid) and from UFR (dashed) against ε' for each damping model "
-               "(paper Figs. 7 and 8); semi-log like the paper.",
-               {}};
-      Panel p{f.title, "dimensionless strain rate ε'", "ξopt (%)", true, false, {}, "set yrange [0:*]\n"};
-      std::size_t k = 0;
-      for (const Law& l : laws) {
-        if (l.sample != s) continue;
-        Curve ci{l.model + " (IMom)", {}, {}, "linespoints pt 7 dt 1 " + lc(k)};
-        Curve cu{l.model + " (UFR)", {}, {}, "linespoints pt 4 dt 2 " + lc(k)};
-        for (const Group& g : groups) {
-          if (g.sample != s || g.model != l.model) continue;
-          ci.x.push_back(g.rate), ci.y.push_back(100 * g.opt_imom.xi_opt);
-          cu.x.push_back(g.rate), cu.y.push_back(100 * g.opt_ufr.xi_opt);
-        }
-        p.curves.push_back(std::move(ci));
-        p.curves.push_back(std::move(cu));
-        ++k;
-      }
-      f.panels.push_back(std::move(p));
-      figs.push_back(std::move(f));
-    }
-    // (c) IMom at xi_opt against the rate with the fitted power law, paper Fig. 9.
-    {
-      Figure f{"imom_opt_vs_rate_" + tag(s), s + ": moment index at the optimum damping ratio",
-               "IMom at ξopt against ε' with the fitted power law IMom = a ε'^b (lines); dashed grey: the "
-               "quasi-static threshold IMom = 0.1 % (paper Fig. 9, Table 4).",
-               {}};
-      Panel p{f.title, "dimensionless strain rate ε'", "IMom at ξopt (%)", true, true, {}};
-      std::size_t k = 0;
-      double lo = INFINITY, hi = 0;
-      for (const Law& l : laws) {
-        if (l.sample != s) continue;
-        Curve pts{l.model, {}, {}, "points pt 7 ps 1.3 " + lc(k)};
-        for (std::size_t i = 0; i < l.rates.size(); ++i) {
-          pts.x.push_back(l.rates[i]), pts.y.push_back(100 * l.imom_at_opt[i]);
-          lo = std::min(lo, l.rates[i]), hi = std::max(hi, l.rates[i]);
-        }
-        p.curves.push_back(std::move(pts));
-        if (l.fit.ok && l.rates.size() >= 2) {
-          const double x0 = *std::min_element(l.rates.begin(), l.rates.end());
-          const double x1 = *std::max_element(l.rates.begin(), l.rates.end());
-          Curve fit{fmt::format("{} fit: {} ε'^{}, R² = {}", l.model, sig(l.fit.a, 4), sig(l.fit.b, 3),
-                                sig(l.fit.r2, 4)),
-                    {}, {}, "lines lw 1.5 " + lc(k)};
-          for (int i = 0; i <= 40; ++i) {
-            const double x = x0 * std::pow(x1 / x0, i / 40.0);
-            fit.x.push_back(x), fit.y.push_back(100 * l.fit.a * std::pow(x, l.fit.b));
-          }
-          // The paper's fit (Fig. 9) over the same rates, for the trend (SPEC 9: never tuned to it).
-          std::optional<Curve> pf;
-          if (const auto ref = paper_ref(l.sample, l.model)) {
-            pf = Curve{fmt::format("paper {}: {} ε'^{}", l.model, sig(ref->a, 5), sig(ref->b, 4)), {}, {},
-                       "lines dt 3 lw 1.5 " + lc(k)};
-            for (double x : fit.x) pf->x.push_back(x), pf->y.push_back(100 * ref->a * std::pow(x, ref->b));
-          }
-          p.curves.push_back(std::move(fit));
-          if (pf) p.curves.push_back(std::move(*pf));
-        }
-        ++k;
-      }
-      if (hi > 0) p.curves.push_back(Curve{"IMom = 0.1 %", {lo, hi}, {0.1, 0.1}, "lines dt 2 lc rgb '#888888'"});
-      f.panels.push_back(std::move(p));
-      figs.push_back(std::move(f));
-    }
-    // (e) peak friction angle against xi*eps', paper Figs. 12-14 (the product governs, section 5.7).
-    {
-      Figure f{"peakphi_vs_xirate_" + tag(s), s + ": peak friction angle against ξ·ε'",
-               "Peak mobilised friction angle of every finished run (ξ > 0) against ξ·ε' (semi-log).", {}};
-      Panel p{f.title, "ξ·ε'", "peak friction angle φ (°)", true, false, {}};
-      std::vector<std::string> models;
-      for (const Law& l : laws)
-        if (l.sample == s) models.push_back(l.model);
-      for (std::size_t k = 0; k < models.size(); ++k) {
-        Curve c{models[k], {}, {}, "points pt 7 ps 0.9 " + lc(k)};
-        for (const Run& r : runs)
-          if (r.finished && r.sample == s && r.model == models[k] && r.xi > 0)
-            c.x.push_back(r.xi * r.rate), c.y.push_back(r.peak_phi);
-        p.curves.push_back(std::move(c));
-      }
-      f.panels.push_back(std::move(p));
-      figs.push_back(std::move(f));
-    }
+    out.push_back(s);
   }
-
-  // (d) and (f): the run closest to xi_opt at each rate, paper Figs. 10-11 and 15-19.
-  for (const Law& l : laws) {
-    std::vector<const Group*> gs;
-    for (const Group& g : groups)
-      if (g.sample == l.sample && g.model == l.model && g.chosen) gs.push_back(&g);
-    Figure f{fmt::format("curves_{}_{}", tag(l.sample), tag(l.model)),
-             fmt::format("{} {}: runs nearest ξopt", l.sample, l.model),
-             "Friction angle, volumetric strain, coordination number and moment index against the axial "
-             "strain for the run nearest ξopt at each rate (paper Figs. 10, 11, 15-18).",
-             {}};
-    const char* names[4][2] = {{"friction angle φ (°)", "φ"},
-                               {"volumetric strain εv (%)", "εv"},
-                               {"coordination number Cn", "Cn"},
-                               {"moment index IMom (%)", "IMom"}};
-    for (int k = 0; k < 4; ++k) {
-      Panel p{names[k][1], "axial strain ε1 (%)", names[k][0], false, false, {}};
-      for (std::size_t i = 0; i < gs.size(); ++i) {
-        const Run& r = *gs[i]->chosen;
-        Curve c{fmt::format("ε' = {}, ξ = {} %", sig(r.rate), pct(r.xi)), {}, {}, "lines lw 1.5 " + lc(i)};
-        const std::vector<double>& y = k == 0 ? r.s.phi : k == 1 ? r.s.ev : k == 2 ? r.s.cn : r.s.imom;
-        const double scale = (k == 1 || k == 3) ? 100.0 : 1.0;
-        for (std::size_t j = 0; j < r.s.e1.size(); ++j) c.x.push_back(100 * r.s.e1[j]), c.y.push_back(scale * y[j]);
-        p.curves.push_back(std::move(c));
-      }
-      f.panels.push_back(std::move(p));
-    }
-    figs.push_back(std::move(f));
-
-    Figure e{fmt::format("ekin_{}_{}", tag(l.sample), tag(l.model)),
-             fmt::format("{} {}: kinetic energy / ε'² (runs nearest ξopt)", l.sample, l.model),
-             "Kinetic energy of the fluctuations divided by ε'² against the axial strain (paper Fig. 19; "
-             "log y, zeros skipped).",
-             {}};
-    Panel p{e.title, "axial strain ε1 (%)", "Ekin/ε'² (J)", false, true, {}};
-    for (std::size_t i = 0; i < gs.size(); ++i) {
-      const Run& r = *gs[i]->chosen;
-      Curve c{fmt::format("ε' = {}, ξ = {} %", sig(r.rate), pct(r.xi)), {}, {}, "lines lw 1.5 " + lc(i)};
-      for (std::size_t j = 0; j < r.s.e1.size(); ++j)
-        c.x.push_back(100 * r.s.e1[j]), c.y.push_back(r.s.ekin[j] / (r.rate * r.rate));
-      p.curves.push_back(std::move(c));
-    }
-    e.panels.push_back(std::move(p));
-    figs.push_back(std::move(e));
-  }
-  return figs;
+  return out;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1006,6 +766,8 @@ json run_json(const Run& r) {
           {"sample", r.sample},
           {"seed", r.seed},
           {"model", r.model},
+          {"damping_model", r.damping_model},
+          {"stage", r.stage.empty() ? json(nullptr) : json(r.stage)},
           {"xi", r.xi},
           {"rate", r.rate},
           {"xi_times_rate", r.xi * r.rate},
@@ -1029,13 +791,14 @@ json run_json(const Run& r) {
 std::string per_run_csv(const std::vector<Run>& runs) {
   std::string s =
       "id,sample,seed,model,xi,rate,xi_times_rate,status,mean_imom,mean_ufr,mean_iuf,peak_phi_deg,final_ev,"
-      "mean_ekin_J,ekin_over_rate2_J,steps,wall_s,particles,dir\n";
+      "mean_ekin_J,ekin_over_rate2_J,steps,wall_s,particles,dir,stage\n";
   for (const Run& r : runs)
-    s += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n", csvstr(r.id), csvstr(r.sample),
+    s += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n", csvstr(r.id), csvstr(r.sample),
                      r.seed, csvstr(r.model), csvnum(r.xi), csvnum(r.rate), csvnum(r.xi * r.rate),
                      r.finished ? "finished" : "missing", csvnum(r.mean_imom), csvnum(r.mean_ufr),
                      csvnum(r.mean_iuf), csvnum(r.peak_phi), csvnum(r.final_ev), csvnum(r.mean_ekin),
-                     csvnum(r.ekin_norm), csvnum(r.steps), csvnum(r.wall_s), csvnum(r.particles), csvstr(r.dir));
+                     csvnum(r.ekin_norm), csvnum(r.steps), csvnum(r.wall_s), csvnum(r.particles), csvstr(r.dir),
+                     csvstr(r.stage));
   return s;
 }
 
@@ -1054,10 +817,8 @@ std::string power_law_csv(const std::vector<Law>& laws, const std::vector<Improv
   std::string s = "sample,model,n_rates,a,b,r2,note,n_flagged_optima,eps_qs,improvement,xi_opt_geomean,"
                   "xi_opt_min,xi_opt_max,paper_xi_opt,paper_a,paper_b,paper_r2,paper_eps_qs,paper_improvement\n";
   for (const Law& l : laws) {
-    double imp = nan;
-    for (const Improvement& im : imps)
-      if (im.sample == l.sample && l.model == "nd") imp = im.ratio;
-    if (l.model == "od" && std::isfinite(l.eps_qs)) imp = 1.0;
+    const Improvement* im = find_improvement(imps, l.sample, l.model);
+    const double imp = im ? im->ratio : nan;
     const auto ref = paper_ref(l.sample, l.model);
     auto r = [&](double PaperRef::*m) { return ref ? csvnum((*ref).*m) : std::string(); };
     s += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n", csvstr(l.sample), csvstr(l.model),
@@ -1069,77 +830,123 @@ std::string power_law_csv(const std::vector<Law>& laws, const std::vector<Improv
   return s;
 }
 
-// ---------------------------------------------------------------------------------------------
-// Report
-// ---------------------------------------------------------------------------------------------
-
-std::string report_html(const json& a, const std::vector<Table>& tables, const std::vector<Figure>& figs,
-                        const std::vector<bool>& drawn, const std::vector<Run>& runs, const std::string& toml) {
-  const std::string name = a["study"]["name"];
-  std::string h = "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<title>qsdem study " +
-                  html_escape(name) + "</title>\n<style>\n"
-                  "body{font-family:'DejaVu Sans',Arial,sans-serif;margin:2em auto;max-width:1200px;color:#222}\n"
-                  "table{border-collapse:collapse;margin:0.5em 0 1.5em;font-size:0.9em}\n"
-                  "th,td{border:1px solid #bbb;padding:0.25em 0.5em;text-align:right}\n"
-                  "th{background:#eee}td:first-child{text-align:left}\n"
-                  "figure{margin:1em 0 2em}img{max-width:100%;border:1px solid #ddd}\n"
-                  ".note{color:#555;font-size:0.9em}pre{background:#f6f6f6;padding:1em;overflow:auto}\n"
-                  "summary{font-weight:bold;margin:0.4em 0;cursor:pointer}\n"
-                  "</style>\n</head>\n";
-  // Counts the images that really decoded, for the headless-browser test (tests/test_study_analysis).
-  h += "<body data-images-loaded=\"pending\" data-images-total=\"pending\">\n"
-       "<script>\nwindow.addEventListener('load', function () {\n"
-       "  var imgs = Array.prototype.slice.call(document.images);\n"
-       "  var ok = imgs.filter(function (im) { return im.complete && im.naturalWidth > 0; }).length;\n"
-       "  document.body.setAttribute('data-images-loaded', String(ok));\n"
-       "  document.body.setAttribute('data-images-total', String(imgs.length));\n"
-       "});\n</script>\n";
-  h += "<h1>qsdem study: " + html_escape(name) + "</h1>\n";
-  h += "<p>Study date: " + html_escape(a["study"]["date"].get<std::string>()) +
-       ". Analysed: " + html_escape(a["study"]["analysed_at"].get<std::string>()) + ". Runs: " +
-       std::to_string(a["counts"]["finished"].get<int>()) + " finished of " +
-       std::to_string(a["counts"]["runs"].get<int>()) + ".</p>\n";
-  h += "<h2>How to read this report</h2>\n<p>Each run is one drained triaxial test (SPEC 8) of a sample "
-       "with a damping model (nd: size-dependent, od: global mass damping) at a damping ratio ξ and a "
-       "dimensionless strain rate ε'. For every (sample, model, ε') the optimum damping ratio ξopt is the "
-       "minimum of the mean moment index IMom (and separately of UFR) over ξ, refined by a parabola in "
-       "log-log through the smallest sampled value and its neighbours; a flag says when the minimum lies "
-       "at the edge of the sampled ξ range. IMom at ξopt is fitted as a ε'^b over the rates; ε'QS is the "
-       "rate where that fit reaches IMom = 0.1 %, and the improvement is ε'QS(nd)/ε'QS(od): above 1 the "
-       "size-dependent damping allows faster quasi-static loading. Columns headed 'paper' repeat "
-       "Yousefi (2018), Table 4, Fig. 9 and Table 6, for samples named A* or B*; our numbers are not "
-       "expected to match them digit for digit (other code, packing and contact geometry), only in trend. "
-       "All indices are shown in percent. Details: docs/analysis.md.</p>\n";
-  h += "<p>Data: <a href=\"analysis/per_run.csv\">per_run.csv</a>, <a href=\"analysis/optimum.csv\">optimum.csv</a>, "
-       "<a href=\"analysis/power_law.csv\">power_law.csv</a>, <a href=\"analysis/analysis.json\">analysis.json</a>, "
-       "<a href=\"analysis/tables.md\">tables.md</a>.</p>\n";
-  h += "<h2>Tables</h2>\n<p class=\"note\">The tables per (sample, model, ε') are folded: click a title "
-       "to open it.</p>\n";
-  for (const Table& t : tables) h += to_html(t);
-  h += "<h2>Figures</h2>\n";
-  for (std::size_t i = 0; i < figs.size(); ++i) {
-    const Figure& f = figs[i];
-    if (!drawn[i]) {
-      h += "<p class=\"note\">" + html_escape(f.title) + ": no data to plot.</p>\n";
-      continue;
+std::string deviation_csv(const std::vector<Deviation>& devs) {
+  std::string s = "id,sample,seed,model,xi,rate,reference,mean_imom";
+  for (const char* q : {"phi_deg", "ev", "cn"})
+    s += fmt::format(",{0}_rms,{0}_at_2pct,{0}_at_5pct,{0}_at_10pct", q);
+  s += ",e1_lo,e1_hi,quasi_static,verdict\n";
+  for (const Deviation& d : devs) {
+    const Run& r = *d.run;
+    s += fmt::format("{},{},{},{},{},{},{},{}", csvstr(r.id), csvstr(r.sample), r.seed, csvstr(r.model), csvnum(r.xi),
+                     csvnum(r.rate), csvstr(d.ref->id), csvnum(r.mean_imom));
+    for (const CurveDeviation* c : {&d.phi, &d.ev, &d.cn}) {
+      s += fmt::format(",{}", csvnum(c->rms));
+      for (std::size_t k = 0; k < std::size(deviation_strains); ++k)
+        s += fmt::format(",{}", csvnum(k < c->at.size() ? c->at[k] : nan));
     }
-    h += "<figure id=\"" + f.name + "\"><img src=\"analysis/figures/" + f.name + ".png\" alt=\"" +
-         html_escape(f.title) + "\"><figcaption>" + html_escape(f.caption) + " <a href=\"analysis/figures/" +
-         f.name + ".svg\">SVG</a> · <a href=\"analysis/figures/" + f.name +
-         ".dat\">data</a> · <a href=\"analysis/figures/" + f.name + ".gp\">gnuplot script</a></figcaption></figure>\n";
+    s += fmt::format(",{},{},{},{}\n", csvnum(d.phi.e1_lo), csvnum(d.phi.e1_hi),
+                     d.quasi_static < 0 ? "" : d.quasi_static ? "true" : "false", csvstr(d.verdict));
   }
-  h += "<h2 id=\"missing\">Missing runs</h2>\n";
-  int missing = 0;
-  std::string ul;
-  for (const Run& r : runs)
-    if (!r.finished) ++missing, ul += "<li>" + html_escape(r.id) + " (" + html_escape(r.problem) + ")</li>\n";
-  h += missing ? "<ul class=\"missing\">\n" + ul + "</ul>\n" : "<p>None: every run of the manifest finished.</p>\n";
-  h += "<h2>Resolved configuration (" + html_escape(a["study"]["study_file"].get<std::string>()) + ")</h2>\n<pre>" +
-       html_escape(toml) + "</pre>\n";
-  h += "<p class=\"note\">Generated by qsdem " QSDEM_VERSION " (qsdem::analyze_study).</p>\n</body>\n</html>\n";
-  return h;
+  return s;
 }
 
+json deviation_json(const CurveDeviation& c) {
+  return {{"rms", c.rms}, {"at", c.at}, {"n", c.n}, {"e1_lo", c.e1_lo}, {"e1_hi", c.e1_hi}};
+}
+
+json groups_json(const std::vector<Group>& groups) {
+  json out = json::array();
+  for (const Group& g : groups) {
+    json pts = json::array();
+    for (const Point& p : g.points)
+      pts.push_back({{"xi", p.xi}, {"n_runs", p.n_runs}, {"n_finished", p.n_finished}, {"mean_imom", p.imom},
+                     {"mean_ufr", p.ufr}, {"mean_iuf", p.iuf}, {"peak_phi_deg", p.phi},
+                     {"ekin_over_rate2_J", p.ekin_norm}});
+    out.push_back({{"sample", g.sample},
+                   {"model", g.model},
+                   {"rate", g.rate},
+                   {"points", pts},
+                   {"optimum_imom", opt_json(g.opt_imom)},
+                   {"optimum_ufr", opt_json(g.opt_ufr)},
+                   {"chosen_run", g.chosen ? json(g.chosen->id) : json(nullptr)}});
+  }
+  return out;
+}
+
+json power_laws_json(const Analysis& a) {
+  json out = json::array();
+  for (const Law& l : a.laws) {
+    const auto ref = paper_ref(l.sample, l.model);
+    json paper = nullptr;
+    if (ref)
+      paper = {{"xi_opt", ref->xi_opt}, {"eps_qs", ref->eps_qs}, {"a", ref->a},
+               {"b", ref->b},           {"r2", ref->r2},         {"improvement", ref->improvement}};
+    out.push_back({{"sample", l.sample},
+                   {"model", l.model},
+                   {"n_rates", l.fit.n},
+                   {"ok", l.fit.ok},
+                   {"a", l.fit.a},
+                   {"b", l.fit.b},
+                   {"r2", l.fit.r2},
+                   {"note", l.fit.note},
+                   {"eps_qs", l.eps_qs},
+                   {"imom_qs", a.settings.imom_target},
+                   {"rates", l.rates},
+                   {"imom_at_opt", l.imom_at_opt},
+                   {"xi_opt", l.xi_opt},
+                   {"n_flagged_optima", l.n_flagged},
+                   {"xi_opt_geomean", l.xi_opt_geomean},
+                   {"xi_opt_min", l.xi_opt_lo},
+                   {"xi_opt_max", l.xi_opt_hi},
+                   {"paper", paper}});
+  }
+  return out;
+}
+
+json stages_json(const Analysis& a) {
+  json out = json::array();
+  for (const DesignStage& st : a.stages) {
+    json ids = json::array(), picks = json::array();
+    for (const Run& r : a.runs)
+      if (st.lists(r.sample, r.model, r.xi, r.rate)) ids.push_back(r.id);
+    for (const PickCheck& c : a.picks)
+      if (c.stage == &st)
+        picks.push_back({{"sample", c.now.sample},
+                         {"model", c.now.model},
+                         {"picked", c.recorded != nullptr},
+                         {"xi_opt_when_picked", c.recorded ? json(c.recorded->xi_opt) : json(nullptr)},
+                         {"ratios_run", c.recorded ? json(c.recorded->ratios) : json(nullptr)},
+                         {"xi_opt_now", c.now.xi_opt},
+                         {"method_now", c.now.method},
+                         {"ratios_now", c.now_ratios},
+                         {"runs_used_now", c.now.runs_used},
+                         {"changed", c.changed}});
+    out.push_back({{"name", st.name}, {"from", st.from.empty() ? json(nullptr) : json(st.from)}, {"runs", ids},
+                   {"picks", picks}});
+  }
+  return out;
+}
+
+json damping_json(const Analysis& a) {
+  if (!a.settings.has_reference) return nullptr;
+  json refs = json::array(), devs = json::array(), scatter = json::array();
+  for (const auto& [key, r] : a.refs)
+    refs.push_back({{"sample", key.first}, {"seed", key.second}, {"run", r->id}, {"finished", r->finished}});
+  for (const Deviation& d : a.devs)
+    devs.push_back({{"id", d.run->id},
+                    {"reference", d.ref->id},
+                    {"mean_imom", d.run->mean_imom},
+                    {"phi_deg", deviation_json(d.phi)},
+                    {"ev", deviation_json(d.ev)},
+                    {"cn", deviation_json(d.cn)},
+                    {"quasi_static", d.quasi_static < 0 ? json(nullptr) : json(d.quasi_static == 1)},
+                    {"verdict", d.verdict}});
+  for (const SeedScatter& s : a.scatter)
+    scatter.push_back({{"sample", s.sample}, {"seeds", s.seeds}, {"phi_deg", s.phi}, {"ev", s.ev}, {"cn", s.cn}});
+  return {{"strains", deviation_strains}, {"references", refs}, {"runs", devs}, {"seed_scatter", scatter}};
+}
+
+// The study's date for the report: the manifest's, else when study.json was written.
 std::string study_date(const fs::path& dir, const json& manifest) {
   for (const char* k : {"date", "created", "started"})
     if (manifest.contains(k) && manifest[k].is_string()) return manifest[k];
@@ -1152,32 +959,81 @@ std::string study_date(const fs::path& dir, const json& manifest) {
          " (study.json written)";
 }
 
-}  // namespace
+}  // namespace analysis
 
-// ---------------------------------------------------------------------------------------------
+using namespace analysis;
 
-nlohmann::json analyze_study(const std::filesystem::path& dir) {
+namespace {
+
+json read_manifest(const fs::path& dir) {
   const fs::path manifest_path = dir / "study.json";
   if (!fs::exists(manifest_path)) throw std::runtime_error("analyze_study: no " + manifest_path.string());
-  json manifest;
   try {
-    manifest = json::parse(read_text(manifest_path));
+    return json::parse(read_text(manifest_path));
   } catch (const json::exception& e) {
     throw std::runtime_error("analyze_study: " + manifest_path.string() + ": " + e.what());
   }
+}
+
+// Fills `a` in place (its groups and deviations point into its runs).
+void build_analysis(Analysis& a, const fs::path& dir, const json& manifest) {
+  a.settings = analysis_settings_from_json(manifest.contains("analysis") ? manifest["analysis"] : json());
+  if (manifest.contains("runs") && manifest["runs"].is_array())
+    for (const json& m : manifest["runs"]) a.runs.push_back(load_run(dir, m));
+  if (a.settings.baseline.empty() && !a.runs.empty()) a.settings.baseline = a.runs.front().model;  // the design's first
+  a.groups = make_groups(a.runs);
+  a.laws = make_laws(a.groups, a.settings.imom_target);
+  a.imps = make_improvements(a.laws, a.settings.baseline);
+  a.equal = make_equal_sets(a.runs);
+  a.stages = read_stages(manifest);
+  a.picks = check_picks(a.stages, a.runs);
+  a.refs = find_references(a.runs, a.settings);
+  a.devs = make_deviations(a.runs, a.refs, a.settings);
+  a.scatter = make_seed_scatter(a.refs);
+}
+
+}  // namespace
+
+std::vector<StageOptimum> stage_optima(const fs::path& dir, const json& manifest, const std::string& stage,
+                                       double at_rate) {
+  const std::vector<DesignStage> stages = read_stages(manifest);
+  const auto st = std::find_if(stages.begin(), stages.end(), [&](const DesignStage& s) { return s.name == stage; });
+  if (st == stages.end()) throw std::runtime_error("stage_optima: no stage '" + stage + "' in the manifest");
+  std::vector<Run> runs;
+  if (manifest.contains("runs") && manifest["runs"].is_array())
+    for (const json& m : manifest["runs"]) {
+      Run r = load_run(dir, m);
+      if (st->lists(r.sample, r.model, r.xi, r.rate)) runs.push_back(std::move(r));
+    }
+  return optima_of(runs, at_rate);
+}
+
+std::vector<double> pick_ratios(const StageOptimum& o, const std::string& pick, int digits) {
+  if (!std::isfinite(o.xi_opt) || !(o.xi_opt > 0)) return {};
+  const double xi = std::stod(fmt::format("{:.{}g}", o.xi_opt, std::clamp(digits, 1, 17)));
+  std::vector<double> out{xi};
+  if (pick == "optimum+neighbours") {
+    double below = nan, above = nan;
+    for (double s : o.sampled) {
+      if (s < xi && !same_value(s, xi)) below = s;
+      if (s > xi && !same_value(s, xi) && !std::isfinite(above)) above = s;
+    }
+    if (std::isfinite(below)) out.insert(out.begin(), below);
+    if (std::isfinite(above)) out.push_back(above);
+  }
+  return out;
+}
+
+nlohmann::json analyze_study(const std::filesystem::path& dir) {
+  const json manifest = read_manifest(dir);
   const std::string study_file = manifest.value("study_file", std::string("study.toml"));
   std::string toml;
   if (fs::exists(dir / study_file)) toml = read_text(dir / study_file);
 
-  std::vector<Run> runs;
-  if (manifest.contains("runs") && manifest["runs"].is_array())
-    for (const json& m : manifest["runs"]) runs.push_back(load_run(dir, m));
-
-  const std::vector<Group> groups = make_groups(runs);
-  const std::vector<Law> laws = make_laws(groups);
-  const std::vector<Improvement> imps = make_improvements(laws);
-  const std::vector<EqualSet> equal = make_equal_sets(runs);
-  const std::vector<Table> tables = make_tables(runs, groups, laws, imps, equal);
+  Analysis an;
+  build_analysis(an, dir, manifest);
+  const std::vector<Run>& runs = an.runs;
+  const std::vector<Table> tables = make_tables(an);
 
   const fs::path adir = dir / "analysis", figdir = adir / "figures";
   fs::create_directories(figdir);
@@ -1190,6 +1046,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
                 {"analysed_at", utc_string(std::time(nullptr))},
                 {"qsdem_version", QSDEM_VERSION}};
   a["resolved_configuration"] = toml;
+  a["settings"] = to_json(an.settings);
   int finished = 0;
   for (const Run& r : runs) finished += r.finished;
   a["counts"] = {{"runs", static_cast<int>(runs.size())},
@@ -1201,62 +1058,29 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
     a["runs"].push_back(run_json(r));
     if (!r.finished) a["missing_runs"].push_back({{"id", r.id}, {"dir", r.dir}, {"reason", r.problem}});
   }
-  a["groups"] = json::array();
-  for (const Group& g : groups) {
-    json pts = json::array();
-    for (const Point& p : g.points)
-      pts.push_back({{"xi", p.xi}, {"n_runs", p.n_runs}, {"n_finished", p.n_finished}, {"mean_imom", p.imom},
-                     {"mean_ufr", p.ufr}, {"mean_iuf", p.iuf}, {"peak_phi_deg", p.phi},
-                     {"ekin_over_rate2_J", p.ekin_norm}});
-    a["groups"].push_back({{"sample", g.sample},
-                           {"model", g.model},
-                           {"rate", g.rate},
-                           {"points", pts},
-                           {"optimum_imom", opt_json(g.opt_imom)},
-                           {"optimum_ufr", opt_json(g.opt_ufr)},
-                           {"chosen_run", g.chosen ? json(g.chosen->id) : json(nullptr)}});
-  }
-  a["power_laws"] = json::array();
-  for (const Law& l : laws) {
-    const auto ref = paper_ref(l.sample, l.model);
-    json paper = nullptr;
-    if (ref)
-      paper = {{"xi_opt", ref->xi_opt}, {"eps_qs", ref->eps_qs}, {"a", ref->a},
-               {"b", ref->b},           {"r2", ref->r2},         {"improvement", ref->improvement}};
-    a["power_laws"].push_back({{"sample", l.sample},
-                               {"model", l.model},
-                               {"n_rates", l.fit.n},
-                               {"ok", l.fit.ok},
-                               {"a", l.fit.a},
-                               {"b", l.fit.b},
-                               {"r2", l.fit.r2},
-                               {"note", l.fit.note},
-                               {"eps_qs", l.eps_qs},
-                               {"imom_qs", imom_qs},
-                               {"rates", l.rates},
-                               {"imom_at_opt", l.imom_at_opt},
-                               {"xi_opt", l.xi_opt},
-                               {"n_flagged_optima", l.n_flagged},
-                               {"xi_opt_geomean", l.xi_opt_geomean},
-                               {"xi_opt_min", l.xi_opt_lo},
-                               {"xi_opt_max", l.xi_opt_hi},
-                               {"paper", paper}});
-  }
+  a["groups"] = groups_json(an.groups);
+  a["power_laws"] = power_laws_json(an);
   a["improvements"] = json::array();
-  for (const Improvement& im : imps) {
-    const auto p = paper_improvement(im.sample);
+  for (const Improvement& im : an.imps) {
+    if (im.model == im.baseline) continue;
+    const auto ref = paper_ref(im.sample, im.model), base = paper_ref(im.sample, im.baseline);
     a["improvements"].push_back({{"sample", im.sample},
-                                 {"eps_qs_nd", im.eps_qs_nd},
-                                 {"eps_qs_od", im.eps_qs_od},
+                                 {"model", im.model},
+                                 {"baseline", im.baseline},
+                                 {"eps_qs", im.eps_qs},
+                                 {"eps_qs_baseline", im.eps_qs_baseline},
                                  {"improvement", im.ratio},
-                                 {"paper_improvement", p ? json(*p) : json(nullptr)}});
+                                 {"paper_improvement", ref && base ? json(ref->improvement / base->improvement)
+                                                                   : json(nullptr)}});
   }
   a["equal_xi_rate"] = json::array();
-  for (const EqualSet& e : equal) {
+  for (const EqualSet& e : an.equal) {
     json ids = json::array();
     for (const Run* r : e.runs) ids.push_back(r->id);
     a["equal_xi_rate"].push_back({{"sample", e.sample}, {"model", e.model}, {"xi_times_rate", e.product}, {"runs", ids}});
   }
+  a["stages"] = stages_json(an);
+  a["damping_dependence"] = damping_json(an);
   a["paper_reference"] = paper_reference_json();
 
   // Tables and CSVs first: they are useful even when gnuplot is missing.
@@ -1266,19 +1090,25 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
   for (const Table& t : tables) md += to_markdown(t);
   write_file_atomic(adir / "tables.md", md);
   write_file_atomic(adir / "per_run.csv", per_run_csv(runs));
-  write_file_atomic(adir / "optimum.csv", optimum_csv(groups));
-  write_file_atomic(adir / "power_law.csv", power_law_csv(laws, imps));
+  write_file_atomic(adir / "optimum.csv", optimum_csv(an.groups));
+  write_file_atomic(adir / "power_law.csv", power_law_csv(an.laws, an.imps));
   a["files"] = {{"tables_md", "analysis/tables.md"},
                 {"per_run_csv", "analysis/per_run.csv"},
                 {"optimum_csv", "analysis/optimum.csv"},
                 {"power_law_csv", "analysis/power_law.csv"},
                 {"analysis_json", "analysis/analysis.json"},
                 {"report_html", "report.html"}};
+  if (an.settings.has_reference) {
+    write_file_atomic(adir / "deviation.csv", deviation_csv(an.devs));
+    a["files"]["deviation_csv"] = "analysis/deviation.csv";
+  } else {
+    fs::remove(adir / "deviation.csv");  // of an earlier analysis with a reference
+  }
   a["figures"] = json::array();
   write_file_atomic(adir / "analysis.json", a.dump(2) + "\n");
 
   require_gnuplot();
-  std::vector<Figure> figs = make_figures(runs, groups, laws);
+  std::vector<Figure> figs = make_figures(an);
   std::vector<bool> drawn;
   for (Figure& f : figs) {
     drawn.push_back(render(figdir, f));
@@ -1290,7 +1120,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
                             {"script", drawn.back() ? json("analysis/figures/" + f.name + ".gp") : json(nullptr)}});
   }
   write_file_atomic(adir / "analysis.json", a.dump(2) + "\n");
-  write_file_atomic(dir / "report.html", report_html(a, tables, figs, drawn, runs, toml));
+  write_file_atomic(dir / "report.html", report_html(a, an.settings, tables, figs, drawn, runs, toml));
   return a;
 }
 

@@ -1,11 +1,13 @@
 // Analysis of a study (SPEC 9): optimum damping ratio, power law of the moment index against the
-// strain rate, quasi-static rate, tables, figures (gnuplot) and an HTML report.
-// The choices (fits, averaging, flags) are documented in docs/analysis.md.
+// strain rate, quasi-static rate, improvement over a baseline model, the damping dependence of the
+// response (deviation from a reference run), tables, figures (gnuplot) and an HTML report.
+// The choices (fits, averaging, flags, tolerances) are documented in docs/analysis.md.
 #pragma once
 #include <filesystem>
 #include <limits>
 #include <span>
 #include <string>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -22,6 +24,7 @@ struct OptimumFit {
   int n_points = 0;           // points used (xi > 0, index > 0, finite)
   // "parabola": convex vertex of the log-log parabola through the minimum and its neighbours;
   // "edge": minimum at the end of the sampled range (no extrapolation);
+  // "single": one usable point, its value (no minimum to find);
   // "sampled-minimum": parabola not convex; "none": no usable point.
   std::string method = "none";
   std::string flag;           // "" when the parabola was used, else why not (human readable)
@@ -50,6 +53,64 @@ PowerLawFit fit_power_law(std::span<const double> x, std::span<const double> y);
 // The strain rate where the fitted power law gives IMom = imom_qs (0.1 % in the paper, Table 4):
 // eps'_QS = (imom_qs / a)^(1/b). NaN when the fit is unusable or b <= 0.
 double quasi_static_rate(const PowerLawFit& fit, double imom_qs = 1e-3);
+
+// Deviation of a curve y(e1) from a reference curve y_ref(e1_ref) (docs/analysis.md, damping
+// dependence): the run's curve is interpolated linearly at the reference's strains that lie in
+// the common strain range; rms is the root mean square of the differences there (run minus
+// reference). at[k] is the difference at strain at_strains[k], both curves interpolated; NaN
+// outside either curve's range. Strains need not be sorted; non-finite points are skipped.
+struct CurveDeviation {
+  static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
+  double rms = nan;
+  std::vector<double> at;  // one per at_strains entry
+  int n = 0;               // reference points in the common range
+  double e1_lo = nan, e1_hi = nan;  // the common range
+};
+
+CurveDeviation curve_deviation(std::span<const double> e1_ref, std::span<const double> y_ref,
+                               std::span<const double> e1, std::span<const double> y,
+                               std::span<const double> at_strains);
+
+// The study's analysis settings ([analysis] of the study file, study.json "analysis").
+struct AnalysisSettings {
+  static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
+  std::string baseline;        // model label; "": the first model of the design
+  double imom_target = 1e-3;   // mean IMom below it counts as quasi-static (SPEC 9: 0.1 %)
+  bool has_reference = false;  // the damping dependence is assessed only with a reference
+  // The reference run of each (sample, seed): the runs matching the given fields (empty / NaN:
+  // any), then those at the slowest rate, then the least damped (none counts as xi = 0).
+  std::string reference_model;
+  double reference_ratio = nan, reference_rate = nan;
+  double phi_tolerance_deg = 1.0;  // RMS deviation of phi(e1) from the reference, degrees
+  double ev_tolerance = 0.005;     // RMS deviation of ev(e1), volumetric strain as a fraction
+  double cn_tolerance = nan;       // RMS deviation of the coordination number; NaN: not checked
+};
+
+nlohmann::ordered_json to_json(const AnalysisSettings& s);
+// Missing keys keep their defaults (a manifest written before the settings existed).
+AnalysisSettings analysis_settings_from_json(const nlohmann::json& j);
+
+// The IMom optimum of one (sample, model) over the finished runs of one stage of a study, as
+// the analysis computes it (docs/analysis.md section 2); the ratios a later stage picks from it
+// (docs/study.md, staged designs).
+struct StageOptimum {
+  static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
+  std::string sample, model;
+  double xi_opt = nan;          // at `at_rate`, or the geometric mean over the stage's rates
+  std::string method;           // "geometric mean of k rates" or the fit's method at one rate
+  std::vector<double> sampled;  // the stage's ratios xi > 0 of this (sample, model), ascending
+  int runs_used = 0;            // finished runs the optimum comes from
+};
+
+// `manifest` is study.json's content; `stage` the name of one of its stages. at_rate NaN: every
+// rate of the stage.
+std::vector<StageOptimum> stage_optima(const std::filesystem::path& dir, const nlohmann::json& manifest,
+                                       const std::string& stage, double at_rate);
+
+// The ratios picked from an optimum: "optimum" gives xi_opt rounded to `digits` significant
+// digits; "optimum+neighbours" adds the nearest sampled ratios below and above it. Empty when
+// xi_opt is not finite.
+std::vector<double> pick_ratios(const StageOptimum& o, const std::string& pick, int digits);
 
 // Throws std::runtime_error naming the Debian package (gnuplot-nox) when gnuplot cannot be run.
 void require_gnuplot();

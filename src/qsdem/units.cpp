@@ -68,6 +68,10 @@ double parse_quantity(std::string_view text, Dimension dim) {
   const std::string_view s = trim(text);
   double value = 0.0;
   const auto [end, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
+  if (ec == std::errc::result_out_of_range)
+    throw InputError(fmt::format("'{}': the number is out of the range of a double (about 1e-308 to 1e308 in "
+                                 "magnitude)",
+                                 text));
   if (ec != std::errc{} || end == s.data())
     throw InputError(fmt::format("'{}' does not start with a number", text));
   if (!std::isfinite(value)) throw InputError(fmt::format("'{}' is not a finite number", text));

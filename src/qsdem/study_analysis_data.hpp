@@ -1,0 +1,242 @@
+// The data of a study's analysis, shared by its computation (study_analysis.cpp) and its
+// rendering as tables, figures and the report (study_report.cpp). Internal to the two.
+#pragma once
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <limits>
+#include <map>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "qsdem/study_analysis.hpp"
+
+namespace qsdem::analysis {
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+constexpr double nan = std::numeric_limits<double>::quiet_NaN();
+
+inline bool same_value(double a, double b) { return a == b || std::abs(a - b) <= 1e-12 * std::max(std::abs(a), std::abs(b)); }
+
+inline bool has_value(const std::vector<double>& v, double x) {
+  return std::any_of(v.begin(), v.end(), [&](double y) { return same_value(x, y); });
+}
+
+inline bool has_name(const std::vector<std::string>& v, const std::string& x) { return std::find(v.begin(), v.end(), x) != v.end(); }
+
+// The curves of a run (series.csv by header name, SPEC 10).
+struct Series {
+  std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
+};
+
+// A run of the manifest: its entry, the means of its summary.json, its curves.
+struct Run {
+  std::string id, sample, model, dir;
+  std::string damping_model;  // the case's damping.model (the label's own name for a bare model)
+  std::string stage;          // the first stage that lists it ("" without stages)
+  long seed = 0;
+  double xi = nan, rate = nan;
+  bool finished = false;
+  std::string problem;  // why a run counts as missing
+  double mean_imom = nan, mean_ufr = nan, mean_iuf = nan, peak_phi = nan, final_ev = nan;
+  double mean_ekin = nan, ekin_norm = nan;  // mean ekin_J, and divided by eps'^2 (paper Table 6)
+  double steps = nan, wall_s = nan, particles = nan, psps = nan;
+  Series s;
+};
+
+// One row of the paper's Table 4 with its Fig. 9 fit (SPEC 9).
+struct PaperRef {
+  double xi_opt, eps_qs, improvement, a, b, r2;
+};
+
+// One sampled damping ratio at one (sample, model, eps'): the mean over its finished seeds.
+struct Point {
+  double xi = nan;
+  int n_runs = 0, n_finished = 0;
+  double imom = nan, ufr = nan, iuf = nan, phi = nan, ekin_norm = nan;
+};
+
+// One (sample, model, eps'): its points and optima.
+struct Group {
+  std::string sample, model;
+  double rate = nan;
+  std::vector<Point> points;  // sorted by xi
+  OptimumFit opt_imom, opt_ufr;
+  const Run* chosen = nullptr;  // the finished run closest to xi_opt (IMom), for Figs. 10-11, 15-19
+};
+
+// One (sample, model): the power law of IMom at the optimum against eps'.
+struct Law {
+  std::string sample, model;
+  PowerLawFit fit;
+  double eps_qs = nan;
+  std::vector<double> rates, imom_at_opt, xi_opt;  // the points of the fit (Fig. 9) and Fig. 7
+  int n_flagged = 0;
+  double xi_opt_geomean = nan, xi_opt_lo = nan, xi_opt_hi = nan;
+};
+
+// eps'_QS(model) / eps'_QS(baseline) of one sample (SPEC 9: the paper's ND/OD with baseline od).
+struct Improvement {
+  std::string sample, model, baseline;
+  double eps_qs = nan, eps_qs_baseline = nan, ratio = nan;
+};
+
+// Paper Table 6: runs of one (sample, model) with equal xi*eps' (3 significant digits) at
+// different rates.
+struct EqualSet {
+  std::string sample, model, product;
+  std::vector<const Run*> runs;
+};
+
+// The ratios a stage picked for one (sample, model), as recorded in study.json.
+struct Pick {
+  std::string sample, model;
+  double xi_opt = nan;  // the optimum when the ratios were picked
+  std::string method;
+  int runs_used = 0;
+  std::vector<double> ratios;  // what the stage runs
+};
+
+// A stage of study.json ("stages"): which runs it lists (docs/study.md).
+struct DesignStage {
+  std::string name;
+  std::vector<std::string> samples, models;
+  std::vector<double> rates, ratios;  // a grid; `ratios` empty when they are picked
+  struct Listed {
+    std::string model;
+    double xi, rate;
+  };
+  std::vector<Listed> listed;  // a list of runs instead of a grid
+  std::string from, pick;      // ratios picked from stage `from`
+  double at_rate = nan;
+  int digits = 2;
+  std::vector<Pick> picks;
+
+  const Pick* pick_of(const std::string& sample, const std::string& model) const {
+    for (const Pick& p : picks)
+      if (p.sample == sample && p.model == model) return &p;
+    return nullptr;
+  }
+  bool lists(const std::string& sample, const std::string& model, double xi, double rate) const {
+    if (!has_name(samples, sample)) return false;
+    if (!listed.empty())
+      return std::any_of(listed.begin(), listed.end(), [&](const Listed& l) {
+        return l.model == model && same_value(l.xi, xi) && same_value(l.rate, rate);
+      });
+    if (!has_name(models, model) || !has_value(rates, rate)) return false;
+    if (from.empty()) return has_value(ratios, xi);
+    const Pick* p = pick_of(sample, model);
+    return p && has_value(p->ratios, xi);
+  }
+};
+
+// A stage's pick as it would be made now, against the one recorded when its runs were made.
+struct PickCheck {
+  const DesignStage* stage;
+  const Pick* recorded;         // null: not picked yet
+  StageOptimum now;
+  std::vector<double> now_ratios;
+  bool changed = false;         // the source's optimum now gives other ratios than the runs use
+};
+
+constexpr double deviation_strains[] = {0.02, 0.05, 0.10};  // the tables' 2, 5 and 10 % axial strain
+
+// A run against the reference run of its (sample, seed), and its verdict.
+struct Deviation {
+  const Run* run = nullptr;
+  const Run* ref = nullptr;
+  CurveDeviation phi, ev, cn;
+  int quasi_static = -1;  // 1 yes, 0 no, -1 not decided
+  std::string verdict;
+};
+
+// The scatter between seeds: for each sample with two or more finished reference runs, the
+// largest RMS deviation between two of them.
+struct SeedScatter {
+  std::string sample;
+  int seeds = 0;
+  double phi = nan, ev = nan, cn = nan;
+};
+
+// Everything the tables, figures and files are made from; groups, laws and deviations point
+// into `runs`, so an Analysis is filled in place and never copied.
+struct Analysis {
+  Analysis() = default;
+  Analysis(const Analysis&) = delete;
+  Analysis& operator=(const Analysis&) = delete;
+
+  AnalysisSettings settings;  // baseline resolved
+  std::vector<Run> runs;
+  std::vector<Group> groups;
+  std::vector<Law> laws;
+  std::vector<Improvement> imps;
+  std::vector<EqualSet> equal;
+  std::vector<DesignStage> stages;
+  std::vector<PickCheck> picks;
+  std::map<std::pair<std::string, long>, const Run*> refs;
+  std::vector<Deviation> devs;
+  std::vector<SeedScatter> scatter;
+
+  const Run* reference_of(const std::string& sample) const {  // the first seed's (for figures)
+    for (const auto& [key, r] : refs)
+      if (key.first == sample) return r;
+    return nullptr;
+  }
+};
+
+// A table, rendered as Markdown and as HTML from the same cells.
+struct Table {
+  std::string title, note;
+  std::vector<std::string> head;
+  std::vector<std::vector<std::string>> rows;
+  bool detail = false;  // folded (<details>) in the report
+};
+
+// A figure: panels of curves, drawn by gnuplot from NAME.dat with NAME.gp.
+struct Curve {
+  std::string title;  // empty: no key entry
+  std::vector<double> x, y;
+  std::string style;  // gnuplot `with ...` clause
+};
+
+struct Panel {
+  std::string title, xlabel, ylabel;
+  bool logx = false, logy = false;
+  std::vector<Curve> curves;
+  std::string extra = "";  // more gnuplot commands before `plot` (ranges)
+};
+
+struct Figure {
+  std::string name, title, caption;
+  std::vector<Panel> panels;  // 1 or 4 (2x2)
+};
+
+// Numbers in tables: NaN shown as a dash.
+std::string sig(double v, int digits = 3);
+std::string pct(double v, int digits = 3);  // a fraction in percent
+std::string read_text(const fs::path& p);
+double mean_finite(const std::vector<double>& v);
+std::optional<PaperRef> paper_ref(const std::string& sample, const std::string& model);
+json paper_reference_json();
+const Improvement* find_improvement(const std::vector<Improvement>& imps, const std::string& sample,
+                                    const std::string& model);
+const OptimumFit* find_opt(const std::vector<Group>& groups, const Run& r);
+
+// Rendering (study_report.cpp).
+std::vector<Table> make_tables(const Analysis& a);
+std::string to_markdown(const Table& t);
+std::vector<Figure> make_figures(const Analysis& a);
+// Writes NAME.dat and NAME.gp into figdir and runs gnuplot there (.svg and .png).
+// Returns false (and nothing is drawn) when the figure has no usable point.
+bool render(const fs::path& figdir, Figure& f);
+std::string report_html(const json& a, const AnalysisSettings& settings, const std::vector<Table>& tables,
+                        const std::vector<Figure>& figs, const std::vector<bool>& drawn, const std::vector<Run>& runs,
+                        const std::string& toml);
+
+}  // namespace qsdem::analysis

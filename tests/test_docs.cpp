@@ -1,0 +1,281 @@
+// The user documentation against the code, where a machine can check it:
+//  - every key of docs/config.md is a key the parser reads, and every key it reads is documented;
+//  - the annotated example of docs/config.md is the default case with every key written out;
+//  - every qsdem command line quoted in README.md and the docs is accepted by `qsdem --dry-run`;
+//  - every relative link of the Markdown files points to a file that exists.
+#include <gtest/gtest.h>
+
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <optional>
+#include <regex>
+#include <set>
+#include <sstream>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "qsdem/config.hpp"
+#include "qsdem/contact/laws.hpp"
+
+namespace fs = std::filesystem;
+
+namespace {
+
+const fs::path source_dir = QSDEM_SOURCE_DIR;
+
+std::string read_text(const fs::path& path) {
+  std::ifstream in(path);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+std::vector<std::string> lines_of(const std::string& text) {
+  std::vector<std::string> lines;
+  std::stringstream ss(text);
+  for (std::string line; std::getline(ss, line);) lines.push_back(line);
+  return lines;
+}
+
+// The user-facing Markdown files: README.md and those of docs/, tests/, bench/.
+std::vector<fs::path> markdown_files() {
+  std::vector<fs::path> files{source_dir / "README.md"};
+  for (const char* dir : {"docs", "tests", "bench"})
+    for (const auto& e : fs::recursive_directory_iterator(source_dir / dir))
+      if (e.is_regular_file() && e.path().extension() == ".md") files.push_back(e.path());
+  return files;
+}
+
+// The keys of docs/config.md: the first cell, in backticks, of the rows of its tables headed
+// "| key | ...". A row under a "[[table]]" heading names a key of that table's rows
+// ("count" -> "sample.particles.count").
+std::set<std::string> documented_keys() {
+  std::set<std::string> keys;
+  bool in_key_table = false;
+  std::string prefix;
+  const std::regex row(R"(^\|\s*`([A-Za-z0-9_.]+)`\s*\|)");
+  const std::regex array_heading(R"(\[\[([A-Za-z0-9_.]+)\]\])");
+  for (const std::string& line : lines_of(read_text(source_dir / "docs/config.md"))) {
+    std::smatch m;
+    if (line.rfind("#", 0) == 0) prefix = std::regex_search(line, m, array_heading) ? m[1].str() + "." : "";
+    if (line.rfind("| key |", 0) == 0) in_key_table = true;
+    if (line.rfind("|", 0) != 0) in_key_table = false;
+    if (in_key_table && std::regex_search(line, m, row)) {
+      const std::string key = m[1];
+      keys.insert(key.find('.') == std::string::npos ? prefix + key : key);
+    }
+  }
+  return keys;
+}
+
+// The first ```toml block after the heading `heading` of a Markdown file.
+std::string toml_block_after(const fs::path& file, const std::string& heading) {
+  std::string block;
+  bool after = false, inside = false;
+  for (const std::string& line : lines_of(read_text(file))) {
+    if (line == heading) after = true;
+    if (!after) continue;
+    if (inside && line.rfind("```", 0) == 0) return block;
+    if (inside) block += line + "\n";
+    if (line == "```toml") inside = true;
+  }
+  return block;
+}
+
+// Shell words of a command line as sh would pass them (quotes removed), up to a comment or an
+// operator (| ; & < >). Enough for the command lines of the docs.
+std::vector<std::string> shell_words(const std::string& text) {
+  std::vector<std::string> words;
+  std::string word;
+  bool in_word = false;
+  for (std::size_t k = 0; k < text.size(); ++k) {
+    const char c = text[k];
+    if (c == '\'' || c == '"') {
+      const std::size_t end = text.find(c, k + 1);
+      if (end == std::string::npos) return {};  // unbalanced: not a command line
+      word += text.substr(k + 1, end - k - 1);
+      in_word = true;
+      k = end;
+    } else if (c == '\\' && k + 1 < text.size()) {
+      word += text[++k];
+      in_word = true;
+    } else if (c == ' ' || c == '\t') {
+      if (in_word) words.push_back(word);
+      word.clear();
+      in_word = false;
+    } else if (!in_word && (c == '#' || c == '|' || c == ';' || c == '&' || c == '<' || c == '>')) {
+      break;
+    } else {
+      word += c;
+      in_word = true;
+    }
+  }
+  if (in_word) words.push_back(word);
+  return words;
+}
+
+struct QuotedCommand {
+  std::string where;                // file:line
+  std::vector<std::string> args;    // after the program name
+};
+
+// The arguments of a command line that runs qsdem (`qsdem ...`, `build/qsdem ...`, optionally
+// after `mpirun -np K`), or nothing. A synopsis, with [optional] words, is not a command line.
+std::optional<std::vector<std::string>> qsdem_arguments(const std::string& text) {
+  std::vector<std::string> w = shell_words(text);
+  std::size_t k = 0;
+  if (w.size() >= 3 && w[0] == "mpirun" && w[1] == "-np") k = 3;
+  if (k >= w.size() || (w[k] != "qsdem" && w[k] != "build/qsdem")) return std::nullopt;
+  for (const std::string& word : w)
+    if (word[0] == '[') return std::nullopt;
+  return std::vector<std::string>(w.begin() + static_cast<std::ptrdiff_t>(k) + 1, w.end());
+}
+
+// The qsdem command lines of a Markdown file: the lines of its sh / bash / console code blocks
+// that run qsdem (with their continuation lines), and the inline code spans that do. A span names
+// a subcommand or an option rather than a command line when it has only two words ("`qsdem
+// bench`") or ends with an option ("`qsdem run --set`").
+std::vector<QuotedCommand> quoted_commands(const fs::path& file) {
+  std::vector<QuotedCommand> out;
+  const std::vector<std::string> lines = lines_of(read_text(file));
+  const std::string name = fs::relative(file, source_dir).string();
+  bool in_block = false, shell_block = false;
+  const std::regex span("`([^`]+)`");
+  for (std::size_t n = 0; n < lines.size(); ++n) {
+    const std::string& line = lines[n];
+    const std::string where = name + ":" + std::to_string(n + 1);
+    if (line.find("```") != std::string::npos && line.find_first_not_of(" ") == line.find("```")) {
+      const std::string lang = line.substr(line.find("```") + 3);
+      shell_block = !in_block && (lang == "sh" || lang == "bash" || lang == "console" || lang == "shell");
+      in_block = !in_block;
+      continue;
+    }
+    if (in_block) {
+      if (!shell_block) continue;
+      std::string text = line;
+      while (!text.empty() && text.back() == '\\' && n + 1 < lines.size()) text = text.substr(0, text.size() - 1) + lines[++n];
+      const std::size_t first = text.find_first_not_of(" $");
+      if (first == std::string::npos) continue;
+      if (auto args = qsdem_arguments(text.substr(first))) out.push_back({where, *args});
+      continue;
+    }
+    for (std::sregex_iterator it(line.begin(), line.end(), span), end; it != end; ++it) {
+      const std::string text = (*it)[1].str();
+      const auto args = qsdem_arguments(text);
+      if (args && args->size() >= 2 && args->back()[0] != '-')
+        out.push_back({where, *args});
+    }
+  }
+  return out;
+}
+
+std::string quote_for_shell(const std::string& s) {
+  std::string q = "'";
+  for (char c : s) q += c == '\'' ? std::string("'\\''") : std::string(1, c);
+  return q + "'";
+}
+
+// Runs a shell command; returns its exit status and output.
+std::pair<int, std::string> run_shell(const std::string& command) {
+  std::string output;
+  std::FILE* pipe = popen((command + " 2>&1").c_str(), "r");
+  if (!pipe) return {-1, "popen failed"};
+  char buffer[512];
+  while (std::fgets(buffer, sizeof buffer, pipe)) output += buffer;
+  const int status = pclose(pipe);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
+}
+
+}  // namespace
+
+TEST(Docs, EveryCaseKeyIsDocumentedAndEveryDocumentedKeyIsRead) {
+  const std::vector<std::string> parser = qsdem::case_keys();
+  const std::set<std::string> parsed(parser.begin(), parser.end());
+  const std::set<std::string> documented = documented_keys();
+  ASSERT_GT(parsed.size(), 40u);  // the accessor sees the whole parser
+  for (const std::string& k : parsed) EXPECT_TRUE(documented.count(k)) << "not in docs/config.md: " << k;
+  for (const std::string& k : documented) EXPECT_TRUE(parsed.count(k)) << "docs/config.md documents an unknown key: " << k;
+}
+
+TEST(Docs, AnnotatedExampleIsTheDefaultCaseWithEveryKeyWritten) {
+  const std::string example = toml_block_after(source_dir / "docs/config.md", "## Complete annotated example");
+  ASSERT_FALSE(example.empty());
+  const qsdem::Params annotated = qsdem::parse_case(example, "docs/config.md (annotated example)");
+  const qsdem::Params plain = qsdem::load_case((source_dir / "examples/spheres-A-small.toml").string());
+  nlohmann::json a = qsdem::to_json(annotated), b = qsdem::to_json(plain);
+  a.erase("source"), b.erase("source");
+  EXPECT_EQ(a, b) << "the annotated example does not run the same case as examples/spheres-A-small.toml";
+  // Every key is written, but those of the other shapes' rows (its rows are spheres) and of the
+  // other contact laws.
+  std::set<std::string> not_taken{"sample.particles.major_semi_axis", "sample.particles.minor_semi_axis",
+                                  "sample.particles.semi_axes"};
+  for (std::string_view law : qsdem::contact_law_names())
+    if (law != annotated.contact.law)
+      for (const qsdem::LawKey& key : qsdem::contact_law_keys(law)) not_taken.insert("contact." + std::string(key.name));
+  for (const qsdem::LawKey& key : qsdem::contact_law_keys(annotated.contact.law))
+    not_taken.erase("contact." + std::string(key.name));
+  for (const std::string& key : qsdem::case_keys()) {
+    if (not_taken.count(key)) continue;
+    std::string pointer = "/" + key;
+    for (char& c : pointer) c = c == '.' ? '/' : c;
+    if (key.rfind("sample.particles.", 0) == 0) pointer.insert(std::string("/sample/particles").size(), "/0");
+    EXPECT_TRUE(annotated.as_written.contains(nlohmann::json::json_pointer(pointer)))
+        << "the annotated example of docs/config.md leaves out " << key;
+  }
+}
+
+TEST(Docs, EveryQuotedCommandLineIsAccepted) {
+  std::size_t checked = 0;
+  for (const fs::path& file : markdown_files()) {
+    for (const QuotedCommand& c : quoted_commands(file)) {
+      std::string command = "cd " + quote_for_shell(source_dir.string()) + " && " + quote_for_shell(QSDEM_BINARY) +
+                            " --dry-run";
+      for (const std::string& a : c.args) {
+        command += ' ';
+        command += quote_for_shell(a);
+        // A case or study file of the repository it names must exist (the dry run reads the case
+        // when it exists and is silent about one that does not).
+        const std::string path = a.substr(a.find('=') == std::string::npos ? 0 : a.find('=') + 1);
+        const bool toml = path.size() > 5 && path.compare(path.size() - 5, 5, ".toml") == 0;
+        if (toml && (path.rfind("examples/", 0) == 0 || path.rfind("studies/", 0) == 0)) {
+          EXPECT_TRUE(fs::exists(source_dir / path)) << c.where << ": no file " << path;
+        }
+      }
+      const auto [status, output] = run_shell(command);
+      EXPECT_EQ(status, 0) << c.where << ": `qsdem " << [&] {
+        std::string s;
+        for (const std::string& a : c.args) s += (s.empty() ? "" : " ") + a;
+        return s;
+      }() << "` is refused:\n" << output;
+      ++checked;
+    }
+  }
+  EXPECT_GE(checked, 30u);  // the docs quote many; finding none would check nothing
+}
+
+TEST(Docs, EveryRelativeLinkPointsToAFile) {
+  const std::regex link(R"(\]\(([^)\s]+)\))");
+  std::size_t checked = 0;
+  for (const fs::path& file : markdown_files()) {
+    bool in_block = false;
+    int n = 0;
+    for (const std::string& line : lines_of(read_text(file))) {
+      ++n;
+      if (line.rfind("```", 0) == 0) in_block = !in_block;
+      if (in_block) continue;
+      for (std::sregex_iterator it(line.begin(), line.end(), link), end; it != end; ++it) {
+        std::string target = (*it)[1];
+        if (target.find("://") != std::string::npos || target.rfind("mailto:", 0) == 0 || target[0] == '#') continue;
+        target = target.substr(0, target.find('#'));
+        EXPECT_TRUE(fs::exists(file.parent_path() / target))
+            << fs::relative(file, source_dir).string() << ":" << n << ": link to a missing file: " << target;
+        ++checked;
+      }
+    }
+  }
+  EXPECT_GE(checked, 10u);
+}

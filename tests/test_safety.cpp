@@ -1,0 +1,510 @@
+// Run safety (docs/runs.md): nothing lost, nothing mixed. A crash at every instant of the end of a
+// run, two processes in one directory, what a run refuses before it touches its directory,
+// `resume --set`, and the messages of bad input; real processes where the behaviour is the
+// process's.
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <functional>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "qsdem/checkpoint.hpp"
+#include "qsdem/config.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/packing_io.hpp"
+#include "qsdem/run.hpp"
+#include "qsdem/version.hpp"
+#include "test_support.hpp"
+
+using namespace qsdem;
+namespace fs = std::filesystem;
+using qsdem_test::slurp;
+
+namespace {
+
+// 120 spheres of 2.0 and 2.4 mm to 1 % axial strain: 250 triaxial steps, a row every 25 steps
+// (10 rows), about 15000 compaction steps (~1 s).
+const char* tiny_case = R"(
+name = "safety-tiny"
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+seed = 1
+initial_solid_fraction = 0.2
+[[sample.particles]]
+diameter = "2.4 mm"
+count = 60
+[[sample.particles]]
+diameter = "2.0 mm"
+count = 60
+[damping]
+model = "nd"
+ratio = "0.5 %"
+[compaction]
+max_strain_rate = 1e-3
+[triaxial]
+strain_rate = 1.25e-4
+final_axial_strain = "1 %"
+sample_points = 10
+[checkpoint]
+every_sample_points = 4
+)";
+
+const fs::path root = fs::temp_directory_path() / ("qsdem_safety_" + std::to_string(::getpid()));
+
+fs::path fresh(const std::string& name) {
+  const fs::path d = root / name;
+  fs::remove_all(d);
+  fs::create_directories(root);
+  return d;
+}
+
+Params tiny(const std::vector<std::string>& overrides = {}) { return parse_case(tiny_case, "tiny.toml", overrides); }
+
+fs::path tiny_file() {
+  const fs::path f = root / "tiny.toml";
+  fs::create_directories(root);
+  std::ofstream(f) << tiny_case;
+  return f;
+}
+
+RunOptions to(const fs::path& dir, bool prepare_only = false) {
+  RunOptions o;
+  o.out = dir;
+  o.quiet = true;
+  o.prepare_only = prepare_only;
+  return o;
+}
+
+// The message of the InputError `f` throws ("" if none).
+template <class F>
+std::string input_error(F&& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+struct Cli {
+  int code = -1;
+  std::string out, err;
+};
+
+pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
+  std::vector<std::string> all{QSDEM_BINARY};
+  all.insert(all.end(), args.begin(), args.end());
+  return qsdem_test::spawn_logged(all, log);
+}
+
+Cli finish(pid_t pid, const fs::path& log) {
+  Cli c;
+  c.code = qsdem_test::wait_exit(pid);
+  c.out = slurp(log.string() + ".out");
+  c.err = slurp(log.string() + ".err");
+  return c;
+}
+
+Cli cli(const std::vector<std::string>& args, const std::string& log_name) {
+  const fs::path log = root / log_name;
+  fs::create_directories(root);
+  return finish(spawn(args, log), log);
+}
+
+bool wait_for(const std::function<bool()>& cond, pid_t pid) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (cond()) return true;
+    int status = 0;
+    if (pid > 0 && ::waitpid(pid, &status, WNOHANG) == pid) return false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  return false;
+}
+
+long lines(const fs::path& p) {
+  std::ifstream in(p);
+  long n = 0;
+  for (std::string l; std::getline(in, l);) ++n;
+  return n;
+}
+
+// The uninterrupted tiny run, made once.
+const fs::path& reference() {
+  static const fs::path dir = [] {
+    const fs::path d = fresh("reference");
+    run_case(tiny(), to(d));
+    return d;
+  }();
+  return dir;
+}
+
+}  // namespace
+
+// A crash at any instant of the end of a phase (SIGKILL, or no room for the next file) leaves a
+// directory that `resume` finishes to the uninterrupted run's results. The run copies its
+// directory after every write and rename of the end of compaction and of the triaxial test: each
+// copy is what a SIGKILL at that instant leaves (every write before it is synchronous and flushed).
+TEST(RunSafety, EveryInstantOfTheEndOfARunResumes) {
+  const fs::path ref = reference();
+  const fs::path live = fresh("end-live");
+  std::vector<std::pair<std::string, fs::path>> copies;
+  RunOptions o = to(live);
+  o.after_write = [&](const std::string& what) {
+    const fs::path copy = fresh("end-copy-" + std::to_string(copies.size()));
+    fs::copy(live, copy, fs::copy_options::recursive);
+    copies.emplace_back(what, copy);
+  };
+  run_case(tiny(), o);
+  ASSERT_GE(copies.size(), 12u);
+  for (const auto& [what, dir] : copies) {
+    SCOPED_TRACE("crash after: " + what);
+    const bool finished = fs::exists(dir / "summary.json") && !fs::exists(dir / checkpoint_file);
+    if (!finished) {
+      EXPECT_NO_THROW(resume_run(dir, to(dir)));
+    }
+    for (const char* f : {"series.csv", "compaction.csv", "compacted.packing", "final.packing"})
+      EXPECT_EQ(slurp(dir / f), slurp(ref / f)) << f;
+    EXPECT_TRUE(fs::exists(dir / "summary.json"));
+    EXPECT_TRUE(fs::exists(dir / prepared_sample_file)) << "a run that compacted leaves its prepared sample";
+    EXPECT_FALSE(fs::exists(dir / checkpoint_file));
+    EXPECT_FALSE(fs::exists(dir / "checkpoint.qsck.prev"));
+    EXPECT_FALSE(fs::exists(dir / "series.csv.partial"));
+    EXPECT_THROW(resume_run(dir, to(dir)), InputError) << "finished: nothing to resume";
+  }
+}
+
+// Two processes in one run directory: the second is refused with a message naming the directory
+// and the other qsdem, and the first finishes with its own files only.
+TEST(RunSafety, TwoProcessesInOneDirectory) {
+  const fs::path d = fresh("two");
+  const fs::path file = tiny_file();
+  // 500 particles: the first run lasts long enough for three attempts of a second one
+  const pid_t first = spawn({"run", file.string(), "--out", d.string(), "--quiet", "--set", "name=\"first\"", "--set",
+                             "sample.total_particles=500"},
+                            root / "two-first");
+  ASSERT_TRUE(wait_for([&] { return fs::exists(d / "case.toml"); }, first));
+  for (const auto& args : std::vector<std::vector<std::string>>{
+           {"run", file.string(), "--out", d.string(), "--quiet", "--force", "--set", "name=\"second\""},
+           {"prepare", file.string(), "--out", d.string(), "--quiet", "--force"},
+           {"resume", d.string(), "--quiet"}}) {
+    SCOPED_TRACE(args[0]);
+    const Cli second = cli(args, "two-second");
+    EXPECT_EQ(second.code, 2) << second.err;
+    EXPECT_NE(second.err.find("another qsdem"), std::string::npos) << second.err;
+    EXPECT_NE(second.err.find(d.string()), std::string::npos) << second.err;
+  }
+  const Cli one = finish(first, root / "two-first");
+  ASSERT_EQ(one.code, 0) << one.err;
+  EXPECT_NE(slurp(d / "case.toml").find("first"), std::string::npos);
+  const auto summary = nlohmann::json::parse(slurp(d / "summary.json"));
+  EXPECT_EQ(summary["case"], "first");
+  EXPECT_EQ(summary["triaxial"]["rows"], 10);
+  EXPECT_EQ(lines(d / "series.csv"), 11);
+}
+
+// `run --force` into the prepared sample it shears is refused before anything is removed.
+TEST(RunSafety, ForceDoesNotRemoveTheSampleARunShears) {
+  const fs::path d = fresh("self");
+  run_case(tiny(), to(d, true));
+  const std::string sample = slurp(d / prepared_sample_file);
+  RunOptions o = to(d);
+  o.force = true;
+  const std::string e = input_error([&] { run_case(tiny({"sample.from=" + d.string()}), o); });
+  EXPECT_NE(e.find("is the --out directory"), std::string::npos) << e;
+  EXPECT_EQ(slurp(d / prepared_sample_file), sample);
+}
+
+// A `prepare` stopped by SIGTERM resumes to a prepared sample (no shearing), equal to the
+// uninterrupted prepare's.
+TEST(RunSafety, StoppedPrepareResumesToAPreparedSample) {
+  const fs::path ref = fresh("prepare-ref");
+  run_case(tiny(), to(ref, true));
+  const fs::path d = fresh("prepare-stopped");
+  const pid_t pid = spawn({"prepare", tiny_file().string(), "--out", d.string(), "--quiet", "--threads", "1"},
+                          root / "prepare-stopped");
+  ASSERT_TRUE(wait_for([&] { return lines(d / "compaction.csv.partial") > 10; }, pid));
+  ::kill(pid, SIGTERM);
+  ASSERT_EQ(finish(pid, root / "prepare-stopped").code, 143);
+  const Cli resumed = cli({"resume", d.string(), "--quiet"}, "prepare-resume");
+  ASSERT_EQ(resumed.code, 0) << resumed.err;
+  EXPECT_TRUE(fs::exists(d / prepared_sample_file));
+  EXPECT_FALSE(fs::exists(d / "series.csv"));
+  EXPECT_FALSE(fs::exists(d / "series.csv.partial")) << "a prepare never shears";
+  EXPECT_FALSE(fs::exists(d / checkpoint_file));
+  EXPECT_FALSE(nlohmann::json::parse(slurp(d / "summary.json")).contains("triaxial"));
+  EXPECT_EQ(slurp(d / "compacted.packing"), slurp(ref / "compacted.packing"));
+  EXPECT_EQ(slurp(d / "compaction.csv"), slurp(ref / "compaction.csv"));
+  const Checkpoint a = load_checkpoint(d / prepared_sample_file), b = load_checkpoint(ref / prepared_sample_file);
+  EXPECT_EQ(a.state.step, b.state.step);
+  EXPECT_EQ(a.state.particles.s, b.state.particles.s);
+}
+
+// A non-empty directory that holds no qsdem run is refused without --force; with it, only the
+// files a run writes are removed.
+TEST(RunSafety, ADirectoryOfOtherFilesIsNotOverwritten) {
+  const fs::path d = fresh("foreign");
+  fs::create_directories(d);
+  std::ofstream(d / "series.csv") << "my own data\n";
+  std::ofstream(d / "notes.txt") << "mine\n";
+  const std::string e = input_error([&] { run_case(tiny(), to(d)); });
+  EXPECT_NE(e.find("holds no qsdem run"), std::string::npos) << e;
+  EXPECT_NE(e.find("--force"), std::string::npos) << e;
+  EXPECT_EQ(slurp(d / "series.csv"), "my own data\n");
+  RunOptions o = to(d, true);
+  o.force = true;
+  run_case(tiny(), o);
+  EXPECT_EQ(slurp(d / "notes.txt"), "mine\n");
+  EXPECT_FALSE(fs::exists(d / "series.csv"));
+}
+
+// Input errors found after the case is read leave no directory behind; the resolved path of
+// sample.from is named.
+TEST(RunSafety, InputErrorsLeaveNoDirectory) {
+  const fs::path d = fresh("no-dir");
+  std::string e = input_error([&] { run_case(tiny({"sample.from=no/such/sample"}), to(d)); });
+  EXPECT_NE(e.find((fs::current_path() / "no/such/sample").string()), std::string::npos) << e;
+  EXPECT_FALSE(fs::exists(d));
+  // A packing whose largest particle is not smaller than half the cell (SPEC 3): named.
+  const fs::path packing = root / "too-small.packing";
+  std::ofstream(packing) << "format qsdem-packing 1\ncell 0.004 0 0 0 0.004 0 0 0 0.004\nparticles 1\n"
+                            "0.001 0.001 0.001 0.001 0.001 0.001 1 0 0 0\n";
+  e = input_error([&] { run_case(tiny({"sample.from=" + packing.string()}), to(d)); });
+  EXPECT_NE(e.find(packing.string()), std::string::npos) << e;
+  EXPECT_NE(e.find("half the smallest cell width"), std::string::npos) << e;
+  EXPECT_FALSE(fs::exists(d));
+  // A sample that would not fit in memory is refused before it is generated.
+  e = input_error([&] { run_case(tiny({"sample.total_particles=100000000"}), to(d)); });
+  EXPECT_NE(e.find("needs about"), std::string::npos) << e;
+  EXPECT_NE(e.find("GiB"), std::string::npos) << e;
+  EXPECT_NE(e.find("available"), std::string::npos) << e;
+  EXPECT_NE(e.find("sample.total_particles"), std::string::npos) << e;
+  EXPECT_FALSE(fs::exists(d));
+}
+
+// After a stop at run time, `resume --set` changes what may change without invalidating the
+// state, records it in summary.json, and ends on the results of the run that never stopped (a
+// limit decides when to stop, not what is computed).
+TEST(RunSafety, ResumeSetContinuesAStoppedRun) {
+  const fs::path ref = reference();
+  const fs::path d = fresh("resume-set");
+  try {
+    run_case(tiny({"limits.max_kinetic_ratio=1e-30"}), to(d));
+    ADD_FAILURE() << "the kinetic limit did not stop the run";
+  } catch (const RunError& e) {
+    // Step numbers are the phase's, as in series.csv: the first row's step.
+    const std::string first_row = [&] {
+      std::ifstream in(ref / "series.csv");
+      std::string l;
+      std::getline(in, l);
+      std::getline(in, l);
+      return l.substr(0, l.find(','));
+    }();
+    EXPECT_NE(std::string(e.what()).find("at triaxial step " + first_row + ":"), std::string::npos) << e.what();
+  }
+  ASSERT_TRUE(fs::exists(d / checkpoint_file));
+  std::string e = input_error([&] {
+    RunOptions o = to(d);
+    o.sets = {"triaxial.friction=0.3"};
+    resume_run(d, o);
+  });
+  EXPECT_NE(e.find("triaxial.friction"), std::string::npos) << e;
+  for (const auto& key : resume_keys) EXPECT_NE(e.find(key), std::string::npos) << key << ": " << e;
+  e = input_error([&] {
+    RunOptions o = to(d);
+    o.sets = {"time.step_ratio=0.2"};
+    resume_run(d, o);
+  });
+  EXPECT_NE(e.find("only during compaction"), std::string::npos) << e;
+  RunOptions o = to(d);
+  o.sets = {"limits.max_kinetic_ratio=1"};
+  const auto summary = resume_run(d, o);
+  EXPECT_EQ(slurp(d / "series.csv"), slurp(ref / "series.csv"));
+  ASSERT_TRUE(summary.contains("resume_changes"));
+  EXPECT_EQ(summary["resume_changes"], nlohmann::json::array({"from triaxial step 0: limits.max_kinetic_ratio=1"}));
+  EXPECT_EQ(summary["config"]["resolved_si"]["limits"]["max_kinetic_ratio"], 1.0);
+  EXPECT_EQ(nlohmann::json::parse(slurp(d / "summary.json"))["resume_changes"], summary["resume_changes"]);
+  // The run's compacted state is a prepared sample: shearing it again gives the same series.
+  const fs::path again = fresh("resume-set-again");
+  run_case(tiny({"sample.from=" + d.string()}), to(again));
+  EXPECT_EQ(slurp(again / "series.csv"), slurp(ref / "series.csv"));
+}
+
+// A compaction stopped by compaction.max_steps continues with a larger one.
+TEST(RunSafety, ResumeSetRaisesCompactionMaxSteps) {
+  const fs::path ref = reference();
+  const fs::path d = fresh("max-steps");
+  // Compaction rows every 200 steps, a checkpoint every 4 rows: the last one at step 5600.
+  EXPECT_THROW(run_case(tiny({"compaction.max_steps=6000"}), to(d)), RunError);
+  ASSERT_TRUE(fs::exists(d / checkpoint_file));
+  RunOptions o = to(d);
+  o.sets = {"compaction.max_steps=2000000"};
+  resume_run(d, o);
+  EXPECT_EQ(slurp(d / "compaction.csv"), slurp(ref / "compaction.csv"));
+  EXPECT_EQ(slurp(d / "series.csv"), slurp(ref / "series.csv"));
+}
+
+// The triaxial wall time in summary.json covers every process that worked on a resumed run.
+TEST(RunSafety, TriaxialWallTimeCoversEveryProcess) {
+  const fs::path d = fresh("wall");
+  const pid_t pid = spawn({"run", tiny_file().string(), "--out", d.string(), "--quiet", "--threads", "1"},
+                          root / "wall");
+  ASSERT_TRUE(wait_for([&] { return lines(d / "series.csv.partial") >= 9; }, pid));
+  ::kill(pid, SIGTERM);
+  ASSERT_EQ(finish(pid, root / "wall").code, 143);
+  const double before = load_checkpoint(d / checkpoint_file).run.sums.wall_s;
+  EXPECT_GT(before, 0);
+  const Cli r = cli({"resume", d.string(), "--quiet", "--threads", "1"}, "wall-resume");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto s = nlohmann::json::parse(slurp(d / "summary.json"));
+  EXPECT_GT(s["triaxial"]["wall_s"].get<double>(), before);
+  EXPECT_GE(s["wall_s"].get<double>(), s["triaxial"]["wall_s"].get<double>());
+}
+
+// Packings are written in id order, ids being the input's order: line k of compacted.packing and
+// of final.packing is the same particle, the k-th generated (largest first).
+TEST(RunSafety, PackingsKeepTheParticlesOrder) {
+  const fs::path ref = reference();
+  const State compacted = read_packing(ref / "compacted.packing", 2650);
+  const State final = read_packing(ref / "final.packing", 2650);
+  const State generated = generate_loose_sample(tiny());
+  ASSERT_EQ(compacted.particles.size(), 120u);
+  for (std::size_t k = 0; k < 120; ++k) {
+    EXPECT_EQ(compacted.particles.semi_axes[k], generated.particles.semi_axes[k]) << k;
+    // 1 % axial strain moves a particle far less than its radius (the cell is periodic).
+    Vec3 ds = final.particles.s[k] - compacted.particles.s[k];
+    ds -= ds.array().round().matrix();
+    EXPECT_LT((final.cell.h * ds).norm(), compacted.particles.equiv_radius[k]) << "particle " << k;
+  }
+}
+
+// Bad packing files: a count that is not a whole number, centres far outside the cell.
+TEST(RunSafety, PackingReaderRefusesBadCountsAndCoordinates) {
+  const auto error = [](const std::string& text) {
+    std::istringstream in(text);
+    return input_error([&] { parse_packing(in, "p.packing", 2650); });
+  };
+  const std::string head = "format qsdem-packing 1\ncell 0.01 0 0 0 0.01 0 0 0 0.01\n";
+  const std::string sphere = "0.001 0.001 0.001 0.001 0.001 0.001 1 0 0 0\n";
+  std::string e = error(head + "particles 1.5\n" + sphere);
+  EXPECT_NE(e.find("p.packing:3"), std::string::npos) << e;
+  EXPECT_NE(e.find("whole number"), std::string::npos) << e;
+  e = error(head + "particles 1\n1e300 0.001 0.001 0.001 0.001 0.001 1 0 0 0\n");
+  EXPECT_NE(e.find("p.packing:4"), std::string::npos) << e;
+  EXPECT_NE(e.find("1000 cell lengths"), std::string::npos) << e;
+  e = error(head + "particles 1\n0.001 0.001 0.001 1e-320 1e-320 1e-320 1 0 0 0\n");
+  EXPECT_NE(e.find("from 1 nm to 1 km"), std::string::npos) << e;
+  EXPECT_EQ(error(head + "particles 1\n" + sphere), "");
+}
+
+// Messages of the command line: each names what is wrong and what is allowed; nothing is written.
+TEST(RunSafety, CommandLineMessages) {
+  Cli c = cli({"frobnicate"}, "msg-sub");
+  EXPECT_EQ(c.code, 1);
+  EXPECT_NE(c.err.find("unknown subcommand 'frobnicate'"), std::string::npos) << c.err;
+  EXPECT_NE(c.err.find("run, prepare, resume"), std::string::npos) << c.err;
+  c = cli({"run", root.string(), "--out", (root / "x").string()}, "msg-dir-case");
+  EXPECT_EQ(c.code, 2);
+  EXPECT_NE(c.err.find("is a directory"), std::string::npos) << c.err;
+  c = cli({"run", tiny_file().string(), "--out", ""}, "msg-empty-out");
+  EXPECT_EQ(c.code, 2);
+  EXPECT_NE(c.err.find("--out is empty"), std::string::npos) << c.err;
+  const fs::path file = root / "a-file";
+  std::ofstream(file) << "x";
+  c = cli({"run", tiny_file().string(), "--out", (file / "sub").string()}, "msg-file-parent");
+  EXPECT_EQ(c.code, 2);
+  EXPECT_NE(c.err.find("is not a directory"), std::string::npos) << c.err;
+  EXPECT_EQ(c.err.find("filesystem error"), std::string::npos) << c.err;
+  c = cli({"run", tiny_file().string(), "--out", (root / std::string(300, 'n')).string()}, "msg-long");
+  EXPECT_EQ(c.code, 2);
+  EXPECT_NE(c.err.find("longer than 255 bytes"), std::string::npos) << c.err;
+  c = cli({"run", tiny_file().string(), "--out", (root / "big").string(), "--set", "sample.total_particles=100000000"},
+          "msg-memory");
+  EXPECT_EQ(c.code, 2);
+  EXPECT_NE(c.err.find("GiB"), std::string::npos) << c.err;
+  EXPECT_FALSE(fs::exists(root / "big"));
+  c = cli({"--version"}, "msg-version");
+  EXPECT_EQ(c.code, 0);
+  EXPECT_NE(c.out.find(QSDEM_VERSION), std::string::npos) << c.out;
+}
+
+// SIGINT while the sample is generated: exit 130 with a message, and no directory.
+TEST(RunSafety, SigintDuringGenerationSaysSo) {
+  const fs::path d = fresh("gen-sigint");
+  const pid_t pid = spawn({"run", tiny_file().string(), "--out", d.string(), "--set", "sample.total_particles=2000000",
+                           "--set", "sample.initial_solid_fraction=0.05"},
+                          root / "gen-sigint");
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  ::kill(pid, SIGINT);
+  const Cli c = finish(pid, root / "gen-sigint");
+  EXPECT_EQ(c.code, 130) << c.err;
+  EXPECT_NE(c.err.find("stopped by SIGINT while generating the sample; nothing was written"), std::string::npos)
+      << c.err;
+  EXPECT_FALSE(fs::exists(d));
+}
+
+// Write errors carry the system's reason; a failed first checkpoint does not claim a previous one.
+TEST(RunSafety, WriteErrorsSayWhy) {
+  const State st = generate_loose_sample(tiny());
+  try {
+    save_checkpoint(root / "no-such-dir" / "checkpoint.qsck", "", "", st, RunProgress{});
+    ADD_FAILURE() << "no error";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("No such file or directory"), std::string::npos) << what;
+    EXPECT_NE(what.find("there is no earlier checkpoint"), std::string::npos) << what;
+    EXPECT_EQ(what.find("previous checkpoint is kept"), std::string::npos) << what;
+  }
+}
+
+// The exact source version: the project version and, in a git checkout, `git describe`.
+TEST(RunSafety, VersionNamesTheSource) {
+  const std::string version = QSDEM_VERSION;
+  EXPECT_EQ(version.rfind("0.1.0", 0), 0u) << version;
+  const std::string cmd = std::string("git -C '") + QSDEM_SOURCE_DIR + "' describe --always 2>/dev/null";
+  std::string describe;
+  if (std::FILE* p = ::popen(cmd.c_str(), "r")) {
+    char buf[256];
+    while (std::fgets(buf, sizeof buf, p)) describe += buf;
+    if (::pclose(p) != 0) describe.clear();
+  }
+  while (!describe.empty() && describe.back() == '\n') describe.pop_back();
+  if (describe.empty()) {
+    EXPECT_EQ(version, "0.1.0") << "no git: the project version";
+  } else {
+    EXPECT_EQ(version.rfind("0.1.0+" + describe, 0), 0u) << version << " vs " << describe;
+  }
+  EXPECT_EQ(nlohmann::json::parse(slurp(reference() / "summary.json"))["version"], version);
+}
+
+// A cell that shrinks below the size rule of SPEC 3 during compaction is a stop at run time
+// (RunError, exit 3) that keeps the checkpoints, not an input error that left them behind.
+TEST(RunSafety, CellShrinkingBelowTheSizeRuleIsARunTimeStop) {
+  const fs::path example = fs::path(QSDEM_SOURCE_DIR) / "examples" / "spheres-A-small.toml";
+  // 120 particles of Sample A's grading: the 16 mm spheres fit the loose cell, not the dense one.
+  const Params params = parse_case(slurp(example), example.string(),
+                                   {"sample.total_particles=120", "checkpoint.every_sample_points=1"});
+  const fs::path d = fresh("shrink");
+  try {
+    run_case(params, to(d));
+    ADD_FAILURE() << "the cell did not shrink below the size rule";
+  } catch (const RunError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("compaction stopped after compaction step"), std::string::npos) << what;
+    EXPECT_NE(what.find("half the smallest cell width"), std::string::npos) << what;
+  }
+  EXPECT_TRUE(fs::exists(d / checkpoint_file));
+}
