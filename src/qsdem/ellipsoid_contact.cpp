@@ -20,9 +20,8 @@
 //    the step is then taken by Taylor series, s <- s - h v + h^2 z, F <- F + h (F' + h (F''/2 +
 //    h F'''/6)), whose error is O(r^3) ~ 1e-15 relative; Halley's cubic convergence puts the new
 //    lambda at the same order. This saves the final re-factorisation: a warm start (lambda of the
-//    previous time step) usually converges in one iteration. (Newton steps taken to first order
-//    err by O(r^2), so they had to stop at r < 1e-7, and 27 % of paper-A's warm starts then took
-//    a second factorisation.)
+//    previous time step) usually converges in one iteration (a first-order Newton step would
+//    need r < 1e-7).
 //    Cold start: at the maximiser lambda = h_i(n) / (h_i(n) + h_j(n)) exactly (x0 - c_i =
 //    (1 - lambda) Q_i s lies on the mu-scaled surface of i, whose support value along n is
 //    mu h_i(n); same for j); with n ~ e this gives lambda0 = h_i(e) / (h_i(e) + h_j(e)), exact for
@@ -274,7 +273,7 @@ struct PwLanes {
 #pragma omp simd
     for (int a = 0; a < pw.na; ++a) {
       // Written out by components, the twins of Sym's adjugate, det_with and product: the same
-      // code through Sym and a struct of three doubles (tried) keeps GCC 12 from vectorising the
+      // code through Sym and a struct of three doubles keeps GCC 12 from vectorising the
       // loop ("no vectype"); the order of every sum is Sym's, hence the same bits.
       const double lam = pw.lams[a], e_x = pw.ex[a], e_y = pw.ey[a], e_z = pw.ez[a];
       // Q = Q_i + D lambda, its adjugate and determinant.

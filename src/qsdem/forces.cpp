@@ -36,8 +36,7 @@ struct ForceInputs {
 template <class Law>
 struct ContactLanes {
   static constexpr int width = Law::history.width;  // the law's history per contact
-  // 16 contacts at a time: the lanes' ~60 arrays stay within a third of the L1 cache (at 128
-  // contacts the simulated L1 misses of the sphere bench rose 1.7x).
+  // 16 contacts at a time: the lanes' ~60 arrays stay within a third of the L1 cache.
   static constexpr int capacity = 16;
   // Each array's length: 3 cache lines (an odd number), so that lane a of the arrays falls in
   // different sets of the L1 cache (arrays a power of two apart share a few sets).
@@ -276,7 +275,7 @@ ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs
   ContactLanes<Law> contacts;
   constexpr int width = ContactLanes<Law>::width;
   // One flat loop over the block's pairs, summing into p.force[i] directly (a loop per particle,
-  // ~2-4 pairs each, mispredicts its exit: the sphere contact stage measured 7 % slower).
+  // ~2-4 pairs each, mispredicts its exit).
   const std::uint32_t k1 = pairs.first_i[pairs.block_first[b + 1]];
   // The skip scan's data in locals: through the references GCC reloaded every pointer and
   // recomputed the bound's strain term for every pair. Without skip_apart the motion bounds and
@@ -431,7 +430,7 @@ ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList
       // every ~9th listed pair, too sparse for the hardware prefetcher.
       __builtin_prefetch(pairs.history.values.data() + width * (t ? k : c0), 1);
       // An apart pair is written only when it was a contact (rare, so well predicted; `&`, not
-      // `&&`: a branch on t itself mispredicts, and cost this stage 11 %).
+      // `&&`: a branch on t itself mispredicts).
       const bool lost = (!t) & ((pairs.overlap[k] != 0) | !overlap_known);
       if (lost) mark_apart<Law>(pairs, k);
       if (in.skip_apart) pairs.apart_until[k] = until[m];
@@ -500,10 +499,8 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   // Each block owns whole particles as the i end of their pairs (sorted by i): it writes their
   // i-side resultants itself; gather_resultants adds the j ends. Which thread runs a block changes
   // no result. Each thread starts with a contiguous range of blocks, so it keeps the same particles
-  // (and their data in its cache) from step to step (dynamic scheduling was measured slower on
-  // spheres: 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' smoothed times of
-  // the last steps are equal (with an equal number of blocks the slowest thread took 1.06-1.20x the
-  // mean: blocks differ in contacts and narrow tests). Right after a list build pair counts stand
+  // (a thread keeps its particles' data in its cache) from step to step, cut where the blocks'
+  // smoothed times of the last steps are equal (blocks differ in contacts and narrow tests). Right after a list build pair counts stand
   // in. What the cut misses, the threads share at the ranges' ends (run_blocks).
   const int nthreads = np > parallel_threshold ? omp_get_max_threads() : 1;
   share_blocks(schedule, pairs, ns.builds, nthreads);
@@ -559,7 +556,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
 void gather_resultants(const PairList& pairs, const Schedule& schedule, Particles& p, std::size_t t) {
   const std::size_t owners = schedule.owners();
   const std::vector<std::uint32_t>& contact_owner_first = schedule.contact_owner_first;
-  constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
+  constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache
   // Through local pointers (integrate_velocities says why).
   const std::uint32_t* const contact_j = pairs.contact_j.data();
   const Vec3* const contact_force = pairs.contact_force.data();
@@ -596,7 +593,7 @@ void gather_resultants(State& state, const Schedule& schedule) {
   // Adds the j ends of the contacts to the i-side sums the force stage wrote, in pair order (so
   // for any thread count): each owner of a range of particles (Schedule::owner_first) reads the
   // contacts the force stage grouped for it, which costs less than reading every pair's overlap
-  // through the j incidence (measured, spheres-A: gather 97 -> 32 us/step, 1 thread).
+  // through the j incidence.
   const int owners = static_cast<int>(schedule.owners());
 #pragma omp parallel num_threads(owners) if (owners > 1)
   {

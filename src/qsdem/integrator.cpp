@@ -57,13 +57,12 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
 // Measured against Richardson (LAMMPS fix nve/asphere) on a free 3:2:1 ellipsoid
 // (tests/test_rotation.cpp, omega dt = 0.02, 1e5 steps): NO_SQUISH keeps |dE/E| bounded at
 // 2.8e-5 (near the intermediate axis) / 3.7e-7 (near the major axis) where Richardson drifts
-// linearly to 2.5e-4 / 4.4e-6, and its orientation error is 64x / 630x smaller, at ~1.25x the
-// cost (micro-benchmark); the spheroid flow costs about half of NO_SQUISH.
+// linearly to 2.5e-4 / 4.4e-6, and its orientation error is 64x / 630x smaller.
 namespace {
 
 // sin and cos of a half angle. The per-step rotations of a quasi-static run are ~1e-6-1e-3 rad:
 // below 0.05 the Taylor polynomials (to x^7 and x^8) are within 3e-16 relative of libm and
-// ~4x cheaper than its sin + cos (micro-benchmark).
+// cheaper than its sin and cos.
 [[gnu::always_inline]] inline void sin_cos_taylor(double x, double& s, double& c) {
   const double x2 = x * x;
   s = x * (1 - x2 * (1.0 / 6) * (1 - x2 * (1.0 / 20) * (1 - x2 * (1.0 / 42))));
@@ -119,8 +118,7 @@ template <int K>
 }
 
 // Free symmetric top, symmetry axis K, inverse moments inv_s (about K) and inv_perp, angular
-// momentum L: the orientation after dt. Divisions are few on purpose: they dominated this
-// function's profile. With `taylor_only` both half angles take the Taylor polynomials and the
+// momentum L: the orientation after dt. Few divisions: they are the slowest operations here. With `taylor_only` both half angles take the Taylor polynomials and the
 // norm its Newton step (no branch, for vector lanes), and `outside` tells when one of them is
 // beyond its range (the caller then runs the lane again without it).
 template <int K, bool taylor_only>
@@ -150,7 +148,7 @@ template <int K, bool taylor_only>
   const QuatParts about_axis{cs, K == 0 ? ss : 0.0, K == 1 ? ss : 0.0, K == 2 ? ss : 0.0};
   const QuatParts r = multiply(multiply(about_l, q), about_axis);
   // |r|^2 = 1 + O(ulps) (unit factors): one Newton step for |r|^-1, 1.5 - |r|^2/2, is exact to
-  // round-off there and needs no square root or division (they led this function's profile).
+  // round-off there and needs no square root or division.
   // (Summed as Eigen sums a 4-vector: (x^2 + z^2) + (y^2 + w^2).)
   const double n2 = (r.x * r.x + r.z * r.z) + (r.y * r.y + r.w * r.w);
   double scale;

@@ -11,7 +11,7 @@ namespace qsdem {
 
 // Central-difference velocity update with viscous damping factor A (paper Eq. 10):
 //   v(t+dt/2) = [(1 - A dt/2) v(t-dt/2) + dt F/m] / (1 + A dt/2) = keep v + gain F/m,
-// the two factors computed once (divisions dominated the kick's profile).
+// the two factors computed once (no division per particle).
 struct DampedKick {
   double keep, gain;
   DampedKick(double a, double dt) {

@@ -22,8 +22,7 @@ Vec3 ellipsoid_inertia(double m, const Vec3& ax) {
 }
 
 bool Particles::has_ellipsoids() const {
-  // An OR over all of them, which runs in vector lanes: the force stage asks every step, and
-  // std::find took 0.45 % of a sphere run's step (it scans them all there).
+  // An OR over all of them, which runs in vector lanes: the force stage asks every step.
   unsigned any = 0;
   for (const ShapeKind k : shape) any |= k != ShapeKind::sphere ? 1u : 0u;
   return any != 0;

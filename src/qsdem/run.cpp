@@ -37,8 +37,7 @@ nlohmann::json stage_json(const StageTimers& t, long steps) {
 
 // Peak resident set of this process (KiB): VmHWM of /proc/self/status, which starts afresh at
 // exec. getrusage's ru_maxrss does not: Linux carries the larger peak of the process image before
-// exec over, so when launched by a bigger parent (a Python harness: 75 MB measured against 15 MB
-// from a shell) it reported the parent's. getrusage only where /proc is not readable.
+// exec over, so when launched by a bigger parent it reported the parent's. getrusage only where /proc is not readable.
 long peak_rss_kib() {
   if (std::FILE* f = std::fopen("/proc/self/status", "r")) {
     char line[256];

@@ -59,15 +59,15 @@ void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::u
 // Block b took `seconds` this step: its time and smoothed weight.
 inline void record_block_time(Schedule& s, std::size_t b, double seconds) {
   s.block_seconds[b] = seconds;
-  // Smoothed: one step's times carry the machine's noise (measured balance 0.88-0.94 with them).
+  // Smoothed: one step's times carry the machine's noise.
   s.block_weight[b] = s.timed ? 0.8 * s.block_weight[b] + 0.2 * seconds : seconds;
 }
 
 // Runs every block once on nthreads threads: run(b) returns its seconds. Each thread starts with
 // its range (block_cut), from the front; a thread done with it takes the blocks left at the end
 // of the others' ranges, one at a time, from the back: the owner and the thief meet where the
-// range's work is shared as it happens (the smoothed cut misses by the noise of the last steps;
-// measured balance 0.87-0.93 with the cut alone). A block is claimed once, by an atomic exchange
+// range's work is shared as it happens (the smoothed cut misses by the noise of the last steps).
+// A block is claimed once, by an atomic exchange
 // of its flag; the owner stops at the first block a thief has claimed, and a thief at the first
 // one claimed by anyone, so each range is a prefix of its owner's and a suffix of one thief's.
 template <class Run>

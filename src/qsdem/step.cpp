@@ -52,9 +52,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   const double start = omp_get_wtime();
   // Thread r takes the particles the force stage gave it (Schedule::owner_first: those of its blocks,
   // whose i-side sums are in its cache) and reads only their contacts, which the force stage
-  // grouped by owner. (With the even split n r / nthreads, and the gather prefetching every
-  // contact, this region took longer on 2 threads than on 1; the two changes together: spheres-A
-  // gather 87 -> 68 us/step on 2 threads.)
+  // grouped by owner.
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();

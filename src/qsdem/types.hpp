@@ -26,7 +26,7 @@ struct RunError : std::runtime_error {
 inline constexpr double pi = 3.14159265358979323846;
 
 // Loops shorter than this run on one thread: below it, the cost of waking the OpenMP team
-// exceeds the work (measured on 2 cores).
+// exceeds the work.
 inline constexpr std::size_t parallel_threshold = 4096;
 
 }  // namespace qsdem
