@@ -14,7 +14,7 @@
 #include <random>
 #include <vector>
 
-#include "qsdem/contact_law.hpp"
+#include "qsdem/contact/geometry.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 using namespace qsdem;

@@ -265,6 +265,29 @@ TEST(Config, UnknownDampingModelIsAnError) {
                   {"case.toml:13", "damping.model", "\"xd\"", "\"none\"", "\"od\"", "\"nd\""});
 }
 
+// damping.acts_on: what the triaxial phase's particle damping acts on (damping.hpp), both by default.
+TEST(Config, DampingActsOnIsChecked) {
+  EXPECT_EQ(parse_case(base_case(), "case.toml").damping.acts_on, DampedMotion::both);
+  EXPECT_EQ(parse_case(base_case(13, "acts_on = \"rotation\""), "case.toml").damping.acts_on, DampedMotion::rotation);
+  EXPECT_EQ(parse_case(base_case(), "case.toml", {"damping.acts_on=translation"}).damping.acts_on,
+            DampedMotion::translation);
+  expect_mentions(error_of(base_case(13, "acts_on = \"spin\"")),
+                  {"case.toml:13", "damping.acts_on", "\"spin\"", "\"both\"", "\"translation\"", "\"rotation\""});
+}
+
+// [contact] (docs/config.md): the law is one that contact/laws.hpp registers, Hertz-Mindlin by
+// default; a key that the chosen law does not declare is named with the law and what it takes.
+TEST(Config, ContactLawAndItsKeysAreChecked) {
+  EXPECT_EQ(parse_case(base_case(), "case.toml").contact.law, "hertz_mindlin");
+  EXPECT_TRUE(parse_case(base_case(), "case.toml").contact.values.empty());
+  EXPECT_EQ(parse_case(base_case() + "[contact]\nlaw = \"hertz_mindlin\"\n", "case.toml").contact.law, "hertz_mindlin");
+  expect_mentions(error_of(base_case() + "[contact]\nlaw = \"hooke\"\n"),
+                  {"case.toml:23", "contact.law", "\"hooke\"", "\"hertz_mindlin\""});
+  expect_mentions(error_of(base_case() + "[contact]\nrestitution = 0.5\n"),
+                  {"case.toml:23", "contact.restitution", "hertz_mindlin", "no keys of its own"});
+  expect_mentions(error_of(base_case(), {"contact.law=hooke"}), {"contact.law", "\"hooke\"", "hertz_mindlin"});
+}
+
 TEST(Config, TomlSyntaxErrorNamesTheLine) {
   expect_mentions(error_of(base_case(12, "[damping")), {"case.toml:12", "TOML syntax error"});
   expect_mentions(error_of(base_case(16, "friction = ")), {"case.toml:16", "TOML syntax error"});

@@ -15,9 +15,11 @@
 #include <set>
 #include <sstream>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "qsdem/config.hpp"
+#include "qsdem/contact/laws.hpp"
 
 namespace fs = std::filesystem;
 
@@ -207,11 +209,17 @@ TEST(Docs, AnnotatedExampleIsTheDefaultCaseWithEveryKeyWritten) {
   nlohmann::json a = qsdem::to_json(annotated), b = qsdem::to_json(plain);
   a.erase("source"), b.erase("source");
   EXPECT_EQ(a, b) << "the annotated example does not run the same case as examples/spheres-A-small.toml";
-  // Every key is written, but those of the other shapes' rows (its rows are spheres).
-  const std::set<std::string> other_shapes{"sample.particles.major_semi_axis", "sample.particles.minor_semi_axis",
-                                           "sample.particles.semi_axes"};
+  // Every key is written, but those of the other shapes' rows (its rows are spheres) and of the
+  // other contact laws.
+  std::set<std::string> not_taken{"sample.particles.major_semi_axis", "sample.particles.minor_semi_axis",
+                                  "sample.particles.semi_axes"};
+  for (std::string_view law : qsdem::contact_law_names())
+    if (law != annotated.contact.law)
+      for (const qsdem::LawKey& key : qsdem::contact_law_keys(law)) not_taken.insert("contact." + std::string(key.name));
+  for (const qsdem::LawKey& key : qsdem::contact_law_keys(annotated.contact.law))
+    not_taken.erase("contact." + std::string(key.name));
   for (const std::string& key : qsdem::case_keys()) {
-    if (other_shapes.count(key)) continue;
+    if (not_taken.count(key)) continue;
     if (key.rfind("phase.", 0) == 0) continue;  // a [[phase]] list replaces [compaction] and [triaxial]
     std::string pointer = "/" + key;
     for (char& c : pointer) c = c == '.' ? '/' : c;

@@ -22,7 +22,7 @@
 #include <random>
 #include <vector>
 
-#include "qsdem/contact_law.hpp"
+#include "qsdem/contact/geometry.hpp"
 
 using namespace qsdem;
 

@@ -20,9 +20,11 @@
 #include <cmath>
 #include <vector>
 
+#include "qsdem/damping.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
+#include "qsdem/step.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -96,7 +98,7 @@ struct Traces {
 Traces particle_oscillator(double radius, double damping, double w, double w_dt, double periods) {
   Particles p;
   p.add(0, ShapeKind::sphere, Vec3::Constant(radius), kRho, Vec3::Zero(), Quat::Identity());
-  p.damping[0] = damping;
+  p.damping_translation[0] = p.damping_rotation[0] = damping;
   const double m = p.mass[0];
   const double inertia = 0.4 * m * radius * radius;  // solid sphere, by hand
   const double k = m * w * w, kappa = inertia * w * w;
@@ -198,14 +200,65 @@ TEST(Integrator, AssignDampingPerParticle) {
   model.damping_ratio = 0.005;
   model.damping = DampingModel::nd;
   assign_damping(model, p);
-  EXPECT_NEAR(p.damping[0], 2 * 0.005 * wave_speed() / kRmin, 1e-12 * p.damping[0]);
-  EXPECT_NEAR(p.damping[1], 2 * 0.005 * wave_speed() / (7.5 * kRmin), 1e-12 * p.damping[1]);
+  EXPECT_NEAR(p.damping_translation[0], 2 * 0.005 * wave_speed() / kRmin, 1e-12 * p.damping_translation[0]);
+  EXPECT_NEAR(p.damping_translation[1], 2 * 0.005 * wave_speed() / (7.5 * kRmin), 1e-12 * p.damping_translation[1]);
   model.damping = DampingModel::od;
   assign_damping(model, p);
-  EXPECT_NEAR(p.damping[0], 2 * 0.005 * wave_speed() / kRmin, 1e-12 * p.damping[0]);
-  EXPECT_NEAR(p.damping[1], p.damping[0], 1e-12 * p.damping[0]) << "od: one factor for all sizes";
+  EXPECT_NEAR(p.damping_translation[0], 2 * 0.005 * wave_speed() / kRmin, 1e-12 * p.damping_translation[0]);
+  EXPECT_NEAR(p.damping_translation[1], p.damping_translation[0], 1e-12 * p.damping_translation[0])
+      << "od: one factor for all sizes";
+  EXPECT_EQ(p.damping_rotation, p.damping_translation) << "B_i = A_i (damping_acts_on both)";
   model.damping = DampingModel::none;
   assign_damping(model, p);
-  EXPECT_EQ(p.damping[0], 0.0);
-  EXPECT_EQ(p.damping[1], 0.0);
+  EXPECT_EQ(p.damping_translation[0], 0.0);
+  EXPECT_EQ(p.damping_translation[1], 0.0);
+}
+
+// What is damped is data of the phase (Model::damping_acts_on, the case key damping.acts_on): a
+// sphere and a spheroid, free (no contact), moving and spinning, stepped through the engine with
+// nd damping: with only translation damped each keeps its angular momentum to the bit, with only
+// rotation its velocity; damped, either decays by the kick's factor (1 - A dt/2) / (1 + A dt/2)
+// per step (paper Eq. 10), and with both (the paper's) both do.
+TEST(Integrator, DampingActsOnTranslationRotationOrBoth) {
+  const qsdem_test::SingleThread one_thread;
+  for (const DampedMotion acts_on : {DampedMotion::translation, DampedMotion::rotation, DampedMotion::both}) {
+    State st;
+    st.cell = make_cell(0.05 * Mat3::Identity());
+    st.particles.add(0, ShapeKind::sphere, Vec3::Constant(kRmin), kRho, Vec3(0.2, 0.2, 0.2), Quat::Identity());
+    st.particles.add(1, ShapeKind::ellipsoid, Vec3(1.5, 1.0, 1.0) * kRmin, kRho, Vec3(0.7, 0.6, 0.7),
+                     Quat(Eigen::AngleAxisd(0.4, Vec3(1, 2, 3).normalized())));
+    Particles& p = st.particles;
+    for (std::size_t k = 0; k < 2; ++k) {
+      p.v[k] = Vec3(0.01, -0.02, 0.005);
+      p.angmom[k] = p.inertia[k].cwiseProduct(Vec3(30, 10, -20));
+      p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
+    }
+    const std::vector<Vec3> v0 = p.v, l0 = p.angmom;
+    Model model;
+    model.material = paper_material();
+    model.r_min = kRmin;
+    model.dt = 0.32 * 2 * kRmin * std::sqrt(kRho / paper_material().young_modulus);
+    model.skin = 0.2 * kRmin;
+    model.damping = DampingModel::nd;
+    model.damping_ratio = 0.05;
+    model.damping_acts_on = acts_on;
+    assign_damping(model, p);
+    constexpr int steps = 200;
+    for (int n = 0; n < steps; ++n) step(model, st);
+    ASSERT_EQ(st.pairs.size(), 0u) << "free particles";
+    const bool translation = acts_on != DampedMotion::rotation, rotation = acts_on != DampedMotion::translation;
+    for (std::size_t k = 0; k < 2; ++k) {
+      const double a = damping_factor(DampingModel::nd, 0.05, p.equiv_radius[k], kRmin, paper_material());
+      const double decay = std::pow((1 - 0.5 * a * model.dt) / (1 + 0.5 * a * model.dt), steps);
+      ASSERT_LT(decay, 0.9) << "a visible decay";
+      if (translation)
+        EXPECT_LE((p.v[k] - decay * v0[k]).norm(), 1e-12 * v0[k].norm()) << "particle " << k;
+      else
+        EXPECT_TRUE(p.v[k] == v0[k]) << "particle " << k << ": its velocity, undamped, is untouched";
+      if (rotation)
+        EXPECT_LE((p.angmom[k] - decay * l0[k]).norm(), 1e-12 * l0[k].norm()) << "particle " << k;
+      else
+        EXPECT_TRUE(p.angmom[k] == l0[k]) << "particle " << k << ": its spin, undamped, is untouched";
+    }
+  }
 }

@@ -13,6 +13,7 @@
 #include <set>
 #include <vector>
 
+#include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/cell.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 #include "qsdem/generate.hpp"
@@ -28,6 +29,9 @@ using namespace qsdem;
 namespace fs = std::filesystem;
 
 namespace {
+
+// The tangential force on j that pair k stores (the Hertz-Mindlin history).
+Vec3 stored_shear(const State& st, std::size_t k) { return HertzMindlin::tangential_force(st.pairs.history.of(k)); }
 
 constexpr double kE = 7.8e10, kNu = 0.3, kRho = 2650;  // SPEC 9 material
 constexpr double kR0 = 1e-3;                           // smallest radius (m)
@@ -366,7 +370,7 @@ TEST(NeighborHistory, TwoSpheresKeepShearAcrossRebuildAndFace) {
   st.particles.v[1] = vt;
   evaluate_forces(model, st);
   ASSERT_EQ(st.pairs.size(), 1u);
-  const Vec3 shear0 = st.pairs.shear[0];
+  const Vec3 shear0 = stored_shear(st, 0);
   const Vec3i key0 = st.pairs.image[0];
   // Hand (SPEC 4): k_t = 8 G* sqrt(R_e delta), G* = G / (2 (2 - nu)), G = E / (2 (1 + nu)).
   const double gstar = kE / (2 * (1 + kNu)) / (2 * (2 - kNu));
@@ -381,7 +385,7 @@ TEST(NeighborHistory, TwoSpheresKeepShearAcrossRebuildAndFace) {
   evaluate_forces(model, st);
   ASSERT_EQ(st.neighbor.builds, b0 + 1);
   ASSERT_EQ(st.pairs.size(), 1u);
-  EXPECT_LE((st.pairs.shear[0] - shear0).norm(), 1e-12 * shear0.norm());
+  EXPECT_LE((stored_shear(st, 0) - shear0).norm(), 1e-12 * shear0.norm());
 
   // Translate both spheres so that j crosses the +x face (s_x > 1, unwrapped), then i as well;
   // each time force a rebuild at rest: same key, same spring.
@@ -392,7 +396,7 @@ TEST(NeighborHistory, TwoSpheresKeepShearAcrossRebuildAndFace) {
     ASSERT_EQ(st.pairs.size(), 1u);
     EXPECT_EQ(st.pairs.image[0], key0);
     // Rounding of the translated coordinates turns the normal by ~1e-15 rad: 1e-12 relative.
-    EXPECT_LE((st.pairs.shear[0] - shear0).norm(), 1e-12 * shear0.norm());
+    EXPECT_LE((stored_shear(st, 0) - shear0).norm(), 1e-12 * shear0.norm());
   }
   EXPECT_GT(st.particles.s[1].x(), 1.0) << "j crossed the face";
   EXPECT_GT(st.particles.s[0].x(), 1.0) << "i crossed the face";
@@ -418,8 +422,8 @@ TEST(NeighborHistory, SampleKeepsShearAfterFaceCrossingsAndRebuild) {
   for (std::size_t k = 0; k < st.pairs.size(); ++k)
     if (st.pairs.overlap[k] > 0) {
       springs[{st.pairs.i[k], st.pairs.j[k], {st.pairs.image[k].x(), st.pairs.image[k].y(), st.pairs.image[k].z()}}] =
-          st.pairs.shear[k];
-      smax = std::max(smax, st.pairs.shear[k].norm());
+          stored_shear(st, k);
+      smax = std::max(smax, stored_shear(st, k).norm());
     }
   ASSERT_GE(springs.size(), 100u);
   ASSERT_GT(smax, 0);
@@ -447,7 +451,7 @@ TEST(NeighborHistory, SampleKeepsShearAfterFaceCrossingsAndRebuild) {
     if (it == springs.end()) continue;
     ++kept;
     // Rounding turns the normal by ~1e-14 rad at most; the spring is rotated by that much.
-    EXPECT_LE((st.pairs.shear[k] - it->second).norm(), 1e-12 * smax) << "pair " << key.i << "-" << key.j;
+    EXPECT_LE((stored_shear(st, k) - it->second).norm(), 1e-12 * smax) << "pair " << key.i << "-" << key.j;
   }
   EXPECT_EQ(kept, springs.size()) << "every contact is still listed under its key";
 }
@@ -748,4 +752,26 @@ TEST(NeighborSkip, ApartPairsSkippedOnlyWhileProvablyApart) {
     spheres.particles.add(e.id[i], ShapeKind::sphere, Vec3::Constant(1.03 * e.semi_axes[i].minCoeff()), kRho, e.s[i],
                           Quat::Identity());
   check_skipping(spheres, "spheres");
+}
+
+// The history of the law about to run (adopt_history): a list that holds one of the same name and
+// width keeps it (a law that shares it, e.g. Hertz-Mindlin with dashpots); any other is replaced
+// by the law's released values, for every pair.
+TEST(NeighborHistory, AdoptKeepsASharedHistoryAndReleasesAnother) {
+  static constexpr HistoryLayout same{"tangential_force", 3, {5, 5, 5}, {}};
+  static constexpr HistoryLayout other{"other", 2, {1, 2}, {}};
+  PairList pairs;
+  pairs.i = {0, 0, 1};
+  pairs.j = {1, 2, 2};
+  pairs.image.assign(3, Vec3i::Zero());
+  adopt_history(pairs, HertzMindlin::history);  // a list no law has run on: released values
+  EXPECT_EQ(pairs.history.values, std::vector<double>(9, 0.0));
+  for (std::size_t k = 0; k < 9; ++k) pairs.history.values[k] = 0.5 + static_cast<double>(k);
+  const std::vector<double> loaded = pairs.history.values;
+  adopt_history(pairs, same);
+  EXPECT_EQ(pairs.history.values, loaded);
+  EXPECT_EQ(pairs.history.layout, &same);
+  adopt_history(pairs, other);
+  EXPECT_EQ(pairs.history.values, (std::vector<double>{1, 2, 1, 2, 1, 2}));
+  EXPECT_EQ(pairs.history.layout, &other);
 }

@@ -14,6 +14,8 @@
 #include <vector>
 
 #include "qsdem/config.hpp"
+#include "qsdem/generate.hpp"
+#include "qsdem/protocol.hpp"
 #include "qsdem/types.hpp"
 #include "test_support.hpp"
 
@@ -183,6 +185,7 @@ TEST(PhaseList, BadKeysNameFileLineKeyValueAndWhatIsAllowed) {
               "controller = { kind = \"schedule\", component = \"33\", at_sample = [2, 4], values = [2e-5] }\n",
        "give one value per entry of at_sample (2)"},
       {base + "stop = { steps = 10 }\ncontroller = { kind = \"pid\" }\n", "'phase.0.controller.kind' = \"pid\""},
+      {base + "stop = { steps = 10 }\ndamping = { acts_on = \"spin\" }\n", "'phase.0.damping.acts_on' = \"spin\""},
       {base + "stop = { steps = 10 }\n[[phase]]\nname = \"phase-0\"\nfriction = 0.5\nstop = { steps = 10 }\n",
        "each phase needs its own"},
   };
@@ -194,6 +197,32 @@ TEST(PhaseList, BadKeysNameFileLineKeyValueAndWhatIsAllowed) {
   // The error of an unknown controller kind names the allowed ones.
   EXPECT_NE(input_error(base + "stop = { steps = 10 }\ncontroller = { kind = \"pid\" }\n").find("schedule"),
             std::string::npos);
+}
+
+// A phase's model has the case's contact law and the phase's damping.acts_on; the default protocol
+// damps both motions in compaction and what damping.acts_on says in the triaxial test.
+TEST(PhaseList, ContactLawAndDampedMotionReachEachPhasesModel) {
+  const std::string contact = "[contact]\nlaw = \"hertz_mindlin_dashpot\"\nrestitution = 0.5\n";
+  std::string unload = third_phase;
+  const std::string od = "ratio = \"1 %\"";
+  unload.insert(unload.find(od) + od.size(), ", acts_on = \"rotation\"");
+  const Params p = parse_case(std::string(head) + contact + two_phases + unload, "phases.toml");
+  ASSERT_EQ(p.protocol.size(), 3u);
+  const State st = generate_loose_sample(p);
+  for (std::size_t k = 0; k < 3; ++k) {
+    const Phase& ph = p.protocol[k];
+    const Model m = phase_model(p, ph, ph.controls, st.particles, st.cell.h);
+    EXPECT_EQ(m.contact.law, "hertz_mindlin_dashpot") << ph.name;
+    EXPECT_EQ(m.contact.value("restitution"), 0.5) << ph.name;
+    EXPECT_EQ(m.damping_acts_on, k == 2 ? DampedMotion::rotation : DampedMotion::both) << ph.name;
+  }
+  EXPECT_EQ(p.protocol[2].damping.model, DampingModel::od);
+
+  const Params d = parse_case(std::string(head) + "[damping]\nacts_on = \"translation\"\n", "default.toml");
+  ASSERT_EQ(d.protocol.size(), 2u);
+  EXPECT_EQ(compaction_model(d, st).damping_acts_on, DampedMotion::both);
+  EXPECT_EQ(triaxial_model(d, st).damping_acts_on, DampedMotion::translation);
+  EXPECT_EQ(triaxial_model(d, st).contact.law, "hertz_mindlin");
 }
 
 // A run of two phases and one of three, each stopped by SIGTERM in its phases after the first

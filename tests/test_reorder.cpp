@@ -5,9 +5,11 @@
 #include <gtest/gtest.h>
 #include <omp.h>
 
+#include <array>
 #include <map>
 #include <tuple>
 
+#include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/reorder.hpp"
@@ -16,6 +18,9 @@
 using namespace qsdem;
 
 namespace {
+
+// The tangential force on j that pair k stores (the Hertz-Mindlin history).
+Vec3 stored_shear(const State& st, std::size_t k) { return HertzMindlin::tangential_force(st.pairs.history.of(k)); }
 
 State random_sample(std::uint64_t seed) {
   Random rng(seed);
@@ -53,7 +58,7 @@ std::map<PairKey, Vec3> shear_by_id(const State& st) {
     if (st.pairs.overlap[k] <= 0) continue;
     std::uint32_t a = st.particles.id[st.pairs.i[k]], b = st.particles.id[st.pairs.j[k]];
     Vec3i img = st.pairs.image[k];
-    Vec3 f = st.pairs.shear[k];  // on j
+    Vec3 f = stored_shear(st, k);  // on j
     if (a > b) {
       std::swap(a, b);
       img = -img;
@@ -97,4 +102,67 @@ TEST(Reorder, SortingChangesStorageNotPhysics) {
     EXPECT_LE((sorted.stress - plain.stress).cwiseAbs().maxCoeff(), 1e-12 * plain.stress.cwiseAbs().maxCoeff());
   }
   omp_set_num_threads(saved);
+}
+
+// The pair registry's rules (neighbor.hpp) for any history layout (contact/law.hpp): a layout of
+// four values per pair, one of each swap rule, holding functions of the ids of the pair's ends in
+// their stored order (i, j): w_i + w_j (symmetric: kept), w_i - w_j (antisymmetric: negated),
+// w_j / (w_i + w_j) (j's weight: mirrored, 1 - x) and -1 (outside (0, 1): left as it is), w =
+// id + 1. After a sort each pair must hold the functions of its ends in their new order; after a
+// list build, the pairs listed before keep them and new pairs get the released values.
+TEST(Reorder, PairValuesFollowTheirLayoutsRules) {
+  static constexpr HistoryLayout layout{
+      "test", 4, {7, 8, 9, 10}, {OnSwap::keep, OnSwap::negate, OnSwap::mirror_unit, OnSwap::mirror_unit}};
+  State st = random_sample(5);
+  const Model model = model_for(st);
+  build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
+  const auto expected = [&](std::size_t k) {
+    const double wi = st.particles.id[st.pairs.i[k]] + 1.0, wj = st.particles.id[st.pairs.j[k]] + 1.0;
+    return std::array<double, 4>{wi + wj, wi - wj, wj / (wi + wj), -1};
+  };
+  st.pairs.history.layout = &layout;
+  st.pairs.history.values.resize(4 * st.pairs.size());
+  for (std::size_t k = 0; k < st.pairs.size(); ++k) {
+    const auto e = expected(k);
+    std::copy(e.begin(), e.end(), st.pairs.history.of(k).begin());
+  }
+  ASSERT_GT(st.pairs.size(), 100u);
+  ASSERT_TRUE(sort_particles(st));
+  for (std::size_t k = 0; k < st.pairs.size(); ++k) {
+    const auto e = expected(k);
+    const auto h = st.pairs.history.of(k);
+    EXPECT_EQ(h[0], e[0]) << "pair " << k;
+    EXPECT_EQ(h[1], e[1]) << "pair " << k;
+    EXPECT_NEAR(h[2], e[2], 1e-15) << "pair " << k;  // 1 - x rounds
+    EXPECT_EQ(h[3], e[3]) << "pair " << k;
+  }
+  // The ids were in storage order before the sort (i < j had id_i < id_j): the pairs whose i end
+  // now has the larger id are those whose ends it swapped.
+  std::size_t reversed = 0;
+  for (std::size_t k = 0; k < st.pairs.size(); ++k)
+    reversed += st.particles.id[st.pairs.i[k]] > st.particles.id[st.pairs.j[k]] ? 1 : 0;
+  EXPECT_GT(reversed, 10u) << "the sort swapped the ends of some pairs";
+
+  // A list build with a wider skin after a rigid translation: the pairs listed before (the same
+  // keys) keep their values, the new ones get the released values.
+  const std::size_t before = st.pairs.size();
+  for (Vec3& s : st.particles.s) s += Vec3(1e-4, -2e-4, 1e-4);
+  build_pairs(st.particles, st.cell, 3 * model.skin, st.pairs, st.neighbor);
+  ASSERT_GT(st.pairs.size(), before) << "a wider skin lists more pairs";
+  std::size_t kept = 0, fresh = 0;
+  for (std::size_t k = 0; k < st.pairs.size(); ++k) {
+    const auto h = st.pairs.history.of(k);
+    if (h[0] == 7) {
+      ++fresh;
+      EXPECT_EQ(h[1], 8);
+      EXPECT_EQ(h[2], 9);
+      EXPECT_EQ(h[3], 10);
+    } else {
+      ++kept;
+      EXPECT_EQ(h[0], expected(k)[0]) << "pair " << k;
+    }
+    EXPECT_EQ(st.pairs.apart_until[k], -1) << "the skip restarts at a build";
+  }
+  EXPECT_EQ(kept, before);
+  EXPECT_EQ(fresh, st.pairs.size() - before);
 }

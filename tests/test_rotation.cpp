@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "qsdem/cell.hpp"
+#include "qsdem/damping.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
@@ -352,7 +353,7 @@ TEST(Rotation, TorsionalOscillatorNdDampingRatio) {
       b.model.damping_ratio = xi0;
       b.model.r_min = radius;
       assign_damping(b.model, b.p);
-      ASSERT_NEAR(b.p.damping[0], 2 * xi0 * big_omega, 1e-12 * b.p.damping[0])
+      ASSERT_NEAR(b.p.damping_rotation[0], 2 * xi0 * big_omega, 1e-12 * b.p.damping_rotation[0])
           << "Eq. 19 with R_i = (abc)^1/3";
       const double kappa = b.inertia[c.axis] * big_omega * big_omega;
       const Vec3 n = kQ0 * Vec3::Unit(c.axis);
@@ -405,7 +406,7 @@ TEST(Rotation, SphereFastPathUnchanged) {
   Particles p;
   const Quat q0(Eigen::AngleAxisd(1.1, Vec3(-1, 2, 0.5).normalized()));
   p.add(0, ShapeKind::sphere, Vec3::Constant(radius), kRho, Vec3(0.1, 0.2, 0.3), q0);
-  p.damping[0] = a;
+  p.damping_translation[0] = p.damping_rotation[0] = a;
   const Vec3 l0(3e-9, -1e-9, 2e-9), torque(1e-4, 2e-4, -5e-5), vel(0.01, -0.02, 0.03);
   p.angmom[0] = l0;
   p.torque[0] = torque;

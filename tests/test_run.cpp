@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "qsdem/config.hpp"
+#include "qsdem/forces.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
@@ -172,7 +173,8 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
   auto run = [&](int threads) {
     Threads t(threads);
     State st = start;
-    for (int k = 0; k < 30; ++k) step(model, st);
+    Schedule schedule;  // kept from step to step: the cuts after the first follow the blocks' times
+    for (int k = 0; k < 30; ++k) step(model, st, schedule);
     return std::make_pair(st, measure(st));
   };
   const auto [s1, m1] = run(1);
@@ -210,6 +212,7 @@ TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
     for (int k = 0; k < steps; ++k) step(model, one);
   }
   State two = start;
+  Schedule schedule;
   int uneven = 0;     // steps with that cut (not those that rebuild the list: pair counts cut them)
   double taken = 0;  // seconds thread 0 spent in blocks of thread 1's range
   {
@@ -217,17 +220,17 @@ TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
     for (int k = 0; k < steps; ++k) {
       // The step's blocks are those of the last step unless it rebuilds the list.
       const long builds = two.neighbor.builds;
-      const bool skew = two.blocks_build == builds && !two.blocks.empty();
+      const bool skew = schedule.timed_build == builds && !schedule.block_weight.empty();
       if (skew) {
-        for (ForceBlock& b : two.blocks) b.weight = 0;
-        two.blocks.front().weight = 1;  // cut: thread 0 starts with no block, thread 1 with all
+        for (double& w : schedule.block_weight) w = 0;
+        schedule.block_weight.front() = 1;  // cut: thread 0 starts with no block, thread 1 with all
       }
-      step(model, two);
+      step(model, two, schedule);
       if (!skew || two.neighbor.builds != builds) continue;
       ++uneven;
-      EXPECT_EQ(two.block_cut, (std::vector<std::size_t>{0, 0, two.blocks.size()})) << "step " << k;
-      ASSERT_EQ(two.thread_busy.size(), 2u);
-      taken += two.thread_busy[0];
+      EXPECT_EQ(schedule.block_cut, (std::vector<std::size_t>{0, 0, two.blocks.size()})) << "step " << k;
+      ASSERT_EQ(schedule.thread_busy.size(), 2u);
+      taken += schedule.thread_busy[0];
     }
   }
   ASSERT_GT(two.blocks.size(), 4u) << "several blocks to share";
@@ -235,6 +238,28 @@ TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
   EXPECT_GT(taken, 0.0) << "thread 0 took no block from thread 1's range in " << uneven << " steps";
   EXPECT_TRUE(one.stress == two.stress);
   EXPECT_EQ(particles_differing(one, two), 0u);
+}
+
+// The particle update needs no schedule from the force stage: given one that does not describe the
+// last force evaluation (here a fresh one), one thread updates every particle, to the bits of the
+// update on the force stage's two owners.
+TEST(Run, UpdateWithoutTheForceStagesOwnersIsTheSame) {
+  const auto [start, model] = large_packing();
+  Threads t(2);
+  State forces = start;
+  Schedule schedule;
+  evaluate_forces(model, forces);  // the list and the contact history of a first step
+  compute_contact_forces(model, forces, schedule);
+  ASSERT_EQ(schedule.owners(), 2u) << "the force stage's owners: two threads";
+  State owned = forces, fresh = forces;
+  Schedule none;
+  const double v2_owned = update_particles(model, owned, schedule);
+  const double v2_fresh = update_particles(model, fresh, none);
+  EXPECT_EQ(none.owners(), 1u);
+  EXPECT_EQ(v2_owned, v2_fresh);
+  EXPECT_EQ(particles_differing(owned, fresh), 0u);
+  for (std::size_t i = 0; i < owned.particles.size(); ++i)
+    ASSERT_TRUE(owned.particles.force[i] == fresh.particles.force[i]) << "particle " << i;
 }
 
 // SPEC 10 files, and their consistency with SPEC 1, 7 and 8.

@@ -24,9 +24,8 @@ void set_matrix(Cell& cell, const Mat3& h);
 void deform(Cell& cell, double dt);
 
 // The cell matrix by its entries: x = h s component by component, for branch_vector below and for
-// the pair loop's vector lanes (forces.cpp). The sums are in the order in which Eigen 3.4 summed
-// the product h * s that this replaced (rows 1 and 2 left to right, row 3 right to left; checked
-// bit for bit on 300 000 random sheared cells then): the same bits as before.
+// the pair loop's vector lanes (forces.cpp). Sums in a fixed order (rows 1, 2 left to right, row 3
+// right to left), the same in scalar and vector code.
 struct CellMap {
   double h00, h01, h02, h10, h11, h12, h20, h21, h22;
   explicit CellMap(const Mat3& h)

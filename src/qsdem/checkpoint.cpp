@@ -10,6 +10,8 @@
 #include <limits>
 #include <type_traits>
 
+#include "qsdem/contact/laws.hpp"
+
 namespace qsdem {
 namespace {
 
@@ -38,6 +40,11 @@ class Writer {
   void str(const std::string& s) {
     pod(static_cast<std::uint64_t>(s.size()));
     out.insert(out.end(), s.begin(), s.end());
+  }
+  // A per-pair array of w doubles per pair: the number of pairs, then the values.
+  void pair_values(const std::vector<double>& v, std::size_t w) {
+    pod(static_cast<std::uint64_t>(w > 0 ? v.size() / w : 0));
+    for (const double x : v) pod(x);
   }
   std::vector<char> out;
 };
@@ -73,9 +80,19 @@ class Reader {
     s.assign(p_, n);
     p_ += n;
   }
+  void pair_values(std::vector<double>& v, std::size_t w) {
+    std::uint64_t n = 0;
+    pod(n);
+    if (n > static_cast<std::uint64_t>(end_ - p_)) damaged("an array is longer than the file");
+    v.resize(n * w);
+    for (double& x : v) pod(x);
+  }
   bool at_end() const { return p_ == end_; }
   [[noreturn]] void damaged(const std::string& why) const {
     throw InputError(fmt::format("checkpoint '{}' is damaged: {}", file_, why));
+  }
+  [[noreturn]] void refuse(const std::string& why) const {
+    throw InputError(fmt::format("checkpoint '{}' {}", file_, why));
   }
 
  private:
@@ -88,23 +105,12 @@ class Reader {
 };
 
 // One function per type, used in both directions so that the two can never disagree.
+// The particles' arrays as their registry lists them (particles.hpp).
 template <class IO, class P>
-void io_particles(IO& io, P& p) {
-  io.vec(p.id);
-  io.vec(p.shape);
-  io.vec(p.semi_axes);
-  io.vec(p.bound_radius);
-  io.vec(p.equiv_radius);
-  io.vec(p.mass);
-  io.vec(p.inertia);
-  io.vec(p.damping);
-  io.vec(p.s);
-  io.vec(p.q);
-  io.vec(p.v);
-  io.vec(p.angmom);
-  io.vec(p.omega);
-  io.vec(p.force);
-  io.vec(p.torque);
+void io_particles(IO& io, P& p, std::uint32_t version) {
+  for_each_field(p, [&](auto& array, ParticleField field) {
+    if (field.saved_since != 0 && version >= field.saved_since) io.vec(array);
+  });
 }
 
 template <class IO, class M>
@@ -115,7 +121,7 @@ void io_measures(IO& io, M& m, std::uint32_t version) {
   io.pod(m.deviator);
   io.pod(m.octahedral);
   io.pod(m.friction_angle_deg);
-  if (version >= 6) {
+  if (version >= 7) {
     io.pod(m.friction_angle_al_deg);
     io.pod(m.principal_tilt_deg);
   }
@@ -131,7 +137,7 @@ void io_measures(IO& io, M& m, std::uint32_t version) {
   io.pod(m.void_ratio);
 }
 
-// Where a run of the default protocol was, as formats 1 to 5 kept it: its phase (0 compaction, 1
+// Where a run of the default protocol was, as formats 1 to 6 kept it: its phase (0 compaction, 1
 // triaxial, 2 done), the current phase's start, the compaction's end and the triaxial sums.
 struct LegacyRun {
   std::int32_t phase = 0;
@@ -251,7 +257,7 @@ LegacyRun to_legacy(const RunProgress& r) {
   return l;
 }
 
-// Format 6: any protocol. Every field on its own (no struct's raw bytes, so no padding).
+// Format 7: any protocol. Every field on its own (no struct's raw bytes, so no padding).
 template <class IO, class P>
 void io_record(IO& io, P& p) {
   io.pod(p.h0);
@@ -269,7 +275,7 @@ void io_record(IO& io, P& p) {
   io.pod(p.peak_phi_e1);
   io.pod(p.final_e1);
   io.pod(p.final_ev);
-  io_measures(io, p.final, 6);
+  io_measures(io, p.final, 7);
 }
 
 template <class IO, class S>
@@ -291,7 +297,7 @@ void io_phase_state(IO& io, S& s) {
 }
 
 void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
-  if (version < 6) {
+  if (version < 7) {
     LegacyRun l = to_legacy(r);
     io_legacy_run(w, l, version);
     return;
@@ -308,7 +314,7 @@ void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
 }
 
 void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
-  if (version < 6) {
+  if (version < 7) {
     LegacyRun l;
     io_legacy_run(in, l, version);
     r = from_legacy(l);
@@ -328,18 +334,39 @@ void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
   in.str(r.changes);
 }
 
+// The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats
+// before hold Hertz-Mindlin's tangential force.
+void io_history_layout(Writer& w, const PairHistory& h, std::uint32_t version) {
+  if (version >= 6) w.str(std::string(h.layout->name));
+}
+void io_history_layout(Reader& r, PairHistory& h, std::uint32_t version) {
+  if (version < 6) {
+    h.layout = &HertzMindlin::history;
+    return;
+  }
+  std::string name;
+  r.str(name);
+  h.layout = name.empty() ? &no_history : find_history_layout(name);
+  if (!h.layout)
+    r.refuse(fmt::format("holds the contact history \"{}\", which no contact law of this qsdem declares", name));
+}
+
 // `version`: the format being read (the writer always writes checkpoint_format_version).
 template <class IO, class S>
 void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) {
-  io_particles(io, st.particles);
+  io_particles(io, st.particles, version);
   io.pod(st.cell.h);
   io.pod(st.cell.L);
   io.vec(st.pairs.i);
   io.vec(st.pairs.j);
   io.vec(st.pairs.image);
-  io.vec(st.pairs.shear);
-  io.vec(st.pairs.pw_lambda);
-  if (version >= 2) io.vec(st.pairs.apart_until);
+  io_history_layout(io, st.pairs.history, version);
+  for_each_pair_field(
+      [&](const HistoryLayout& layout, PairField field, auto& values) {
+        if (field.saved_since != 0 && version >= field.saved_since)
+          io.pair_values(values, static_cast<std::size_t>(layout.width));
+      },
+      st.pairs);
   io.vec(st.neighbor.s_at_build);
   if (version >= 2) {
     io.vec(st.neighbor.surface_path);
@@ -467,6 +494,8 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   io_run(r, c.run, version);
   io_state(r, c.state, version);
   c.state.particles.derive_inverses();
+  // The rotation's damping factors are not kept: a phase sets both when it starts (damping.hpp).
+  c.state.particles.damping_rotation = c.state.particles.damping_translation;
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);
   const std::size_t np = c.state.pairs.size();

@@ -17,6 +17,7 @@
 #define TOML_EXCEPTIONS 1
 #include <toml++/toml.h>
 
+#include "qsdem/contact/laws.hpp"
 #include "qsdem/controller.hpp"
 #include "qsdem/units.hpp"
 
@@ -286,11 +287,15 @@ class Reader {
   // A table the case may hold, named without its array indices ("phase.0.stop" -> "phase.stop").
   static bool known_section(const std::string& path) {
     static const std::set<std::string> sections{
-        "material",         "sample",           "sample.particles", "time",       "damping",
-        "compaction",       "triaxial",         "servo",            "neighbor",   "checkpoint",
-        "limits",           "output",           "phase",            "phase.damping", "phase.strain_rate",
-        "phase.stress",     "phase.servo",      "phase.stop",       "phase.stop.strain", "phase.stop.stress",
-        "phase.stop.equilibrium", "phase.output", "phase.output.every_strain", "phase.controller"};
+        "material",       "sample",           "sample.particles",
+        "time",           "contact",          "damping",
+        "compaction",     "triaxial",         "servo",
+        "neighbor",       "checkpoint",       "limits",
+        "output",         "phase",            "phase.damping",
+        "phase.strain_rate", "phase.stress",  "phase.servo",
+        "phase.stop",     "phase.stop.strain", "phase.stop.stress",
+        "phase.stop.equilibrium", "phase.output", "phase.output.every_strain",
+        "phase.controller"};
     std::string name;
     for (const auto& part : split_path(path))
       if (!is_index(part)) name += (name.empty() ? "" : ".") + part;
@@ -328,6 +333,40 @@ const auto non_negative = [](double v) { return v >= 0; };
 DampingModel damping_model(Reader& r, const std::string& path, const std::string& def) {
   const std::string m = r.text(path, def, {"none", "od", "nd"});
   return m == "none" ? DampingModel::none : m == "od" ? DampingModel::od : DampingModel::nd;
+}
+
+DampedMotion damped_motion(Reader& r, const std::string& path) {
+  const std::string m = r.text(path, std::string("both"), {"both", "translation", "rotation"});
+  return m == "translation" ? DampedMotion::translation : m == "rotation" ? DampedMotion::rotation : DampedMotion::both;
+}
+
+// [contact]: the law (contact/laws.hpp) and the keys it declares, checked by the law.
+ContactSettings read_contact(Reader& r) {
+  ContactSettings c;
+  const std::vector<std::string_view> laws = contact_law_names();
+  c.law = r.text("contact.law", std::string(laws.front()), std::vector<std::string>(laws.begin(), laws.end()));
+  const std::vector<LawKey> keys = contact_law_keys(c.law);
+  const toml::node* table = r.find("contact");
+  if (table && table->is_table()) {
+    for (const auto& [k, v] : *table->as_table()) {
+      const std::string name(k.str()), path = "contact." + name;
+      if (name == "law") continue;
+      bool own = false;
+      std::string list;
+      for (const LawKey& key : keys) {
+        own = own || key.name == name;
+        list += fmt::format("{}{} ({})", list.empty() ? "" : ", ", key.name, key.meaning);
+      }
+      if (!own)
+        r.fail(path, &v, fmt::format("not a key of contact law \"{}\" ({})", c.law,
+                                     list.empty() ? "it has no keys of its own" : "its keys: " + list));
+      c.values[name] = r.quantity(path, Dimension::ratio, 0.0, [](double) { return true; }, "");
+    }
+  }
+  std::string key;
+  if (const std::string why = check_contact_settings(c, key); !why.empty())
+    r.fail("contact." + key, r.find("contact." + key), why);
+  return c;
 }
 
 // Particle sizes qsdem accepts: from 1 nm to 1 km. Outside, masses and inertias of a double run
@@ -427,6 +466,7 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   ph.friction = r.number(k + ".friction", std::nullopt, non_negative, "must be >= 0");
   ph.damping.model = damping_model(r, k + ".damping.model", "nd");
   ph.damping.ratio = r.quantity(k + ".damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
 
   bool any_rate = false;
   for (int c = 0; c < component_count; ++c) {
@@ -551,8 +591,9 @@ Protocol default_protocol(const Params& p) {
   const auto& t = p.triaxial;
   Phase compaction;
   compaction.name = "compaction";
+  compaction.contact = p.contact;
   compaction.friction = c.friction;
-  compaction.damping = {c.damping_model, c.damping_ratio};
+  compaction.damping = {c.damping_model, c.damping_ratio, DampedMotion::both};
   for (int k = 0; k < component_count; ++k)
     if (is_normal(k) || c.zero_shear_stress)
       compaction.controls.component[static_cast<std::size_t>(k)] = {ComponentControl::Kind::stress,
@@ -568,8 +609,9 @@ Protocol default_protocol(const Params& p) {
 
   Phase triaxial;
   triaxial.name = "triaxial";
+  triaxial.contact = p.contact;
   triaxial.friction = t.friction;
-  triaxial.damping = {p.damping.model, p.damping.ratio};
+  triaxial.damping = {p.damping.model, p.damping.ratio, p.damping.acts_on};
   triaxial.controls.component[0] = {ComponentControl::Kind::stress, t.confining_stress};
   triaxial.controls.component[1] = {ComponentControl::Kind::stress, t.confining_stress};
   triaxial.controls.component[2] = {ComponentControl::Kind::strain_rate, t.strain_rate};
@@ -646,8 +688,11 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
                           "must be in (0, 0.5]: above 0.5 the time step exceeds the stability bound (20 % of the "
                           "Rayleigh time)");
 
+  p.contact = read_contact(r);
+
   p.damping.model = damping_model(r, "damping.model", "nd");
   p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  p.damping.acts_on = damped_motion(r, "damping.acts_on");
 
   auto& c = p.compaction;
   c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
@@ -693,6 +738,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
     const auto* phases = r.array_of_tables("phase");
     for (std::size_t k = 0; k < phases->size(); ++k) {
       p.protocol.push_back(read_phase(r, "phase." + std::to_string(k), k, p.step_ratio));
+      p.protocol.back().contact = p.contact;
       for (std::size_t j = 0; j < k; ++j)
         if (p.protocol[j].name == p.protocol[k].name)
           r.fail("phase." + std::to_string(k) + ".name", r.find("phase." + std::to_string(k) + ".name"),
@@ -775,6 +821,8 @@ std::vector<std::string> case_keys() {
     else keys.insert(k);
   }
   keys.erase("phase");  // the array itself
+  for (std::string_view law : contact_law_names())  // each law's own keys, read only for that law
+    for (const LawKey& key : contact_law_keys(law)) keys.insert("contact." + std::string(key.name));
   return {keys.begin(), keys.end()};
 }
 
@@ -810,7 +858,8 @@ nlohmann::json to_json(const Phase& ph) {
   if (ph.controls.rate_factor > 0) servo["rate_factor"] = ph.controls.rate_factor;
   nlohmann::json j = {{"name", ph.name},
                       {"friction", ph.friction},
-                      {"damping", {{"model", to_string(ph.damping.model)}, {"ratio", ph.damping.ratio}}},
+                      {"damping", {{"model", to_string(ph.damping.model)}, {"ratio", ph.damping.ratio},
+                                   {"acts_on", to_string(ph.damping.acts_on)}}},
                       {"control", controls},
                       {"servo", servo},
                       {"stop", stop},
@@ -829,6 +878,8 @@ nlohmann::json to_json(const Params& p) {
   const auto& t = p.triaxial;
   nlohmann::json protocol = nlohmann::json::array();
   for (const Phase& ph : p.protocol) protocol.push_back(to_json(ph));
+  nlohmann::json contact = {{"law", p.contact.law}};
+  for (const auto& [key, value] : p.contact.values) contact[key] = value;
   return {
       {"name", p.name},
       {"source", p.source},
@@ -837,7 +888,9 @@ nlohmann::json to_json(const Params& p) {
       {"sample", {{"seed", p.sample.seed}, {"initial_solid_fraction", p.sample.initial_solid_fraction},
                   {"total_particles", p.sample.total_particles}, {"particles", table}, {"from", p.sample.from}}},
       {"time", {{"step_ratio", p.step_ratio}}},
-      {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio}}},
+      {"contact", contact},
+      {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio},
+                   {"acts_on", to_string(p.damping.acts_on)}}},
       {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
                       {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},
                       {"damping_model", to_string(c.damping_model)}, {"damping_ratio", c.damping_ratio},

@@ -4,7 +4,10 @@
 #pragma once
 #include <cstdint>
 #include <filesystem>
+#include <functional>
+#include <map>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -42,9 +45,12 @@ struct Params {
 
   double step_ratio = 0.32;  // c_t (SPEC 5)
 
+  ContactSettings contact;
+
   struct Damping {
     DampingModel model = DampingModel::nd;
     double ratio = 0.005;  // xi_0
+    DampedMotion acts_on = DampedMotion::both;
   } damping;
 
   struct Compaction {

@@ -20,9 +20,8 @@
 //    the step is then taken by Taylor series, s <- s - h v + h^2 z, F <- F + h (F' + h (F''/2 +
 //    h F'''/6)), whose error is O(r^3) ~ 1e-15 relative; Halley's cubic convergence puts the new
 //    lambda at the same order. This saves the final re-factorisation: a warm start (lambda of the
-//    previous time step) usually converges in one iteration. (Newton steps taken to first order
-//    err by O(r^2), so they had to stop at r < 1e-7, and 27 % of paper-A's warm starts then took
-//    a second factorisation.)
+//    previous time step) usually converges in one iteration (a first-order Newton step would
+//    need r < 1e-7).
 //    Cold start: at the maximiser lambda = h_i(n) / (h_i(n) + h_j(n)) exactly (x0 - c_i =
 //    (1 - lambda) Q_i s lies on the mu-scaled surface of i, whose support value along n is
 //    mu h_i(n); same for j); with n ~ e this gives lambda0 = h_i(e) / (h_i(e) + h_j(e)), exact for
@@ -53,6 +52,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+
+#include "qsdem/clones.hpp"
 
 namespace qsdem {
 
@@ -128,7 +129,7 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
 
 // In vector lanes where the CPU has AVX2 (chosen at load time; no FMA, so the same bits). The
 // arrays as doubles: through Vec3 and Quat GCC 12 does not vectorise the loop ("no vectype").
-[[gnu::target_clones("avx2", "default")]] void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
+QSDEM_CLONES void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
                                                                 std::size_t lo, std::size_t hi) {
   static_assert(sizeof(Vec3) == 3 * sizeof(double) && sizeof(Quat) == 4 * sizeof(double), "packed arrays");
   const double* const ad = reinterpret_cast<const double*>(axes);  // a0 a1 a2 per particle
@@ -167,14 +168,11 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   return batch.touching[0];
 }
 
-// The batch: 1. per lane, the quick rejections and the start of the iteration; 2. one PW iteration
-// of every lane still iterating, in one loop without branches (selects), the lanes that are done
-// then leave the working set (compacted), those with mu^2 < 1 straight into 3.'s slots; 3. the
-// overlap and radius of those lanes, again in one loop. Each lane's arithmetic is the same sequence as for a lone pair.
-// Two builds of the batch, chosen at load time by the CPU: four lanes per instruction with AVX2,
-// two with the x86-64 baseline (SSE2). Neither uses FMA, so both give the same bits.
-[[gnu::target_clones("avx2", "default")]] void ellipsoid_contacts(EllipsoidContactBatch& b) {
-  constexpr int cap = EllipsoidContactBatch::capacity;
+namespace {
+
+// The batch's lanes between its three phases (ellipsoid_contacts below).
+struct PwLanes {
+  static constexpr int cap = EllipsoidContactBatch::capacity;
   // Lanes still iterating (slot a -> lane[a]): unit branch e, Q_i, D = Q_j - Q_i, bracket.
   alignas(64) double ex[cap], ey[cap], ez[cap], l2s[cap], lams[cap], los[cap], his[cap];
   alignas(64) double qxx[cap], qyy[cap], qzz[cap], qxy[cap], qxz[cap], qyz[cap];
@@ -186,28 +184,33 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   alignas(64) double c_l[3][cap], c_s[3][cap], c_lam[cap], c_ln[cap], c_Qi[6][cap], c_Qj[6][cap];
   int ov[cap];
   int no = 0;
-  // A lane done iterating at lambda with s = Q^-1 e and F: mu^2, then 3.'s slot or the gap bound.
-  const auto finish = [&](int k, double lambda, double s_x, double s_y, double s_z, double F, double l2) {
-    EllipsoidContactStats& st = b.stats[k];
-    const double mu2 = l2 * F;
-    st.mu2 = mu2;
-    const EllipsoidShape& si = *b.shape_i[k];
-    const EllipsoidShape& sj = *b.shape_j[k];
-    if (!(mu2 < 1)) {
-      if (mu2 > 1) st.gap_bound = contact_function_gap(mu2, si, sj);  // F may be refined by a Taylor step
-      return;
-    }
-    ov[no] = k;
-    for (int c = 0; c < 3; ++c) c_l[c][no] = b.l[k][c];
-    c_s[0][no] = s_x, c_s[1][no] = s_y, c_s[2][no] = s_z;
-    c_lam[no] = lambda, c_ln[no] = lns[k];
-    const double qi[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
-    const double qj[6] = {sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
-    for (int c = 0; c < 6; ++c) c_Qi[c][no] = qi[c], c_Qj[c][no] = qj[c];
-    ++no;
-  };
+};
 
-  // 1. Quick rejections, start of the iteration.
+// A lane done iterating at lambda with s = Q^-1 e and F: mu^2, then 3.'s slot or the gap bound.
+[[gnu::always_inline]] inline void finish_lane(EllipsoidContactBatch& b, PwLanes& pw, int k, double lambda, double s_x,
+                                               double s_y, double s_z, double F, double l2) {
+  EllipsoidContactStats& st = b.stats[k];
+  const double mu2 = l2 * F;
+  st.mu2 = mu2;
+  const EllipsoidShape& si = *b.shape_i[k];
+  const EllipsoidShape& sj = *b.shape_j[k];
+  if (!(mu2 < 1)) {
+    if (mu2 > 1) st.gap_bound = contact_function_gap(mu2, si, sj);  // F may be refined by a Taylor step
+    return;
+  }
+  const int no = pw.no++;
+  pw.ov[no] = k;
+  for (int c = 0; c < 3; ++c) pw.c_l[c][no] = b.l[k][c];
+  pw.c_s[0][no] = s_x, pw.c_s[1][no] = s_y, pw.c_s[2][no] = s_z;
+  pw.c_lam[no] = lambda, pw.c_ln[no] = pw.lns[k];
+  const double qi[6] = {si.xx, si.yy, si.zz, si.xy, si.xz, si.yz};
+  const double qj[6] = {sj.xx, sj.yy, sj.zz, sj.xy, sj.xz, sj.yz};
+  for (int c = 0; c < 6; ++c) pw.c_Qi[c][no] = qi[c], pw.c_Qj[c][no] = qj[c];
+}
+
+// 1. Per lane, the quick rejections (bounding spheres, support planes) and the start of the
+// iteration: the lanes left to iterate go into pw's slots.
+[[gnu::always_inline]] inline void reject_or_start(EllipsoidContactBatch& b, PwLanes& pw) {
   for (int k = 0; k < b.size; ++k) {
     EllipsoidContactStats& st = b.stats[k];
     st = {};
@@ -224,9 +227,9 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     }
     // |l|^2 underflows below ~1e-154 m: take the norm the slow, safe way there (l = 0 only is coincident).
     const double ln = l2 > 1e-200 ? std::sqrt(l2) : l.stableNorm();
-    lns[k] = ln;
+    pw.lns[k] = ln;
     if (!(ln > 0)) {  // coincident centres: s = 0, F = 0 (lambda irrelevant and unchanged)
-      finish(k, 0.5, 0, 0, 0, 0, l2);
+      finish_lane(b, pw, k, 0.5, 0, 0, 0, 0, l2);
       continue;
     }
     const Vec3 e = l * (1 / ln);
@@ -247,30 +250,35 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
         continue;
       }
     }
-    lane[na] = k;
-    ex[na] = e.x(), ey[na] = e.y(), ez[na] = e.z(), l2s[na] = l2;
-    lams[na] = lam, los[na] = 0, his[na] = 1;
-    qxx[na] = Qi.xx, qyy[na] = Qi.yy, qzz[na] = Qi.zz, qxy[na] = Qi.xy, qxz[na] = Qi.xz, qyz[na] = Qi.yz;
-    dxx[na] = D.xx, dyy[na] = D.yy, dzz[na] = D.zz, dxy[na] = D.xy, dxz[na] = D.xz, dyz[na] = D.yz;
-    ++na;
+    const int na = pw.na++;
+    pw.lane[na] = k;
+    pw.ex[na] = e.x(), pw.ey[na] = e.y(), pw.ez[na] = e.z(), pw.l2s[na] = l2;
+    pw.lams[na] = lam, pw.los[na] = 0, pw.his[na] = 1;
+    pw.qxx[na] = Qi.xx, pw.qyy[na] = Qi.yy, pw.qzz[na] = Qi.zz, pw.qxy[na] = Qi.xy, pw.qxz[na] = Qi.xz, pw.qyz[na] = Qi.yz;
+    pw.dxx[na] = D.xx, pw.dyy[na] = D.yy, pw.dzz[na] = D.zz, pw.dxy[na] = D.xy, pw.dxz[na] = D.xz, pw.dyz[na] = D.yz;
   }
+}
 
-  // 2. PW iterations (2. in the header comment), one per pass for all iterating lanes.
+// 2. PW iterations (2. in the header comment), one per pass for all iterating lanes, in one loop
+// without branches (selects); the lanes that are done leave the working set (compacted), those
+// with mu^2 < 1 straight into 3.'s slots.
+[[gnu::always_inline]] inline void iterate_lanes(EllipsoidContactBatch& b, PwLanes& pw) {
+  constexpr int cap = PwLanes::cap;
   // The lanes' outcome (flags as doubles: the compiler keeps the loop in vector lanes only when
   // every value it stores has the doubles' width).
   constexpr double iterate = 0, separated = 1, converged = 2;
   alignas(64) double Fo[cap], lam_out[cap], next[cap], isx[cap], isy[cap], isz[cap];
   alignas(64) double status[cap], bisected[cap], exhausted[cap];
-  while (na > 0) {
+  while (pw.na > 0) {
 #pragma omp simd
-    for (int a = 0; a < na; ++a) {
+    for (int a = 0; a < pw.na; ++a) {
       // Written out by components, the twins of Sym's adjugate, det_with and product: the same
-      // code through Sym and a struct of three doubles (tried) keeps GCC 12 from vectorising the
+      // code through Sym and a struct of three doubles keeps GCC 12 from vectorising the
       // loop ("no vectype"); the order of every sum is Sym's, hence the same bits.
-      const double lam = lams[a], e_x = ex[a], e_y = ey[a], e_z = ez[a];
+      const double lam = pw.lams[a], e_x = pw.ex[a], e_y = pw.ey[a], e_z = pw.ez[a];
       // Q = Q_i + D lambda, its adjugate and determinant.
-      const double Qxx = qxx[a] + dxx[a] * lam, Qyy = qyy[a] + dyy[a] * lam, Qzz = qzz[a] + dzz[a] * lam;
-      const double Qxy = qxy[a] + dxy[a] * lam, Qxz = qxz[a] + dxz[a] * lam, Qyz = qyz[a] + dyz[a] * lam;
+      const double Qxx = pw.qxx[a] + pw.dxx[a] * lam, Qyy = pw.qyy[a] + pw.dyy[a] * lam, Qzz = pw.qzz[a] + pw.dzz[a] * lam;
+      const double Qxy = pw.qxy[a] + pw.dxy[a] * lam, Qxz = pw.qxz[a] + pw.dxz[a] * lam, Qyz = pw.qyz[a] + pw.dyz[a] * lam;
       const double Axx = Qyy * Qzz - Qyz * Qyz, Ayy = Qxx * Qzz - Qxz * Qxz, Azz = Qxx * Qyy - Qxy * Qxy;
       const double Axy = Qxz * Qyz - Qxy * Qzz, Axz = Qxy * Qyz - Qxz * Qyy, Ayz = Qxy * Qxz - Qxx * Qyz;
       const double inv_det = 1 / (Qxx * Axx + Qxy * Axy + Qxz * Axz);
@@ -279,20 +287,20 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       const double s_y = (Axy * e_x + Ayy * e_y + Ayz * e_z) * inv_det;
       const double s_z = (Axz * e_x + Ayz * e_y + Azz * e_z) * inv_det;
       const double E = e_x * s_x + e_y * s_y + e_z * s_z;
-      const double u_x = dxx[a] * s_x + dxy[a] * s_y + dxz[a] * s_z;
-      const double u_y = dxy[a] * s_x + dyy[a] * s_y + dyz[a] * s_z;
-      const double u_z = dxz[a] * s_x + dyz[a] * s_y + dzz[a] * s_z;
+      const double u_x = pw.dxx[a] * s_x + pw.dxy[a] * s_y + pw.dxz[a] * s_z;
+      const double u_y = pw.dxy[a] * s_x + pw.dyy[a] * s_y + pw.dyz[a] * s_z;
+      const double u_z = pw.dxz[a] * s_x + pw.dyz[a] * s_y + pw.dzz[a] * s_z;
       const double su = s_x * u_x + s_y * u_y + s_z * u_z;
       const double w = lam * (1 - lam);
       const double F = w * E;
-      const double apart = l2s[a] * F >= 1 ? 1.0 : 0.0;  // F(lambda) <= mu^2: separation proved
+      const double apart = pw.l2s[a] * F >= 1 ? 1.0 : 0.0;  // F(lambda) <= mu^2: separation proved
       const double v_x = (Axx * u_x + Axy * u_y + Axz * u_z) * inv_det;
       const double v_y = (Axy * u_x + Ayy * u_y + Ayz * u_z) * inv_det;
       const double v_z = (Axz * u_x + Ayz * u_y + Azz * u_z) * inv_det;
       // D v, v.D v and z = Q^-1 D v: F''' and s'' for the Halley step and the Taylor series.
-      const double Dv_x = dxx[a] * v_x + dxy[a] * v_y + dxz[a] * v_z;
-      const double Dv_y = dxy[a] * v_x + dyy[a] * v_y + dyz[a] * v_z;
-      const double Dv_z = dxz[a] * v_x + dyz[a] * v_y + dzz[a] * v_z;
+      const double Dv_x = pw.dxx[a] * v_x + pw.dxy[a] * v_y + pw.dxz[a] * v_z;
+      const double Dv_y = pw.dxy[a] * v_x + pw.dyy[a] * v_y + pw.dyz[a] * v_z;
+      const double Dv_z = pw.dxz[a] * v_x + pw.dyz[a] * v_y + pw.dzz[a] * v_z;
       const double z_x = (Axx * Dv_x + Axy * Dv_y + Axz * Dv_z) * inv_det;
       const double z_y = (Axy * Dv_x + Ayy * Dv_y + Ayz * Dv_z) * inv_det;
       const double z_z = (Axz * Dv_x + Ayz * Dv_y + Azz * Dv_z) * inv_det;
@@ -301,7 +309,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       const double Fp = (1 - 2 * lam) * E - w * su;
       const double Fpp = -2 * E - 2 * (1 - 2 * lam) * su + 2 * w * uv;
       const double Fppp = 6 * su + 6 * (1 - 2 * lam) * uv - 6 * w * vDv;
-      const double lo_old = los[a], hi_old = his[a];  // loaded in every lane (no conditional load)
+      const double lo_old = pw.los[a], hi_old = pw.his[a];  // loaded in every lane (no conditional load)
       const double lo = Fp > 0 ? lam : lo_old, hi = Fp > 0 ? hi_old : lam;
       // Converged: tested before the bracket, since a warm start sits on the maximiser and its
       // step may round to lambda itself (or an ulp outside the new bracket), which would
@@ -329,48 +337,53 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
       status[a] = apart != 0 ? separated : conv != 0 ? converged : iterate;
       bisected[a] = (1 - apart) * (1 - conv) * (1 - inside);
       exhausted[a] = hi - lo <= 4 * std::numeric_limits<double>::epsilon() ? 1.0 : 0.0;
-      los[a] = lo, his[a] = hi, next[a] = step;
+      pw.los[a] = lo, pw.his[a] = hi, next[a] = step;
     }
     // The lanes that are done leave; the others move down with their next lambda.
     int m = 0;
-    for (int a = 0; a < na; ++a) {
-      const int k = lane[a];
+    for (int a = 0; a < pw.na; ++a) {
+      const int k = pw.lane[a];
       EllipsoidContactStats& st = b.stats[k];
       ++st.iterations;
       st.bisections += bisected[a] != 0 ? 1 : 0;
       if (status[a] == separated) {
         st.early_exit = true;
-        st.mu2 = l2s[a] * Fo[a];
+        st.mu2 = pw.l2s[a] * Fo[a];
         st.gap_bound = contact_function_gap(st.mu2, *b.shape_i[k], *b.shape_j[k]);
-        b.lambda[k] = lams[a];
+        b.lambda[k] = pw.lams[a];
       } else if (status[a] == converged || exhausted[a] != 0 || st.iterations >= kMaxIterations) {
         b.lambda[k] = lam_out[a];
-        finish(k, lam_out[a], isx[a], isy[a], isz[a], Fo[a], l2s[a]);
+        finish_lane(b, pw, k, lam_out[a], isx[a], isy[a], isz[a], Fo[a], pw.l2s[a]);
       } else {
-        lane[m] = k;
-        ex[m] = ex[a], ey[m] = ey[a], ez[m] = ez[a], l2s[m] = l2s[a];
-        lams[m] = next[a], los[m] = los[a], his[m] = his[a];
-        qxx[m] = qxx[a], qyy[m] = qyy[a], qzz[m] = qzz[a], qxy[m] = qxy[a], qxz[m] = qxz[a], qyz[m] = qyz[a];
-        dxx[m] = dxx[a], dyy[m] = dyy[a], dzz[m] = dzz[a], dxy[m] = dxy[a], dxz[m] = dxz[a], dyz[m] = dyz[a];
+        pw.lane[m] = k;
+        pw.ex[m] = pw.ex[a], pw.ey[m] = pw.ey[a], pw.ez[m] = pw.ez[a], pw.l2s[m] = pw.l2s[a];
+        pw.lams[m] = next[a], pw.los[m] = pw.los[a], pw.his[m] = pw.his[a];
+        pw.qxx[m] = pw.qxx[a], pw.qyy[m] = pw.qyy[a], pw.qzz[m] = pw.qzz[a];
+        pw.qxy[m] = pw.qxy[a], pw.qxz[m] = pw.qxz[a], pw.qyz[m] = pw.qyz[a];
+        pw.dxx[m] = pw.dxx[a], pw.dyy[m] = pw.dyy[a], pw.dzz[m] = pw.dzz[a];
+        pw.dxy[m] = pw.dxy[a], pw.dxz[m] = pw.dxz[a], pw.dyz[m] = pw.dyz[a];
         ++m;
       }
     }
-    na = m;
+    pw.na = m;
   }
+}
 
-  // 3. Overlap (3. in the header comment) of the lanes with mu^2 < 1 (their slots, filled by finish).
+// 3. Overlap and 4. effective radius (header comment) of the lanes with mu^2 < 1, in one loop.
+[[gnu::always_inline]] inline void overlap_and_curvature(EllipsoidContactBatch& b, PwLanes& pw) {
+  constexpr int cap = PwLanes::cap;
   alignas(64) double o_n[3][cap], o_arm[3][cap], o_delta[cap], o_radius[cap];
 #pragma omp simd
-  for (int a = 0; a < no; ++a) {
-    const Sym Qi{c_Qi[0][a], c_Qi[1][a], c_Qi[2][a], c_Qi[3][a], c_Qi[4][a], c_Qi[5][a]};
-    const Sym Qj{c_Qj[0][a], c_Qj[1][a], c_Qj[2][a], c_Qj[3][a], c_Qj[4][a], c_Qj[5][a]};
+  for (int a = 0; a < pw.no; ++a) {
+    const Sym Qi{pw.c_Qi[0][a], pw.c_Qi[1][a], pw.c_Qi[2][a], pw.c_Qi[3][a], pw.c_Qi[4][a], pw.c_Qi[5][a]};
+    const Sym Qj{pw.c_Qj[0][a], pw.c_Qj[1][a], pw.c_Qj[2][a], pw.c_Qj[3][a], pw.c_Qj[4][a], pw.c_Qj[5][a]};
     // M = Q^-1 through the adjugate of this very Q: the surfaces cut here are those the PW
     // iteration saw (to ~cond(Q) eps <= 9 eps).
     const Sym adj_i = Qi.adjugate(), adj_j = Qj.adjugate();
     const Sym Mi = adj_i * (1 / Qi.det_with(adj_i));
     const Sym Mj = adj_j * (1 / Qj.det_with(adj_j));
-    const double s_x = c_s[0][a], s_y = c_s[1][a], s_z = c_s[2][a], ln = c_ln[a], lam = c_lam[a];
-    const double l_x = c_l[0][a], l_y = c_l[1][a], l_z = c_l[2][a];
+    const double s_x = pw.c_s[0][a], s_y = pw.c_s[1][a], s_z = pw.c_s[2][a], ln = pw.c_ln[a], lam = pw.c_lam[a];
+    const double l_x = pw.c_l[0][a], l_y = pw.c_l[1][a], l_z = pw.c_l[2][a];
     // Products by components, as in the iteration loop above (and for the same reason).
     const double sn = std::sqrt(s_x * s_x + s_y * s_y + s_z * s_z);  // s = Q^-1 e: no underflow for tiny |l|
     const double inv_sn = 1 / sn;
@@ -413,8 +426,8 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
                        n_z * (A.xz * n_x + A.yz * n_y + A.zz * n_z);
     o_radius[a] = gi * gj / std::sqrt(nAn);
   }
-  for (int a = 0; a < no; ++a) {
-    const int k = ov[a];
+  for (int a = 0; a < pw.no; ++a) {
+    const int k = pw.ov[a];
     if (!(o_delta[a] > 0)) continue;  // mu^2 within round-off of 1
     ContactGeometry& g = b.g[k];
     g.normal = {o_n[0][a], o_n[1][a], o_n[2][a]};
@@ -424,6 +437,18 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
     g.radius = o_radius[a];
     b.touching[k] = true;
   }
+}
+
+}  // namespace
+
+// The batch, in three phases (above). Each lane's arithmetic is the same sequence as for a lone
+// pair. Two builds of the batch, chosen at load time by the CPU: four lanes per instruction with
+// AVX2, two with the x86-64 baseline (SSE2). Neither uses FMA, so both give the same bits.
+QSDEM_CLONES void ellipsoid_contacts(EllipsoidContactBatch& b) {
+  PwLanes w;
+  reject_or_start(b, w);
+  iterate_lanes(b, w);
+  overlap_and_curvature(b, w);
 }
 
 int EllipsoidContactBatch::add(const Vec3& branch, const EllipsoidShape& si, const EllipsoidShape& sj,

@@ -24,7 +24,7 @@
 // Swapping i and j maps lambda -> 1 - lambda. At the maximiser lambda = h_i(n) / (h_i(n) + h_j(n)),
 // h_k(n) = sqrt(n^T Q_k n) the support function (distance from centre to tangent plane).
 #pragma once
-#include "qsdem/contact_law.hpp"
+#include "qsdem/contact/geometry.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {
@@ -80,9 +80,8 @@ struct alignas(64) EllipsoidShape {
   double minor;  // smallest semi-axis
 };
 EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q);
-// The shapes of particles [lo, hi): out[a] = ellipsoid_shape(axes[a], q[a]), the same bits. (A
-// call per particle returned the struct through the stack, and the copy's 16-byte loads of its
-// 8-byte stores stalled on store forwarding: most of the force stage's shape loop.)
+// The shapes of particles [lo, hi): out[a] = ellipsoid_shape(axes[a], q[a]), the same bits (one
+// loop over the particles, in vector lanes).
 void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out, std::size_t lo, std::size_t hi);
 
 // The same contact from precomputed shapes (bit-identical to the overloads above).

@@ -1,80 +1,42 @@
 #include "qsdem/forces.hpp"
 
-#include <fmt/format.h>
 #include <omp.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <stdexcept>
 
-#include "qsdem/contact_law.hpp"
+#include "qsdem/clones.hpp"
+#include "qsdem/contact/laws.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
 namespace {
 
 // Inputs of the force stage's blocks, read-only except the pair history and results.
+template <class Law>
 struct ForceInputs {
-  const HertzMindlin& law;
+  const Law& law;
   double dt;
   const Cell& cell;
   const EllipsoidShape* shapes;  // per particle, when some particle is an ellipsoid
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
-  std::span<const std::size_t> owner_first;  // State::owner_first
-  std::uint32_t* contact_owner_first;        // State::contact_owner_first
+  Schedule& schedule;            // owners of the update region (group_contacts_by_owner)
 };
 
-// Groups block b's contacts by the thread that owns their j end (State::contact_owner_first),
-// keeping the pair order within each group: a counting sort of the block's slots (all four
-// contact arrays).
-void group_contacts_by_owner(const ForceInputs& in, PairList& pairs, const ForceBlock& acc, std::size_t b) {
-  const std::size_t owners = in.owner_first.size() - 1;
-  std::uint32_t* const row = in.contact_owner_first + b * (owners + 1);
-  const std::uint32_t first = acc.first_contact, count = acc.contacts;
-  if (owners == 1) {  // one thread: one group, in place
-    row[0] = first, row[1] = first + count;
-    return;
-  }
-  const auto owner = [&](std::uint32_t j) {  // the last t with owner_first[t] <= j
-    std::size_t t = 0;
-    while (t + 1 < owners && in.owner_first[t + 1] <= j) ++t;
-    return t;
-  };
-  std::fill(row, row + owners + 1, 0u);
-  for (std::uint32_t m = first; m < first + count; ++m) ++row[owner(pairs.contact_j[m]) + 1];
-  row[0] = first;
-  for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
-  if (row[1] == first + count) return;  // all in the first group: already in place
-  // Each contact's new slot (row[t] serves as group t's next slot and ends at group t + 1's
-  // start: shifted back after), then the four arrays moved through a copy. The copies are the
-  // thread's own, kept from block to block (no allocation once grown).
-  thread_local std::vector<std::uint32_t> slot, copy_u32;
-  thread_local std::vector<Vec3> copy_vec;
-  slot.resize(count);
-  for (std::uint32_t c = 0; c < count; ++c) slot[c] = row[owner(pairs.contact_j[first + c])]++;
-  for (std::size_t t = owners; t > 0; --t) row[t] = row[t - 1];
-  row[0] = first;
-  const auto move = [&](auto& array, auto& copy) {
-    copy.assign(array.begin() + first, array.begin() + first + count);
-    for (std::uint32_t c = 0; c < count; ++c) array[slot[c]] = copy[c];
-  };
-  move(pairs.contact_pairs, copy_u32);
-  move(pairs.contact_j, copy_u32);
-  move(pairs.contact_force, copy_vec);
-  move(pairs.contact_torque_j, copy_vec);
-}
-
+// The pair driver: written once, instantiated per contact law (contact/law.hpp).
+//
 // The contacts of a chunk of pairs (SPEC 4), in lanes (structure of arrays): `add` takes a
 // contact's pair, velocities and history, `set_geometry` its ellipsoid geometry or
 // `sphere_geometry` computes the spheres'; `evaluate_contacts` runs the relative velocity, the law
 // and the contact's torques and sum terms on all lanes at once (vector lanes: one contact is a long
 // chain of dependent operations); `commit_contacts` writes the results in pair order (the order of
 // every sum, as one contact at a time: the same bits).
+template <class Law>
 struct ContactLanes {
-  // 16 contacts at a time: the lanes' ~60 arrays stay within a third of the L1 cache (at 128
-  // contacts the simulated L1 misses of the sphere bench rose 1.7x).
+  static constexpr int width = Law::history.width;  // the law's history per contact
+  // 16 contacts at a time: the lanes' ~60 arrays stay within a third of the L1 cache.
   static constexpr int capacity = 16;
   // Each array's length: 3 cache lines (an odd number), so that lane a of the arrays falls in
   // different sets of the L1 cache (arrays a power of two apart share a few sets).
@@ -82,7 +44,7 @@ struct ContactLanes {
   int size = 0;
   std::uint32_t pair[stride], first[stride], second[stride];  // k, i, j
   // In: branch l, geometry (normal, overlap, radius, arms), the spheres' |l| and radii (for
-  // sphere_geometry), velocities and spins of i and j, the affine velocity L l, shear.
+  // sphere_geometry), velocities and spins of i and j, the affine velocity L l, the history.
   double lx[stride], ly[stride], lz[stride];
   double nx[stride], ny[stride], nz[stride], overlap[stride], radius[stride];
   double aix[stride], aiy[stride], aiz[stride], ajx[stride], ajy[stride], ajz[stride];
@@ -90,16 +52,20 @@ struct ContactLanes {
   double r_min[stride];  // min(R_i, R_j), for the largest overlap ratio
   double vix[stride], viy[stride], viz[stride], vjx[stride], vjy[stride], vjz[stride];
   double wix[stride], wiy[stride], wiz[stride], wjx[stride], wjy[stride], wjz[stride];
-  double ux[stride], uy[stride], uz[stride], sx[stride], sy[stride], sz[stride];
-  // Out: the force on j, the torques about j's and i's centres (and the new shear), and the
+  double ux[stride], uy[stride], uz[stride], history[width][stride];
+  // Out: the force on j, the torques about j's and i's centres (and the new history), and the
   // contact's terms of the block's sums: f l^T by row, the stiffnesses of the servo (servo.hpp).
   double fx[stride], fy[stride], fz[stride], tjx[stride], tjy[stride], tjz[stride];
   double tix[stride], tiy[stride], tiz[stride];
   double stress[9][stride], stiffness[3][stride], shear_stiffness[3][stride];
+  double mass[Law::needs_masses ? stride : 1];  // m* (laws with needs_masses)
+  // The contact's terms of the viscosity sums (laws with has_dashpots).
+  static constexpr int viscous_stride = Law::has_dashpots ? stride : 1;
+  double viscosity[3][viscous_stride], shear_viscosity[3][viscous_stride];
 
   // Appends the contact of pair k (i, j) with branch l; returns its lane.
-  [[gnu::always_inline]] int add(const ForceInputs& in, const Particles& p, const PairList& pairs, std::uint32_t k,
-                                 std::uint32_t i, std::uint32_t j, const Vec3& l) {
+  [[gnu::always_inline]] int add(const ForceInputs<Law>& in, const Particles& p, const PairList& pairs,
+                                 std::uint32_t k, std::uint32_t i, std::uint32_t j, const Vec3& l) {
     const int a = size++;
     pair[a] = k, first[a] = i, second[a] = j;
     lx[a] = l.x(), ly[a] = l.y(), lz[a] = l.z();
@@ -108,8 +74,9 @@ struct ContactLanes {
     wix[a] = wi.x(), wiy[a] = wi.y(), wiz[a] = wi.z(), wjx[a] = wj.x(), wjy[a] = wj.y(), wjz[a] = wj.z();
     const Vec3 u = in.cell.L * l;  // the affine field's part (SPEC 3), in Eigen's order of sums
     ux[a] = u.x(), uy[a] = u.y(), uz[a] = u.z();
-    const Vec3& s = pairs.shear[k];
-    sx[a] = s.x(), sy[a] = s.y(), sz[a] = s.z();
+    const double* const h = pairs.history.values.data() + width * k;
+    for (int c = 0; c < width; ++c) history[c][a] = h[c];
+    if constexpr (Law::needs_masses) mass[a] = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j]);
     r_min[a] = std::min(p.equiv_radius[i], p.equiv_radius[j]);
     return a;
   }
@@ -123,8 +90,9 @@ struct ContactLanes {
   }
 };
 
-// sphere_sphere (contact_law.hpp) on every lane.
-[[gnu::target_clones("avx2", "default")]] void sphere_geometry(ContactLanes& c) {
+// sphere_sphere (contact/geometry.hpp) on every lane.
+template <class Law>
+QSDEM_CLONES void sphere_geometry(ContactLanes<Law>& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a)
     sphere_sphere(c.lx[a], c.ly[a], c.lz[a], c.distance[a], c.ri[a], c.rj[a], c.nx[a], c.ny[a], c.nz[a], c.overlap[a],
@@ -132,21 +100,29 @@ struct ContactLanes {
 }
 
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
-// (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4), and the contact's terms of the sums.
-// Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the same bits.
-[[gnu::target_clones("avx2", "default")]] void evaluate_contacts(const HertzMindlin& law, double dt,
-                                                                 ContactLanes& c) {
+// (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4) with the law's own, and the contact's
+// terms of the sums. Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the
+// same bits.
+template <class Law>
+QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c) {
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
     const double nx = c.nx[a], ny = c.ny[a], nz = c.nz[a];
     const double aix = c.aix[a], aiy = c.aiy[a], aiz = c.aiz[a], ajx = c.ajx[a], ajy = c.ajy[a], ajz = c.ajz[a];
     // v_j + w_j x arm_j - v_i - w_i x arm_i + L l, summed left to right as Eigen does.
     const double wjx = c.wjx[a], wjy = c.wjy[a], wjz = c.wjz[a], wix = c.wix[a], wiy = c.wiy[a], wiz = c.wiz[a];
-    const double vx = c.vjx[a] + (wjy * ajz - wjz * ajy) - c.vix[a] - (wiy * aiz - wiz * aiy) + c.ux[a];
-    const double vy = c.vjy[a] + (wjz * ajx - wjx * ajz) - c.viy[a] - (wiz * aix - wix * aiz) + c.uy[a];
-    const double vz = c.vjz[a] + (wjx * ajy - wjy * ajx) - c.viz[a] - (wix * aiy - wiy * aix) + c.uz[a];
-    double fx, fy, fz, kn, kt;
-    law.evaluate(nx, ny, nz, c.overlap[a], c.radius[a], vx, vy, vz, dt, c.sx[a], c.sy[a], c.sz[a], fx, fy, fz, kn, kt);
+    ContactInput in;
+    in.nx = nx, in.ny = ny, in.nz = nz, in.overlap = c.overlap[a], in.radius = c.radius[a];
+    in.vx = c.vjx[a] + (wjy * ajz - wjz * ajy) - c.vix[a] - (wiy * aiz - wiz * aiy) + c.ux[a];
+    in.vy = c.vjy[a] + (wjz * ajx - wjx * ajz) - c.viy[a] - (wiz * aix - wix * aiz) + c.uy[a];
+    in.vz = c.vjz[a] + (wjx * ajy - wjy * ajx) - c.viz[a] - (wix * aiy - wiy * aix) + c.uz[a];
+    in.wx = Law::needs_spins ? wjx - wix : 0.0, in.wy = Law::needs_spins ? wjy - wiy : 0.0;
+    in.wz = Law::needs_spins ? wjz - wiz : 0.0;
+    if constexpr (Law::needs_masses) in.mass = c.mass[a];
+    else in.mass = 0;
+    ContactOutput out;
+    law.evaluate(in, dt, HistoryView{&c.history[0][a], ContactLanes<Law>::stride}, out);
+    const double fx = out.fx, fy = out.fy, fz = out.fz, kn = out.kn, kt = out.kt;
     c.fx[a] = fx, c.fy[a] = fy, c.fz[a] = fz;
     // Love-Weber f l^T (SPEC 7).
     const double l[3] = {c.lx[a], c.ly[a], c.lz[a]}, f[3] = {fx, fy, fz};
@@ -161,20 +137,33 @@ struct ContactLanes {
       const int u = q < 2 ? 0 : 1, w = q == 0 ? 1 : 2;  // the pair (a, b) of shear q
       const double nn = n2[u] * n2[w], half = 0.5 * (n2[u] + n2[w]);
       c.shear_stiffness[q][a] = l2 * (2 * kn * nn + kt * (half - 2 * nn));
+      if constexpr (Law::has_dashpots) {  // the same sums of the viscous coefficients
+        const double cn = out.cn, ct = out.ct;
+        c.viscosity[q][a] = (cn * n2[q] + ct * (1 - n2[q])) * (l[q] * l[q]);
+        c.shear_viscosity[q][a] = l2 * (2 * cn * nn + ct * (half - 2 * nn));
+      }
     }
-    c.tjx[a] = ajy * fz - ajz * fy;  // as Eigen's cross
-    c.tjy[a] = ajz * fx - ajx * fz;
-    c.tjz[a] = ajx * fy - ajy * fx;
+    double tjx = ajy * fz - ajz * fy;  // as Eigen's cross
+    double tjy = ajz * fx - ajx * fz;
+    double tjz = ajx * fy - ajy * fx;
     const double mx = -fx, my = -fy, mz = -fz;
-    c.tix[a] = aiy * mz - aiz * my;
-    c.tiy[a] = aiz * mx - aix * mz;
-    c.tiz[a] = aix * my - aiy * mx;
+    double tix = aiy * mz - aiz * my;
+    double tiy = aiz * mx - aix * mz;
+    double tiz = aix * my - aiy * mx;
+    if constexpr (Law::has_torque) {
+      tjx += out.tx, tjy += out.ty, tjz += out.tz;
+      tix -= out.tx, tiy -= out.ty, tiz -= out.tz;
+    }
+    c.tjx[a] = tjx, c.tjy[a] = tjy, c.tjz[a] = tjz;
+    c.tix[a] = tix, c.tiy[a] = tiy, c.tiz[a] = tiz;
   }
 }
 
 // The lanes' contacts, in order: the contact's results for its j end, the pair's history, i's
 // resultant, the block's contact list, stress and stiffness sums.
-void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+template <class Law>
+void commit_contacts(const ContactLanes<Law>& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+  constexpr int width = ContactLanes<Law>::width;
   // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
   // loaded and stored every sum at every contact (a store through a double* may alias them).
   double stress[9], stiffness[3], shear_stiffness[3];
@@ -189,7 +178,7 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
   Vec3* const contact_force = pairs.contact_force.data() + slot;
   Vec3* const contact_torque = pairs.contact_torque_j.data() + slot;
   double* const overlap = pairs.overlap.data();
-  Vec3* const shear = pairs.shear.data();
+  double* const history = pairs.history.values.data();
   Vec3* const force = p.force.data();
   Vec3* const torque = p.torque.data();
   for (int a = 0; a < c.size; ++a) {
@@ -201,7 +190,7 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
       max_overlap = c.overlap[a] / c.r_min[a];
       max_overlap_pair = k;
     }
-    shear[k] = Vec3(c.sx[a], c.sy[a], c.sz[a]);
+    for (int m = 0; m < width; ++m) history[width * k + m] = c.history[m][a];
     const Vec3 f(c.fx[a], c.fy[a], c.fz[a]);
     contact_force[a] = f;
     contact_torque[a] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
@@ -210,6 +199,10 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
     for (int m = 0; m < 9; ++m) stress[m] += c.stress[m][a];
     for (int q = 0; q < 3; ++q) stiffness[q] += c.stiffness[q][a], shear_stiffness[q] += c.shear_stiffness[q][a];
   }
+  if constexpr (Law::has_dashpots)
+    for (int a = 0; a < c.size; ++a)
+      for (int q = 0; q < 3; ++q)
+        acc.viscosity_sum[q] += c.viscosity[q][a], acc.shear_viscosity_sum[q] += c.shear_viscosity[q][a];
   acc.contacts += static_cast<std::uint32_t>(c.size);
   for (int r = 0; r < 3; ++r)
     for (int q = 0; q < 3; ++q) acc.stress_sum(r, q) = stress[3 * r + q];
@@ -219,23 +212,33 @@ void commit_contacts(const ContactLanes& c, Particles& p, PairList& pairs, Force
 }
 
 // Evaluates and commits the lanes' contacts (their geometry set), and empties them.
-inline void flush_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+template <class Law>
+inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
+                           ForceBlock& acc) {
   evaluate_contacts(in.law, in.dt, c);
   commit_contacts(c, p, pairs, acc);
   c.size = 0;
 }
 
 // The same for sphere contacts, whose geometry is computed here (ContactLanes::set_spheres).
-inline void flush_sphere_contacts(const ForceInputs& in, ContactLanes& c, Particles& p, PairList& pairs,
+template <class Law>
+inline void flush_sphere_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
                                   ForceBlock& acc) {
   sphere_geometry(c);
   flush_contacts(in, c, p, pairs, acc);
 }
 
-// A pair that is apart: no force; a contact just lost releases its spring.
+// A pair that is apart: no force; a contact just lost releases its history (the law's released
+// values; written only when it differs from them).
+template <class Law>
 inline void mark_apart(PairList& pairs, std::uint32_t k) {
+  constexpr int width = Law::history.width;
   pairs.overlap[k] = 0;
-  if (!pairs.shear[k].isZero()) pairs.shear[k].setZero();
+  double* const h = pairs.history.values.data() + width * k;
+  bool released = true;
+  for (int m = 0; m < width; ++m) released &= h[m] == Law::history.released[m];
+  if (!released)
+    for (int m = 0; m < width; ++m) h[m] = Law::history.released[m];
 }
 
 // Zeroes the i-side resultants of block b's particles (the pair loop sums into them).
@@ -249,7 +252,7 @@ inline void clear_block_resultants(Particles& p, const PairList& pairs, std::siz
 // Which of n listed pairs to test: keep[m] = 0 while pair m is still provably apart
 // (NeighborState::moved(i, j), the same sum, below its apart_until), else 1. In vector lanes (AVX2
 // gathers the paths).
-[[gnu::target_clones("avx2", "default")]] void to_test(const double* path, const std::uint32_t* pair_i,
+QSDEM_CLONES void to_test(const double* path, const std::uint32_t* pair_i,
                                                        const std::uint32_t* pair_j, const double* apart_until,
                                                        double strain, std::uint32_t n, double* keep) {
 #pragma omp simd
@@ -260,7 +263,8 @@ inline void clear_block_resultants(Particles& p, const PairList& pairs, std::siz
 // ellipsoid by Perram-Wertheim, skipped while provably apart. The pairs to test are taken a batch
 // at a time: the ellipsoid pairs' narrow phase runs on the whole batch at once (EllipsoidContactBatch),
 // then the law runs on the contacts in pair order (the order of the sums, as one pair at a time).
-ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std::size_t b) {
+template <class Law>
+ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(p, pairs, b);
@@ -268,9 +272,10 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
   EllipsoidContactBatch batch;
   int lane[capacity];  // the pair's lane in the batch, -1 for two spheres
   Vec3 branch[capacity];
-  ContactLanes contacts;
+  ContactLanes<Law> contacts;
+  constexpr int width = ContactLanes<Law>::width;
   // One flat loop over the block's pairs, summing into p.force[i] directly (a loop per particle,
-  // ~2-4 pairs each, mispredicts its exit: the sphere contact stage measured 7 % slower).
+  // ~2-4 pairs each, mispredicts its exit).
   const std::uint32_t k1 = pairs.first_i[pairs.block_first[b + 1]];
   // The skip scan's data in locals: through the references GCC reloaded every pointer and
   // recomputed the bound's strain term for every pair. Without skip_apart the motion bounds and
@@ -309,7 +314,8 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
         const bool spheres = p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere;
         branch[m] = branch_vector(in.cell, p.s[i], p.s[j], pairs.image[kt]);
         lane[m] = spheres ? -1 : batch.add(branch[m], in.shapes[i], in.shapes[j], pairs.pw_lambda[kt]);
-        __builtin_prefetch(&pairs.shear[kt], 1);  // the law's history: the listed pairs' overflow L2
+        // The law's history: the listed pairs' overflow L2.
+        __builtin_prefetch(pairs.history.values.data() + width * kt, 1);
       }
       acc.narrow_tests += nt;
       // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
@@ -341,16 +347,16 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
           }
         }
         if (!touching) {
-          mark_apart(pairs, kt);
+          mark_apart<Law>(pairs, kt);
           continue;
         }
         contacts.set_geometry(contacts.add(in, p, pairs, kt, i, j, l), g);
-        if (contacts.size == ContactLanes::capacity) flush_contacts(in, contacts, p, pairs, acc);
+        if (contacts.size == ContactLanes<Law>::capacity) flush_contacts(in, contacts, p, pairs, acc);
       }
     }
   }
   flush_contacts(in, contacts, p, pairs, acc);
-  group_contacts_by_owner(in, pairs, acc, b);
+  group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
   return acc;
 }
 
@@ -358,7 +364,7 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
 // as branch_vector gives it) and reach r = r_i + r_j: |l|, touching (1: |l|^2 < r^2, else 0), and
 // for an apart pair the motion `moved` + gap (|l| - r, less a margin for its round-off) below which
 // it is not tested again (-1: tested at the next step).
-[[gnu::target_clones("avx2", "default")]] void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
+QSDEM_CLONES void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
                                                             const double* reach, std::uint32_t n, double moved,
                                                             double* distance, double* touch, double* until) {
 #pragma omp simd
@@ -381,14 +387,16 @@ ForceBlock force_block(const ForceInputs& in, Particles& p, PairList& pairs, std
 // A pair proved apart is skipped, on one sequential read, while the motion of any two particles
 // since then (NeighborState::moved_any) is below its gap. The others go through a first pass over
 // a chunk that tests them without a branch on the outcome; a second runs the law on the touching.
-ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pairs, std::size_t b) {
+template <class Law>
+ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(p, pairs, b);
   constexpr std::uint32_t chunk = 128;
   std::uint32_t tested[chunk], touching[chunk];
   alignas(64) double lx[chunk], ly[chunk], lz[chunk], reach[chunk], distance[chunk], touch[chunk], until[chunk];
-  ContactLanes contacts;
+  ContactLanes<Law> contacts;
+  constexpr int width = ContactLanes<Law>::width;
   const std::uint32_t k0 = pairs.first_i[pairs.block_first[b]], k1 = pairs.first_i[pairs.block_first[b + 1]];
   const bool overlap_known = pairs.overlap_known;
   const double moved = in.skip_apart ? in.ns.moved_any() : 0;
@@ -420,72 +428,50 @@ ForceBlock sphere_force_block(const ForceInputs& in, Particles& p, PairList& pai
       nt += t ? 1 : 0;
       // The law's history, for a contact (a select, not a branch: t mispredicts); the contacts are
       // every ~9th listed pair, too sparse for the hardware prefetcher.
-      __builtin_prefetch(&pairs.shear[t ? k : c0], 1);
+      __builtin_prefetch(pairs.history.values.data() + width * (t ? k : c0), 1);
       // An apart pair is written only when it was a contact (rare, so well predicted; `&`, not
-      // `&&`: a branch on t itself mispredicts, and cost this stage 11 %).
+      // `&&`: a branch on t itself mispredicts).
       const bool lost = (!t) & ((pairs.overlap[k] != 0) | !overlap_known);
-      if (lost) mark_apart(pairs, k);
+      if (lost) mark_apart<Law>(pairs, k);
       if (in.skip_apart) pairs.apart_until[k] = until[m];
     }
     for (std::uint32_t n = 0; n < nt; ++n) {
       const std::uint32_t m = touching[n], k = tested[m], i = pairs.i[k], j = pairs.j[k];
       const double ri = p.bound_radius[i], rj = p.bound_radius[j];
       if (!(ri + rj - distance[m] > 0)) {  // sphere_sphere's overlap
-        mark_apart(pairs, k);  // |l| rounded to r_i + r_j: not a contact
+        mark_apart<Law>(pairs, k);  // |l| rounded to r_i + r_j: not a contact
         continue;
       }
       contacts.set_spheres(contacts.add(in, p, pairs, k, i, j, Vec3(lx[m], ly[m], lz[m])), distance[m], ri, rj);
-      if (contacts.size == ContactLanes::capacity) flush_sphere_contacts(in, contacts, p, pairs, acc);
+      if (contacts.size == ContactLanes<Law>::capacity) flush_sphere_contacts(in, contacts, p, pairs, acc);
     }
   }
   flush_sphere_contacts(in, contacts, p, pairs, acc);
-  group_contacts_by_owner(in, pairs, acc, b);
+  group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
   return acc;
 }
 
-// Cuts the blocks into contiguous ranges of equal cost for the threads (State::block_cut): the
-// blocks' smoothed times of the last steps when `timed`, else (right after a list build) their
-// pair counts.
-void share_blocks(State& state, int nthreads, bool timed) {
-  const PairList& pairs = state.pairs;
-  const std::size_t nblocks = state.blocks.size();
-  std::vector<std::size_t>& cut = state.block_cut;
-  cut.assign(static_cast<std::size_t>(nthreads) + 1, nblocks);
-  cut[0] = 0;
-  if (nthreads == 1) return;
-  const auto cost = [&](std::size_t b) {
-    return timed ? state.blocks[b].weight
-                 : static_cast<double>(pairs.first_i[pairs.block_first[b + 1]] - pairs.first_i[pairs.block_first[b]]);
-  };
-  double total = 0;
-  for (std::size_t b = 0; b < nblocks; ++b) total += cost(b);
-  double before = 0;  // cost of blocks [0, b)
-  int t = 1;
-  for (std::size_t b = 0; b < nblocks && t < nthreads; ++b) {
-    const double c = cost(b);
-    while (t < nthreads && before + 0.5 * c >= total * t / nthreads) cut[t++] = b;  // b's middle is past the share
-    before += c;
-  }
-}
-
-// Adds this step's mean and largest thread time in the force stage to the timers (balance).
-void record_thread_balance(State& state) {
-  double busiest = 0, sum = 0;
-  for (const double busy : state.thread_busy) {
-    busiest = std::max(busiest, busy);
-    sum += busy;
-  }
-  state.timers.force_thread_mean += sum / static_cast<double>(state.thread_busy.size());
-  state.timers.force_thread_max += busiest;
+// The blocks of the force stage with the law: the pair driver instantiated on it.
+template <class Law>
+void run_force_blocks(const ForceInputs<Law>& in, State& state, std::size_t nblocks, int nthreads, bool all_spheres) {
+  adopt_history(state.pairs, Law::history);
+  Particles& p = state.particles;
+  PairList& pairs = state.pairs;
+  Schedule& schedule = in.schedule;
+  run_blocks(schedule, nblocks, nthreads, [&](std::size_t b) {
+    const double t0 = omp_get_wtime();
+    state.blocks[b] = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
+    const double seconds = omp_get_wtime() - t0;
+    record_block_time(schedule, b, seconds);
+    return seconds;
+  });
 }
 
 }  // namespace
 
-void compute_contact_forces(const Model& model, State& state) {
+void compute_contact_forces(const Model& model, State& state, Schedule& schedule) {
   Particles& p = state.particles;
   PairList& pairs = state.pairs;
-  const HertzMindlin law{model.material.effective_modulus(), model.material.effective_shear_modulus(),
-                         model.friction};
   const std::size_t np = pairs.size();
   const std::size_t n = p.size();
   const std::size_t nblocks = pairs.block_first.size() - 1;
@@ -513,73 +499,33 @@ void compute_contact_forces(const Model& model, State& state) {
   // Each block owns whole particles as the i end of their pairs (sorted by i): it writes their
   // i-side resultants itself; gather_resultants adds the j ends. Which thread runs a block changes
   // no result. Each thread starts with a contiguous range of blocks, so it keeps the same particles
-  // (and their data in its cache) from step to step (dynamic scheduling was measured slower on
-  // spheres: 2 threads, contact stage 484 vs 413 us/step), cut where the blocks' smoothed times of
-  // the last steps are equal (with an equal number of blocks the slowest thread took 1.06-1.20x the
-  // mean: blocks differ in contacts and narrow tests). Right after a list build pair counts stand
-  // in. What the cut misses, the threads share at the ranges' ends (below).
+  // (a thread keeps its particles' data in its cache) from step to step, cut where the blocks'
+  // smoothed times of the last steps are equal (blocks differ in contacts and narrow tests). Right after a list build pair counts stand
+  // in. What the cut misses, the threads share at the ranges' ends (run_blocks).
   const int nthreads = np > parallel_threshold ? omp_get_max_threads() : 1;
-  const bool timed = state.blocks_build == state.neighbor.builds;  // the same blocks as last step
-  share_blocks(state, nthreads, timed);
-  const std::vector<std::size_t>& cut = state.block_cut;
+  share_blocks(schedule, pairs, ns.builds, nthreads);
   // The update region's particle ranges (step.cpp), fixed here so that each block can group its
-  // contacts by the thread that owns their j end: with as many threads as this stage, a thread
-  // owns the particles of its blocks (their i-side sums are in its cache); else an even split.
+  // contacts by the thread that owns their j end.
   const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
-  state.owner_first.resize(owners + 1);
-  for (std::size_t t = 0; t <= owners; ++t)
-    state.owner_first[t] = t == 0        ? 0
-                           : t == owners ? n
-                           : owners == static_cast<std::size_t>(nthreads)
-                               ? std::min<std::size_t>(n, pairs.block_first[cut[t]])
-                               : n * t / owners;
-  state.contact_owner_first.resize(nblocks * (owners + 1));
-  const ForceInputs in{law,
-                       model.dt,
-                       state.cell,
-                       state.shapes.data(),
-                       ns,
-                       model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np,
-                       state.owner_first,
-                       state.contact_owner_first.data()};
-  // A thread done with its own range takes the blocks left at the end of the others' ranges, one
-  // at a time, from the back: the owner works from the front, so the two meet where the range's
-  // work is shared as it happens (the smoothed cut misses by the noise of the last steps; measured
-  // balance 0.87-0.93 with the cut alone). A block is claimed once, by an atomic exchange of its
-  // flag; the owner stops at the first block a thief has claimed, and a thief at the first one
-  // claimed by anyone, so each range is a prefix of its owner's and a suffix of one thief's.
-  state.block_claimed.assign(nblocks, 0);
-  state.thread_busy.assign(static_cast<std::size_t>(nthreads), 0.0);
-  const auto claim = [&](std::size_t b) {
-    return std::atomic_ref<std::uint8_t>(state.block_claimed[b]).exchange(1, std::memory_order_relaxed) == 0;
-  };
-  const auto run_block = [&](std::size_t b) {
-    const double t0 = omp_get_wtime();
-    ForceBlock fb = all_spheres ? sphere_force_block(in, p, pairs, b) : force_block(in, p, pairs, b);
-    fb.seconds = omp_get_wtime() - t0;
-    // Smoothed: one step's times carry the machine's noise (measured balance 0.88-0.94 with them).
-    fb.weight = timed ? 0.8 * state.blocks[b].weight + 0.2 * fb.seconds : fb.seconds;
-    state.blocks[b] = fb;
-    return fb.seconds;
-  };
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
-  {
-    const int team = omp_get_num_threads(), me = omp_get_thread_num();
-    double busy = 0;
-    for (int r = me; r < nthreads; r += team)
-      for (std::size_t b = cut[r]; b < cut[r + 1] && claim(b); ++b) busy += run_block(b);
-    for (int d = 1; d < nthreads; ++d) {
-      const int r = (me + d) % nthreads;
-      for (std::size_t b = cut[r + 1]; b-- > cut[r] && claim(b);) busy += run_block(b);
-    }
-    state.thread_busy[static_cast<std::size_t>(me)] = busy;
-  }
-  state.blocks_build = state.neighbor.builds;
+  assign_owners(schedule, pairs, n, owners, nthreads);
+  const bool skip_apart = model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np;
+  // The law of the phase, chosen here once for the whole stage.
+  const ContactLaw contact_law = make_contact_law({model.material.effective_modulus(),
+                                                   model.material.effective_shear_modulus(), model.friction,
+                                                   model.contact});
+  std::visit(
+      [&]<class Law>(const Law& law) {
+        const ForceInputs<Law> in{law, model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule};
+        run_force_blocks(in, state, nblocks, nthreads, all_spheres);
+      },
+      contact_law);
+  schedule.timed_build = ns.builds;
+  state.contacts_build = ns.builds;
   pairs.overlap_known = true;
-  if (nthreads > 1) record_thread_balance(state);
+  if (nthreads > 1) record_thread_balance(schedule, state.timers);
 
   Mat3 sum = Mat3::Zero();
-  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero();
+  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero(), viscosity = Vec3::Zero(), shear_viscosity = Vec3::Zero();
   state.max_overlap = 0;
   state.narrow_tests = 0;
   state.pw_iterations = 0;
@@ -587,6 +533,8 @@ void compute_contact_forces(const Model& model, State& state) {
     sum += b.stress_sum;
     stiff += b.stiffness_sum;
     shear_stiff += b.shear_stiffness_sum;
+    viscosity += b.viscosity_sum;
+    shear_viscosity += b.shear_viscosity_sum;
     state.narrow_tests += b.narrow_tests;
     state.pw_iterations += b.pw_iterations;
     if (b.max_overlap > state.max_overlap) {
@@ -599,13 +547,16 @@ void compute_contact_forces(const Model& model, State& state) {
   state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive
   state.affine_stiffness = stiff / v;
   state.shear_stiffness = shear_stiff / v;
+  state.affine_viscosity = viscosity / v;
+  state.shear_viscosity = shear_viscosity / v;
   state.stress_volume = v;
   state.stress_h = cell.h;
 }
 
-void gather_resultants(const PairList& pairs, std::span<const std::uint32_t> contact_owner_first, std::size_t owners,
-                       Particles& p, std::size_t t) {
-  constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache (measured)
+void gather_resultants(const PairList& pairs, const Schedule& schedule, Particles& p, std::size_t t) {
+  const std::size_t owners = schedule.owners();
+  const std::vector<std::uint32_t>& contact_owner_first = schedule.contact_owner_first;
+  constexpr std::uint32_t ahead = 16;  // contacts: the loads below miss the cache
   // Through local pointers (integrate_velocities says why).
   const std::uint32_t* const contact_j = pairs.contact_j.data();
   const Vec3* const contact_force = pairs.contact_force.data();
@@ -630,7 +581,7 @@ std::vector<Vec3> contact_forces_by_pair(const State& state) {
   const PairList& pairs = state.pairs;
   std::vector<Vec3> by_pair(pairs.size(), Vec3::Zero());
   // The contact slots are those of the last force evaluation: on a list built since, they are stale.
-  if (!state.blocks.empty() && state.blocks_build != state.neighbor.builds)
+  if (!state.blocks.empty() && state.contacts_build != state.neighbor.builds)
     throw std::logic_error("contact_forces_by_pair: the pair list changed since the last force evaluation");
   for (const ForceBlock& b : state.blocks)
     for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m)
@@ -638,18 +589,17 @@ std::vector<Vec3> contact_forces_by_pair(const State& state) {
   return by_pair;
 }
 
-void gather_resultants(State& state) {
+void gather_resultants(State& state, const Schedule& schedule) {
   // Adds the j ends of the contacts to the i-side sums the force stage wrote, in pair order (so
-  // for any thread count): each owner of a range of particles (State::owner_first) reads the
+  // for any thread count): each owner of a range of particles (Schedule::owner_first) reads the
   // contacts the force stage grouped for it, which costs less than reading every pair's overlap
-  // through the j incidence (measured, spheres-A: gather 97 -> 32 us/step, 1 thread).
-  const int owners = static_cast<int>(state.owner_first.size()) - 1;
+  // through the j incidence.
+  const int owners = static_cast<int>(schedule.owners());
 #pragma omp parallel num_threads(owners) if (owners > 1)
   {
     const int team = omp_get_num_threads();
     for (int t = omp_get_thread_num(); t < owners; t += team)
-      gather_resultants(state.pairs, state.contact_owner_first, static_cast<std::size_t>(owners), state.particles,
-                        static_cast<std::size_t>(t));
+      gather_resultants(state.pairs, schedule, state.particles, static_cast<std::size_t>(t));
   }
 }
 

@@ -4,17 +4,21 @@
 #include <cmath>
 #include <cstdint>
 
+#include "qsdem/clones.hpp"
+
 namespace qsdem {
 
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
   const double dt = model.dt;
   hi = std::min(hi, p.size());
   double v2max = 0;
-  double damping = 0;  // the factors of the last damping seen (one value in most runs)
-  DampedKick kick(damping, dt);
+  // The factors of the last damping seen, for translation and rotation (one value each in most runs).
+  double damping = 0, damping_rot = 0;
+  DampedKick kick(damping, dt), kick_rot(damping_rot, dt);
   // The arrays through local pointers: through p, each store made GCC load the next array's
   // address again (it cannot tell that a Vec3 store leaves p's vectors alone).
-  const double* const damping_of = p.damping.data();
+  const double* const damping_of = p.damping_translation.data();
+  const double* const damping_rot_of = p.damping_rotation.data();
   const double* const inv_mass = p.inv_mass.data();
   const Vec3* const inv_inertia = p.inv_inertia.data();
   const Vec3* const force = p.force.data();
@@ -24,12 +28,13 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
   Vec3* const angmom = p.angmom.data();
   Vec3* const omega = p.omega.data();
   for (std::size_t i = lo; i < hi; ++i) {
-    if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i = B_i (SPEC 6)
+    if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i (SPEC 6)
+    if (damping_rot_of[i] != damping_rot) kick_rot = DampedKick(damping_rot = damping_rot_of[i], dt);  // B_i
     const Vec3 v = kick(vel[i], force[i] * inv_mass[i]);
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    angmom[i] = kick(angmom[i], torque[i]);
+    angmom[i] = kick_rot(angmom[i], torque[i]);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
     if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
@@ -52,13 +57,12 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
 // Measured against Richardson (LAMMPS fix nve/asphere) on a free 3:2:1 ellipsoid
 // (tests/test_rotation.cpp, omega dt = 0.02, 1e5 steps): NO_SQUISH keeps |dE/E| bounded at
 // 2.8e-5 (near the intermediate axis) / 3.7e-7 (near the major axis) where Richardson drifts
-// linearly to 2.5e-4 / 4.4e-6, and its orientation error is 64x / 630x smaller, at ~1.25x the
-// cost (micro-benchmark); the spheroid flow costs about half of NO_SQUISH.
+// linearly to 2.5e-4 / 4.4e-6, and its orientation error is 64x / 630x smaller.
 namespace {
 
 // sin and cos of a half angle. The per-step rotations of a quasi-static run are ~1e-6-1e-3 rad:
 // below 0.05 the Taylor polynomials (to x^7 and x^8) are within 3e-16 relative of libm and
-// ~4x cheaper than its sin + cos (micro-benchmark).
+// cheaper than its sin and cos.
 [[gnu::always_inline]] inline void sin_cos_taylor(double x, double& s, double& c) {
   const double x2 = x * x;
   s = x * (1 - x2 * (1.0 / 6) * (1 - x2 * (1.0 / 20) * (1 - x2 * (1.0 / 42))));
@@ -114,8 +118,7 @@ template <int K>
 }
 
 // Free symmetric top, symmetry axis K, inverse moments inv_s (about K) and inv_perp, angular
-// momentum L: the orientation after dt. Divisions are few on purpose: they dominated this
-// function's profile. With `taylor_only` both half angles take the Taylor polynomials and the
+// momentum L: the orientation after dt. Few divisions: they are the slowest operations here. With `taylor_only` both half angles take the Taylor polynomials and the
 // norm its Newton step (no branch, for vector lanes), and `outside` tells when one of them is
 // beyond its range (the caller then runs the lane again without it).
 template <int K, bool taylor_only>
@@ -145,7 +148,7 @@ template <int K, bool taylor_only>
   const QuatParts about_axis{cs, K == 0 ? ss : 0.0, K == 1 ? ss : 0.0, K == 2 ? ss : 0.0};
   const QuatParts r = multiply(multiply(about_l, q), about_axis);
   // |r|^2 = 1 + O(ulps) (unit factors): one Newton step for |r|^-1, 1.5 - |r|^2/2, is exact to
-  // round-off there and needs no square root or division (they led this function's profile).
+  // round-off there and needs no square root or division.
   // (Summed as Eigen sums a 4-vector: (x^2 + z^2) + (y^2 + w^2).)
   const double n2 = (r.x * r.x + r.z * r.z) + (r.y * r.y + r.w * r.w);
   double scale;
@@ -224,7 +227,7 @@ inline void turn_lane(int k, TurnLanes& t, int a, double dt) {
 // All lanes at once, by the Taylor polynomials (several lanes per vector instruction: a lone
 // spheroid's turn is one long chain of dependent operations). Built for AVX2 and the x86-64
 // baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
-[[gnu::target_clones("avx2", "default")]] void turn_lanes(int k, TurnLanes& t, double dt) {
+QSDEM_CLONES void turn_lanes(int k, TurnLanes& t, double dt) {
   if (k == 0) {
 #pragma omp simd
     for (int a = 0; a < t.size; ++a) turn_lane<0, true>(t, a, dt);

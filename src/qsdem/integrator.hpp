@@ -11,7 +11,7 @@ namespace qsdem {
 
 // Central-difference velocity update with viscous damping factor A (paper Eq. 10):
 //   v(t+dt/2) = [(1 - A dt/2) v(t-dt/2) + dt F/m] / (1 + A dt/2) = keep v + gain F/m,
-// the two factors computed once (divisions dominated the kick's profile).
+// the two factors computed once (no division per particle).
 struct DampedKick {
   double keep, gain;
   DampedKick(double a, double dt) {
@@ -26,7 +26,8 @@ inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, do
   return DampedKick(a, dt)(v, force_over_mass);
 }
 
-// Velocities and angular momenta to t + dt/2 (SPEC 5); angular velocity from the body inertia.
+// Velocities and angular momenta to t + dt/2 (SPEC 5) with the damping stage's factors
+// (Particles::damping_translation, damping_rotation); angular velocity from the body inertia.
 // Particles [lo, hi), on the calling thread (the step runs it on each thread's range, step.cpp).
 // Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX);

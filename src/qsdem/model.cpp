@@ -4,35 +4,12 @@
 #include <cmath>
 #include <limits>
 
-#include <fmt/format.h>
-
 namespace qsdem {
 
 double Material::wave_speed() const { return std::sqrt(young_modulus / density); }
 
 double critical_time(const Material& mat, double r_min) {
   return 2 * r_min * std::sqrt(mat.density / mat.young_modulus);
-}
-
-double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat) {
-  switch (model) {
-    case DampingModel::none: return 0.0;
-    case DampingModel::od: return 2 * xi0 * mat.wave_speed() / r_min;   // Eq. 15
-    case DampingModel::nd: return 2 * xi0 * mat.wave_speed() / radius;  // Eq. 19
-  }
-  return 0.0;
-}
-
-void assign_damping(const Model& model, Particles& p) {
-  for (std::size_t i = 0; i < p.size(); ++i) {
-    p.damping[i] = damping_factor(model.damping, model.damping_ratio, p.equiv_radius[i], model.r_min,
-                                  model.material);
-    // Eq. 10 needs 1 - A dt/2 > 0, otherwise the update reverses the velocity every step.
-    if (p.damping[i] * model.dt >= 2)
-      throw InputError(fmt::format("damping ratio {:.4g} gives A_i dt / 2 = {:.3g} >= 1 for the time step (paper Eq. 10 "
-                                   "reverses velocities): lower the damping ratio or time.step_ratio",
-                                   model.damping_ratio, 0.5 * p.damping[i] * model.dt));
-  }
 }
 
 double smallest_equiv_radius(const Particles& p) {

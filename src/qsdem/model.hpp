@@ -38,12 +38,14 @@ struct Servo {
 
 struct Model {
   Material material;
+  ContactSettings contact;      // the contact law and its keys (contact/laws.hpp)
   double friction = 0.5;        // Coulomb mu
   double r_min = 0;             // equal-volume radius of the smallest particle (m)
   double critical_time = 0;     // t_c = 2 R_min sqrt(rho/E), SPEC 5
   double dt = 0;                // c_t t_c
-  DampingModel damping = DampingModel::none;
+  DampingModel damping = DampingModel::none;  // the damping stage's model (damping.hpp)
   double damping_ratio = 0;     // xi_0
+  DampedMotion damping_acts_on = DampedMotion::both;
   std::array<AxisControl, 3> control{};        // the normal components 11, 22, 33
   std::array<AxisControl, 3> shear_control{};  // the shear components 12, 13, 23
   Servo servo;
@@ -56,13 +58,6 @@ struct Model {
 
 // t_c = 2 R_min sqrt(rho / E) (SPEC 5, paper section 4).
 double critical_time(const Material& mat, double r_min);
-
-// A_i = B_i of SPEC 6: 0 (none), 2 xi0 omega_max (od, paper Eq. 15), 2 xi0 omega#_i (nd, Eq. 19)
-// with omega#_i = sqrt(E/rho) / R_i (paper Eq. 17).
-double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat);
-
-// Fills particles.damping for the model's damping law.
-void assign_damping(const Model& model, Particles& particles);
 
 double smallest_equiv_radius(const Particles& particles);
 

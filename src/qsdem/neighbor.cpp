@@ -128,22 +128,28 @@ void build_incidence(PairList& pairs, std::size_t n) {
   if (pairs.block_first.back() != n) pairs.block_first.push_back(static_cast<std::uint32_t>(n));
 }
 
-void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
-  check_cell_size(p, cell, skin);
-  const std::size_t n = p.size();
-  const Vec3 w = cell.widths();
+namespace {
 
-  // Wrapped fractional positions and their integer offsets: s = s_wrapped + wrap.
-  std::vector<Vec3> sw(n);
-  std::vector<Vec3i> wrap(n);
+// Fractional positions wrapped into [0, 1)^3 and their integer offsets: s = wrapped + wrap.
+struct WrappedPositions {
+  std::vector<Vec3> s;
+  std::vector<Vec3i> wrap;
+};
+WrappedPositions wrap_positions(const Particles& p) {
+  const std::size_t n = p.size();
+  WrappedPositions w{std::vector<Vec3>(n), std::vector<Vec3i>(n)};
   for (std::size_t i = 0; i < n; ++i) {
     const Vec3 f = p.s[i].array().floor();
-    wrap[i] = f.cast<int>();
-    sw[i] = p.s[i] - f;
+    w.wrap[i] = f.cast<int>();
+    w.s[i] = p.s[i] - f;
   }
+  return w;
+}
 
-  std::vector<double> class_rmax;
-  const std::vector<int> cls = size_classes(p, class_rmax);
+// One grid per size class (size_classes), bins at least 2 r_max + skin wide.
+std::vector<Grid> make_grids(const Particles& p, const std::vector<Vec3>& sw, const std::vector<int>& cls,
+                             const std::vector<double>& class_rmax, const Vec3& w, double skin) {
+  const std::size_t n = p.size();
   const int nclass = static_cast<int>(class_rmax.size());
   std::vector<Grid> grids(nclass);
   std::vector<Eigen::Vector3i> bin_of(n);
@@ -166,12 +172,20 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
     for (std::size_t i = 0; i < n; ++i)
       if (cls[i] == c) g.members[fill[g.bin_index(bin_of[i])]++] = static_cast<std::uint32_t>(i);
   }
+  return grids;
+}
 
-  // Each particle searches its own class (partners of higher index) and every smaller class, so
-  // that each pair is found once, from the side of the larger particle.
+// Every pair whose bounding spheres are closer than the skin, sorted by key. Each particle searches
+// its own class (partners of higher index) and every smaller class, so that each pair is found
+// once, from the side of the larger particle. `checked` counts the distances computed.
+std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, double skin, const WrappedPositions& wp,
+                                       const std::vector<int>& cls, const std::vector<Grid>& grids, long& checked) {
+  const std::size_t n = p.size();
+  const Vec3 w = cell.widths();
+  const std::vector<Vec3>& sw = wp.s;
   std::vector<std::vector<Candidate>> found(static_cast<std::size_t>(omp_get_max_threads()));
-  long checked = 0;
-#pragma omp parallel if (n > parallel_threshold) reduction(+ : checked)
+  long count = 0;
+#pragma omp parallel if (n > parallel_threshold) reduction(+ : count)
   {
     auto& out = found[static_cast<std::size_t>(omp_get_thread_num())];
 #pragma omp for schedule(dynamic, 256)
@@ -198,11 +212,11 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
               for (std::uint32_t m = g.start[b]; m < g.start[b + 1]; ++m) {
                 const std::uint32_t j = g.members[m];
                 if (c == cls[i] && j <= i) continue;
-                ++checked;
+                ++count;
                 const Vec3 l = cell.h * (sw[j] + img.cast<double>() - sw[i]);
                 const double cut = ri + p.bound_radius[j] + skin;
                 if (l.squaredNorm() >= cut * cut) continue;
-                const Vec3i k = img + wrap[i] - wrap[j];  // image in unwrapped coordinates
+                const Vec3i k = img + wp.wrap[i] - wp.wrap[j];  // image in unwrapped coordinates
                 if (i < j)
                   out.push_back({static_cast<std::uint32_t>(i), j, k});
                 else
@@ -212,22 +226,31 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
       }
     }
   }
+  checked = count;
   std::vector<Candidate> all;
   for (auto& f : found) all.insert(all.end(), f.begin(), f.end());
   std::sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {
     return key_less(a.i, a.j, a.image, b.i, b.j, b.image);
   });
+  return all;
+}
 
-  // New list; history copied from the old list where the key matches (both sorted).
+// The list of the candidates (sorted by key), with the history of the pairs that `pairs` lists
+// under the same key (both sorted): each per-pair array of the registry copied for those pairs
+// when it is kept, else released.
+PairList list_with_history(const std::vector<Candidate>& all, const PairList& pairs) {
   PairList next;
   const std::size_t np = all.size();
   next.i.resize(np);
   next.j.resize(np);
   next.image.resize(np);
-  next.shear.assign(np, Vec3::Zero());
-  next.pw_lambda.assign(np, -1.0);
-  next.apart_until.assign(np, -1.0);  // the motion bounds restart at this build: test every pair
-  next.overlap.assign(np, 0.0);
+  next.history.layout = pairs.history.layout;
+  for_each_pair_field([&](const HistoryLayout& layout, PairField, std::vector<double>& values) {
+    values = released_values(layout, np);
+  }, next);
+  // The old pair of each new pair that was listed before (or none).
+  constexpr std::size_t none = SIZE_MAX;
+  std::vector<std::size_t> before(np, none);
   std::size_t o = 0;
   for (std::size_t k = 0; k < np; ++k) {
     const Candidate& c = all[k];
@@ -235,15 +258,47 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
     next.j[k] = c.j;
     next.image[k] = c.image;
     while (o < pairs.size() && key_less(pairs.i[o], pairs.j[o], pairs.image[o], c.i, c.j, c.image)) ++o;
-    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) {
-      next.shear[k] = pairs.shear[o];
-      next.pw_lambda[k] = pairs.pw_lambda[o];
-      next.overlap[k] = pairs.overlap[o];
-    }
+    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) before[k] = o;
   }
-
+  for_each_pair_field(
+      [&](const HistoryLayout& layout, PairField field, std::vector<double>& values, const std::vector<double>& old) {
+        const std::size_t w = static_cast<std::size_t>(layout.width);
+        if (!field.kept || old.size() != pairs.size() * w) return;  // not sized on the old list: none to keep
+        for (std::size_t k = 0; k < np; ++k)
+          if (before[k] != none) std::copy_n(old.data() + w * before[k], w, values.data() + w * k);
+      },
+      next, pairs);
   next.overlap_known = pairs.overlap_known && pairs.overlap.size() == pairs.size();
-  build_incidence(next, n);
+  return next;
+}
+
+}  // namespace
+
+std::vector<double> released_values(const HistoryLayout& layout, std::size_t np) {
+  const std::size_t w = static_cast<std::size_t>(layout.width);
+  std::vector<double> values(w * np);
+  for (std::size_t k = 0; k < np; ++k) std::copy_n(layout.released.begin(), w, values.begin() + w * k);
+  return values;
+}
+
+void adopt_history(PairList& pairs, const HistoryLayout& layout) {
+  PairHistory& h = pairs.history;
+  const bool same = h.layout->name == layout.name && h.layout->width == layout.width;
+  if (!same || h.values.size() != pairs.size() * static_cast<std::size_t>(layout.width))
+    h.values = released_values(layout, pairs.size());
+  h.layout = &layout;
+}
+
+void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
+  check_cell_size(p, cell, skin);
+  const WrappedPositions wp = wrap_positions(p);
+  std::vector<double> class_rmax;
+  const std::vector<int> cls = size_classes(p, class_rmax);
+  const std::vector<Grid> grids = make_grids(p, wp.s, cls, class_rmax, cell.widths(), skin);
+  long checked = 0;
+  const std::vector<Candidate> all = find_candidates(p, cell, skin, wp, cls, grids, checked);
+  PairList next = list_with_history(all, pairs);
+  build_incidence(next, p.size());
   pairs = std::move(next);
 
   ns.s_at_build = p.s;

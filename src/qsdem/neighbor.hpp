@@ -4,22 +4,44 @@
 // terms of the unwrapped fractional coordinates, so a physical contact keeps its key for ever
 // and its tangential history survives every rebuild.
 #pragma once
+#include <concepts>
 #include <cstdint>
+#include <span>
+#include <type_traits>
 #include <vector>
 
 #include "qsdem/cell.hpp"
+#include "qsdem/contact/law.hpp"
 #include "qsdem/particles.hpp"
 
 namespace qsdem {
 
 inline constexpr std::size_t pairs_per_block = 1024;  // force stage work unit (PairList::block_first)
 
+// The per-pair arrays that are not the contact law's (the pair registry, for_each_pair_field).
+inline constexpr HistoryLayout no_history{"", 0, {}, {}};  // before a law has run on the list
+inline constexpr HistoryLayout pw_lambda_layout{"pw_lambda", 1, {-1}, {OnSwap::mirror_unit}};
+inline constexpr HistoryLayout apart_until_layout{"apart_until", 1, {-1}, {OnSwap::keep}};
+inline constexpr HistoryLayout overlap_layout{"overlap", 1, {0}, {OnSwap::keep}};
+
+// The contact law's history of every listed pair (contact/law.hpp): layout->width doubles per
+// pair, pair k's at values[width k]. The law of the force stage adopts it (adopt_history).
+struct PairHistory {
+  const HistoryLayout* layout = &no_history;
+  std::vector<double> values;
+
+  std::span<double> of(std::size_t k) { return {values.data() + layout->width * k, std::size_t(layout->width)}; }
+  std::span<const double> of(std::size_t k) const {
+    return {values.data() + layout->width * k, std::size_t(layout->width)};
+  }
+};
+
 struct PairList {
   // Key, sorted lexicographically by (i, j, image).
   std::vector<std::uint32_t> i, j;
   std::vector<Vec3i> image;
   // History carried across steps and rebuilds.
-  std::vector<Vec3> shear;         // tangential force on j (N), SPEC 4
+  PairHistory history;             // the contact law's (SPEC 4: the tangential force on j)
   std::vector<double> pw_lambda;   // Perram-Wertheim warm start (ellipsoids)
   // Pairs proved apart are not tested again while they provably stay apart (ellipsoid pairs): the
   // pair is skipped while NeighborState::moved(i, j) < apart_until (see there). -1: test it.
@@ -27,7 +49,7 @@ struct PairList {
   // Result of the last force evaluation (at time t); the forces are kept by contact (below).
   std::vector<double> overlap;     // delta (m) > 0 when the pair is a contact, 0 when apart
   // overlap is that of the last force evaluation, so a pair with overlap 0 has no tangential
-  // history. False until a force evaluation has run on this list (a checkpoint restores shear,
+  // history. False until a force evaluation has run on this list (a checkpoint restores history,
   // not overlap): then every apart pair's history is checked.
   bool overlap_known = false;
   // The contacts of the last force evaluation, block by block (slots from the block's first pair
@@ -46,6 +68,34 @@ struct PairList {
 
   std::size_t size() const { return i.size(); }
 };
+
+// What the pair registry tells about a per-pair array besides its layout.
+struct PairField {
+  bool kept;                   // build_pairs copies it for a pair listed before (else: released)
+  std::uint32_t saved_since;  // checkpoint format from which the checkpoint saves it; 0: never
+};
+
+// The pair registry: f(layout, field, values...) for every per-pair array that lives as long as
+// the pair is listed (the key i, j, image aside), with the array of each of the lists given (one
+// or more; the history's layout is the first list's), layout.width doubles per pair, in the
+// checkpoint's order. build_pairs, sort_particles (permutation and swap rules), the checkpoint and
+// the memory accounting go through it. An array not sized for its list (size() * width) is left
+// alone.
+template <class F, class First, class... Lists>
+  requires std::same_as<std::remove_const_t<First>, PairList>
+void for_each_pair_field(F&& f, First& first, Lists&... lists) {
+  f(*first.history.layout, PairField{true, 1}, first.history.values, lists.history.values...);
+  f(pw_lambda_layout, PairField{true, 1}, first.pw_lambda, lists.pw_lambda...);
+  f(apart_until_layout, PairField{false, 2}, first.apart_until, lists.apart_until...);  // motion bounds restart
+  f(overlap_layout, PairField{true, 0}, first.overlap, lists.overlap...);
+}
+
+// The history of the law about to run: kept when the list holds one of the same name and width
+// (a law that shares it), else every pair's set to the law's released values.
+void adopt_history(PairList& pairs, const HistoryLayout& layout);
+
+// `np` pairs' worth of the layout's released values.
+std::vector<double> released_values(const HistoryLayout& layout, std::size_t np);
 
 struct NeighborState {
   std::vector<Vec3> s_at_build;

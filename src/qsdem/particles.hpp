@@ -1,7 +1,11 @@
 // Particle storage, structure of arrays (SPEC 2). Static properties (shape, mass, inertia,
 // damping factor) and dynamic state live side by side so that a re-sort permutes one object.
+// Every array is listed once more, in for_each_field below: resize, the reorder permutation,
+// the checkpoint and the memory accounting go through that list.
 #pragma once
+#include <concepts>
 #include <cstdint>
+#include <type_traits>
 #include <vector>
 
 #include "qsdem/types.hpp"
@@ -18,8 +22,9 @@ struct Particles {
   std::vector<double> mass;            // kg
   std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2)
   std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
-  std::vector<Vec3> inv_inertia;       // (divisions led the integrator's profile)
-  std::vector<double> damping;         // A_i = B_i (1/s) of the current phase, SPEC 6
+  std::vector<Vec3> inv_inertia;       // (the integrator multiplies instead of dividing)
+  std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping.hpp), SPEC 6
+  std::vector<double> damping_rotation;     // B_i (1/s)
 
   // Dynamic state.
   std::vector<Vec3> s;                 // fractional position h^-1 x, never wrapped (SPEC 3)
@@ -41,6 +46,38 @@ struct Particles {
   void add(std::uint32_t pid, ShapeKind kind, const Vec3& semi_axes, double density,
            const Vec3& frac_pos, const Quat& orientation);
 };
+
+// What the field registry tells about an array of Particles.
+struct ParticleField {
+  const char* name;
+  // Checkpoint format from which the checkpoint saves the array; 0: never (derived from others).
+  std::uint32_t saved_since;
+};
+
+// The field registry: f(array, ParticleField) for every array of Particles, in declaration order
+// (the checkpoint's order). A static_assert in particles.cpp checks that it lists them all.
+template <class P, class F>
+  requires std::same_as<std::remove_const_t<P>, Particles>
+constexpr void for_each_field(P& p, F&& f) {
+  f(p.id, ParticleField{"id", 1});
+  f(p.shape, ParticleField{"shape", 1});
+  f(p.semi_axes, ParticleField{"semi_axes", 1});
+  f(p.bound_radius, ParticleField{"bound_radius", 1});
+  f(p.equiv_radius, ParticleField{"equiv_radius", 1});
+  f(p.mass, ParticleField{"mass", 1});
+  f(p.inertia, ParticleField{"inertia", 1});
+  f(p.inv_mass, ParticleField{"inv_mass", 0});
+  f(p.inv_inertia, ParticleField{"inv_inertia", 0});
+  f(p.damping_translation, ParticleField{"damping_translation", 1});
+  f(p.damping_rotation, ParticleField{"damping_rotation", 0});  // set with the translation's on load
+  f(p.s, ParticleField{"s", 1});
+  f(p.q, ParticleField{"q", 1});
+  f(p.v, ParticleField{"v", 1});
+  f(p.angmom, ParticleField{"angmom", 1});
+  f(p.omega, ParticleField{"omega", 1});
+  f(p.force, ParticleField{"force", 1});
+  f(p.torque, ParticleField{"torque", 1});
+}
 
 // Mass and principal moments of a solid ellipsoid (SPEC 2).
 double ellipsoid_volume(const Vec3& semi_axes);

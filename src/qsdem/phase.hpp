@@ -1,7 +1,7 @@
 // A loading phase as data (SPEC 8): what drives each of the six components of the cell, the
-// phase's friction and particle damping, when it ends, when it takes a sample point and which
-// file the rows go to, and an optional controller that may change the control values during the
-// phase. A run is a list of phases, a Protocol; the case parser writes the default one
+// phase's contact law, friction and particle damping, when it ends, when it takes a sample point
+// and which file the rows go to, and an optional controller that may change the control values
+// during the phase. A run is a list of phases, a Protocol; the case parser writes the default one
 // ([compaction] then [triaxial]) in the same terms as a [[phase]] list (docs/config.md).
 #pragma once
 #include <array>
@@ -45,6 +45,7 @@ struct PhaseControls {
 struct PhaseDamping {
   DampingModel model = DampingModel::nd;
   double ratio = 0.005;  // xi_0
+  DampedMotion acts_on = DampedMotion::both;
 };
 
 // When a phase ends: after the step where the first of the given criteria holds.
@@ -93,6 +94,7 @@ using ControllerFactory = std::function<std::unique_ptr<Controller>()>;
 
 struct Phase {
   std::string name;  // in messages, the progress line, summary.json and a file's phase column
+  ContactSettings contact;  // the contact law and its keys (contact/laws.hpp): the case's [contact]
   double friction = 0.5;
   PhaseDamping damping;
   PhaseControls controls;

@@ -9,6 +9,8 @@
 #include <memory>
 
 #include "qsdem/controller.hpp"
+#include "qsdem/damping.hpp"
+#include "qsdem/schedule.hpp"
 #include "qsdem/step.hpp"
 
 namespace qsdem {
@@ -195,6 +197,7 @@ void BlowUpWatch::check(const State& st, const Params& params, const char* phase
 Model base_model(const Params& params, const Particles& particles) {
   Model m;
   m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
+  m.contact = params.contact;
   m.r_min = smallest_equiv_radius(particles);
   m.critical_time = critical_time(m.material, m.r_min);
   m.dt = params.step_ratio * m.critical_time;
@@ -209,9 +212,11 @@ Model base_model(const Params& params, const Particles& particles) {
 Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
                   const Mat3& h0) {
   Model m = base_model(params, particles);
+  m.contact = phase.contact;
   m.friction = phase.friction;
   m.damping = phase.damping.model;
   m.damping_ratio = phase.damping.ratio;
+  m.damping_acts_on = phase.damping.acts_on;
   double fastest = 0;  // the fastest strain-rate component (1/s)
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = controls.component[static_cast<std::size_t>(c)];
@@ -285,6 +290,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   long end = planned_end(phase, ps, params.step_ratio);
   long sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
   BlowUpWatch watch;
+  Schedule schedule;  // the threads' shares of the step, kept over the phase
   progress.begin(phase.name, end >= 0 ? static_cast<double>(end - steps_at_start) : 0.0);
   const auto limit_reached = [&] { return phase.stop.max_steps > 0 && rec.steps >= phase.stop.max_steps; };
   const auto replan = [&](const PhaseControls& before, long n) {
@@ -295,7 +301,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   bool ended = false;
   while (!ended) {
     const long n = rec.steps;  // the force evaluation of this step
-    step(model, st);
+    step(model, st, schedule);
     watch.check(st, params, name, n);
     ++rec.steps;
     rec.wall_s = wall_before + seconds_since(t0);  // before the hook, which may save a checkpoint

@@ -103,7 +103,7 @@ struct RowSink {
   bool phase_column = false;
 };
 
-// The model of every phase: material, time step, servo gains, skin (SPEC 3, 5).
+// The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).
 Model base_model(const Params& params, const Particles& particles);
 // The model of a phase with the given control values; strain-rate axes measured from h0.
 Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,

@@ -25,6 +25,24 @@ void permute(std::vector<T>& v, const std::vector<std::uint32_t>& order) {
   v.swap(out);
 }
 
+// The same for w values per element.
+void permute(std::vector<double>& v, const std::vector<std::uint32_t>& order, std::size_t w) {
+  std::vector<double> out(v.size());
+  for (std::size_t k = 0; k < order.size(); ++k) std::copy_n(v.data() + w * order[k], w, out.data() + w * k);
+  v.swap(out);
+}
+
+// What exchanging the ends of a pair does to its w values (HistoryLayout::on_swap).
+void swap_ends(const HistoryLayout& layout, double* x) {
+  for (int c = 0; c < layout.width; ++c) switch (layout.on_swap[c]) {
+      case OnSwap::keep: break;
+      case OnSwap::negate: x[c] = -x[c]; break;
+      case OnSwap::mirror_unit:
+        if (x[c] > 0 && x[c] < 1) x[c] = 1 - x[c];
+        break;
+    }
+}
+
 }  // namespace
 
 std::uint32_t morton_key(const Vec3& s) {
@@ -48,29 +66,14 @@ bool sort_particles(State& st) {
   for (std::size_t k = 0; k < n && identity; ++k) identity = order[k] == k;
   if (identity) return false;
 
-  permute(p.id, order);
-  permute(p.shape, order);
-  permute(p.semi_axes, order);
-  permute(p.bound_radius, order);
-  permute(p.equiv_radius, order);
-  permute(p.mass, order);
-  permute(p.inertia, order);
-  permute(p.inv_mass, order);
-  permute(p.inv_inertia, order);
-  permute(p.damping, order);
-  permute(p.s, order);
-  permute(p.q, order);
-  permute(p.v, order);
-  permute(p.angmom, order);
-  permute(p.omega, order);
-  permute(p.force, order);
-  permute(p.torque, order);
+  for_each_field(p, [&](auto& array, ParticleField) { permute(array, order); });
   if (st.neighbor.s_at_build.size() == n) permute(st.neighbor.s_at_build, order);
   if (st.neighbor.surface_path.size() == n) permute(st.neighbor.surface_path, order);
 
-  // Pair keys in the new indices, i < j. Swapping the ends of a pair reverses its image and its
-  // stored tangential force (the force on j becomes the force on the other end), and maps the PW
-  // parameter lambda (weight of j's shape) to 1 - lambda.
+  // Pair keys in the new indices, i < j. Swapping the ends of a pair reverses its image, and
+  // each per-pair array's values as its layout says (the pair registry, neighbor.hpp): e.g. the
+  // stored tangential force on j becomes the force on the other end, and the PW parameter lambda
+  // (weight of j's shape) 1 - lambda.
   std::vector<std::uint32_t> inverse(n);
   for (std::size_t k = 0; k < n; ++k) inverse[order[k]] = static_cast<std::uint32_t>(k);
   PairList& pairs = st.pairs;
@@ -80,9 +83,10 @@ bool sort_particles(State& st) {
     if (i > j) {
       std::swap(i, j);
       pairs.image[k] = -pairs.image[k];
-      pairs.shear[k] = -pairs.shear[k];
-      const double lambda = pairs.pw_lambda[k];
-      if (lambda > 0 && lambda < 1) pairs.pw_lambda[k] = 1 - lambda;
+      for_each_pair_field([&](const HistoryLayout& layout, PairField, std::vector<double>& values) {
+        const std::size_t w = static_cast<std::size_t>(layout.width);
+        if (values.size() == np * w) swap_ends(layout, values.data() + w * k);
+      }, pairs);
     }
     pairs.i[k] = i;
     pairs.j[k] = j;
@@ -97,10 +101,10 @@ bool sort_particles(State& st) {
   permute(pairs.i, by_key);
   permute(pairs.j, by_key);
   permute(pairs.image, by_key);
-  permute(pairs.shear, by_key);
-  permute(pairs.pw_lambda, by_key);
-  if (pairs.apart_until.size() == np) permute(pairs.apart_until, by_key);
-  permute(pairs.overlap, by_key);
+  for_each_pair_field([&](const HistoryLayout& layout, PairField, std::vector<double>& values) {
+    const std::size_t w = static_cast<std::size_t>(layout.width);
+    if (values.size() == np * w) permute(values, by_key, w);
+  }, pairs);
   build_incidence(pairs, n);
   return true;
 }

@@ -8,8 +8,8 @@
 namespace qsdem {
 
 // Permutes every particle array into Morton order and remaps the pair list (keys, orientation,
-// tangential history, PW warm start) to the new indices. Returns false if the order was already
-// right (nothing changed).
+// every per-pair array of the pair registry: contact history, PW warm start, ...) to the new
+// indices. Returns false if the order was already right (nothing changed).
 bool sort_particles(State& state);
 
 // Morton key of a fractional position wrapped into [0, 1)^3, 10 bits per axis.

@@ -37,8 +37,7 @@ nlohmann::json stage_json(const StageTimers& t, long steps) {
 
 // Peak resident set of this process (KiB): VmHWM of /proc/self/status, which starts afresh at
 // exec. getrusage's ru_maxrss does not: Linux carries the larger peak of the process image before
-// exec over, so when launched by a bigger parent (a Python harness: 75 MB measured against 15 MB
-// from a shell) it reported the parent's. getrusage only where /proc is not readable.
+// exec over, so when launched by a bigger parent it reported the parent's. getrusage only where /proc is not readable.
 long peak_rss_kib() {
   if (std::FILE* f = std::fopen("/proc/self/status", "r")) {
     char line[256];
@@ -637,18 +636,21 @@ double kib(const std::vector<T>& v) {
 
 // Heap held by the state's arrays (KiB), by structure: what `peak_rss_kib` is made of besides
 // the binary, its libraries and transient build buffers.
-nlohmann::json memory_kib(const State& st) {
+nlohmann::json memory_kib(const State& st, const Schedule& schedule) {
   const Particles& p = st.particles;
   const PairList& q = st.pairs;
-  const double particles = kib(p.id) + kib(p.shape) + kib(p.semi_axes) + kib(p.bound_radius) + kib(p.equiv_radius) +
-                           kib(p.mass) + kib(p.inertia) + kib(p.inv_mass) + kib(p.inv_inertia) + kib(p.damping) + kib(p.s) + kib(p.q) + kib(p.v) +
-                           kib(p.angmom) + kib(p.omega) + kib(p.force) + kib(p.torque);
-  const double history = kib(q.i) + kib(q.j) + kib(q.image) + kib(q.shear) + kib(q.pw_lambda) + kib(q.apart_until);
-  const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.overlap) + kib(q.contact_pairs) + kib(q.contact_j);
+  double particles = 0;
+  for_each_field(p, [&](const auto& array, ParticleField) { particles += kib(array); });
+  double history = kib(q.i) + kib(q.j) + kib(q.image);
+  for_each_pair_field([&](const HistoryLayout&, PairField, const std::vector<double>& values) { history += kib(values); },
+                      q);
+  const double results = kib(q.contact_force) + kib(q.contact_torque_j) + kib(q.contact_pairs) + kib(q.contact_j);
   const double lists = kib(q.first_i) + kib(q.block_first) +
                        kib(st.neighbor.s_at_build) + kib(st.neighbor.surface_path);
-  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(st.block_cut) + kib(st.block_claimed) +
-                         kib(st.thread_busy) + kib(st.owner_first) + kib(st.contact_owner_first);
+  const Schedule& s = schedule;
+  const double scratch = kib(st.blocks) + kib(st.shapes) + kib(s.block_seconds) + kib(s.block_weight) +
+                         kib(s.block_cut) + kib(s.block_claimed) + kib(s.thread_busy) + kib(s.owner_first) +
+                         kib(s.contact_owner_first);
   return {{"particles", particles},
           {"pair_keys_and_history", history},
           {"pair_results", results},
@@ -752,9 +754,10 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
   const long builds_before = st.neighbor.builds;
   long narrow_tests = 0, pw_iterations = 0, contacts_start = 0;
   double wall = 0;
+  Schedule schedule;
   for (long n = 0; n < steps; ++n) {
     const auto t0 = std::chrono::steady_clock::now();
-    step(model, st);
+    step(model, st, schedule);
     wall += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (n == 0) contacts_start = contact_count(st);  // at the first step's force evaluation
     narrow_tests += st.narrow_tests;
@@ -783,7 +786,7 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
                                       ? nlohmann::json(st.timers.force_thread_mean / st.timers.force_thread_max)
                                       : nlohmann::json(nullptr)},
           {"peak_rss_kib", peak_rss_kib()},
-          {"state_kib", memory_kib(st)},
+          {"state_kib", memory_kib(st, schedule)},
           {"dt_s", model.dt},
           {"density_kg_m3", model.material.density},
           {"young_modulus_Pa", model.material.young_modulus},

@@ -6,6 +6,7 @@
 namespace qsdem {
 
 void servo_update(const Model& model, State& state) {
+  const Mat3& last = state.cell.L;  // the rates of the last step
   Mat3 L = Mat3::Zero();
   for (int k = 0; k < 3; ++k) {
     const AxisControl& c = model.control[static_cast<std::size_t>(k)];
@@ -19,14 +20,15 @@ void servo_update(const Model& model, State& state) {
         const double target = c.value;
         const double err = (target - state.stress(k, k)) / target;
         const double cap = model.servo.max_strain_rate;
-        const double stiff = state.affine_stiffness[k];
+        const double stiff = state.affine_stiffness[k], viscosity = state.affine_viscosity[k];
         double rate;
         if (stiff <= 0) {
           rate = err > 0 ? -cap : cap;  // no contacts: close (or open) the cell at the cap
         } else {
           const double integral = state.servo_integral[k] + err;
-          rate = -(model.servo.proportional_gain * err + model.servo.integral_gain * integral) * target /
-                 (stiff * model.dt);
+          rate = (viscosity * last(k, k) -
+                  (model.servo.proportional_gain * err + model.servo.integral_gain * integral) * target) /
+                 (stiff * model.dt + viscosity);
           if (std::abs(rate) < cap) state.servo_integral[k] = integral;  // anti-windup
           rate = std::clamp(rate, -cap, cap);
         }
@@ -53,11 +55,13 @@ void servo_update(const Model& model, State& state) {
         L(a, b) = c.value;  // simple shear: x_a moves in proportion to x_b
         break;
       case AxisControl::Kind::stress: {
-        const double g = state.shear_stiffness[s];
+        const double g = state.shear_stiffness[s], viscosity = state.shear_viscosity[s];
         if (!jammed || g <= 0) break;
         const double cap = model.servo.max_strain_rate;
-        const double rate =
-            std::clamp(model.servo.proportional_gain * (state.stress(a, b) - c.value) / (g * model.dt), -cap, cap);
+        const double rate = std::clamp((model.servo.proportional_gain * (state.stress(a, b) - c.value) +
+                                        viscosity * last(a, b)) /
+                                           (g * model.dt + viscosity),
+                                       -cap, cap);
         L(a, b) = L(b, a) = rate;
         break;
       }

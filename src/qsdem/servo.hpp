@@ -20,6 +20,13 @@ namespace qsdem {
 // error a constant-rate ramp leaves. This is SPEC 3's L_kk = -g (sigma_t - sigma)/sigma_t with
 // g = beta sigma_t / (C_kk dt), plus the integral term. Without contacts (C_kk = 0) the axis
 // moves at the maximum rate. The integral does not accumulate while the rate is clamped.
+// Contact dashpots (a law with has_dashpots) add a viscous stress -eta_kk L_kk, eta_kk
+// (State::affine_viscosity) the same sum as C_kk with the viscous coefficients: the measured
+// stress holds eta_kk times the last step's rate L'_kk, and the new rate's, so the rate that
+// removes the same fraction of the error is
+//   L_kk = (eta_kk L'_kk - (beta e_k + gamma S_k) sigma_target) / (C_kk dt + eta_kk),
+// the form above for eta_kk = 0. (Left out, eta would make the loop gain beta eta / (C dt),
+// ~2.6 on paper-A-small with e = 0.5: the rate would switch sign at the cap every step.)
 //
 // Shear component ab (12, 13, 23), strain-rate controlled: simple shear L_ab = rate (x_a moves in
 // proportion to x_b; L_ba = 0).
@@ -27,9 +34,10 @@ namespace qsdem {
 // so nothing would relax the shear stress a finite packing locks in while it jams (10-16 % of p
 // measured at 200-8000 particles) or builds while it is sheared. A pure shear rate D_ab = D_ba
 // drives sigma_ab to its target, proportionally:
-//   L_ab = L_ba = beta (sigma_ab - target) / (G_ab dt),   |L_ab| <= max rate,
+//   L_ab = L_ba = (beta (sigma_ab - target) + eta_ab L'_ab) / (G_ab dt + eta_ab),   |L_ab| <= max rate,
 // with G_ab (State::shear_stiffness) the affine stiffness -d sigma_ab / d(D_ab dt) of the contacts:
-//   G_ab = (1/V) sum |l|^2 [2 k_n n_a^2 n_b^2 + k_t ((n_a^2 + n_b^2)/2 - 2 n_a^2 n_b^2)].
+//   G_ab = (1/V) sum |l|^2 [2 k_n n_a^2 n_b^2 + k_t ((n_a^2 + n_b^2)/2 - 2 n_a^2 n_b^2)],
+// and eta_ab (State::shear_viscosity) the same sum of the dashpots' coefficients (0 without).
 // It acts only once every stress-controlled normal stress is within 10 % of its target: in the
 // loose, collisional stage the shear stresses are noise, and chasing them would only tilt the
 // cell. The strain it then takes is small, so the cell stays nearly orthorhombic.

@@ -1,5 +1,6 @@
-// The mutable state of a run (MuJoCo-style data): particles, cell, pairs and what the last step
-// computed, plus the timers of every stage.
+// The mutable state of a run (MuJoCo-style data): particles, cell, pairs and what the last force
+// evaluation computed, plus the timers of every stage. How the threads share the work is not
+// here (schedule.hpp).
 #pragma once
 #include <cstdint>
 #include <vector>
@@ -12,22 +13,23 @@
 
 namespace qsdem {
 
-// Per-block partial sums of the force stage, summed in block order (thread-count independent).
+// Per-block results of the force stage: partial sums, summed in block order (thread-count
+// independent), and where the block's contacts are.
 struct ForceBlock {
   Mat3 stress_sum = Mat3::Zero();      // sum f (x) l over contacts (N m)
   Vec3 stiffness_sum = Vec3::Zero();   // sum (k_n n_k^2 + k_t (1 - n_k^2)) l_k^2 (N m)
   Vec3 shear_stiffness_sum = Vec3::Zero();  // the same for the shears 12, 13, 23 (servo.hpp)
+  Vec3 viscosity_sum = Vec3::Zero();        // the two with the viscous coefficients c_n, c_t (N s m)
+  Vec3 shear_viscosity_sum = Vec3::Zero();
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
   long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
   long pw_iterations = 0;  // their Perram-Wertheim iterations (3x3 factorisations)
   // The block's contacts: PairList::contact_pairs[first_contact, + contacts), grouped by the
-  // thread that owns their j end in the update region (State::owner_first), each group in pair
-  // order (State::contact_owner_first).
+  // thread that owns their j end in the update region (Schedule::owner_first), each group in pair
+  // order (Schedule::contact_owner_first).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
-  double seconds = 0;  // time the block took
-  double weight = 0;   // its recent times, smoothed: what the threads share in the next step
 };
 
 struct State {
@@ -43,6 +45,8 @@ struct State {
   Mat3 stress = Mat3::Zero();           // Love-Weber, compression positive (Pa), SPEC 7
   Vec3 affine_stiffness = Vec3::Zero(); // d sigma_kk / d eps_kk of an affine strain (Pa)
   Vec3 shear_stiffness = Vec3::Zero();  // -d sigma_ab / d D_ab dt for the shears 12, 13, 23 (Pa)
+  Vec3 affine_viscosity = Vec3::Zero(); // d sigma_kk / d(-L_kk) of the contacts' dashpots (Pa s)
+  Vec3 shear_viscosity = Vec3::Zero();  // -d sigma_ab / d D_ab of the dashpots, shears 12, 13, 23 (Pa s)
   double stress_volume = 1;             // V at which stress was evaluated (m^3)
   Mat3 stress_h = Mat3::Identity();     // cell matrix at which stress was evaluated (m)
   double max_overlap = 0;               // largest delta / min(R_i, R_j) over the contacts
@@ -50,18 +54,10 @@ struct State {
   long narrow_tests = 0;                // pairs tested by the narrow phase in the last step
   long pw_iterations = 0;               // their Perram-Wertheim iterations
 
+  std::vector<ForceBlock> blocks;       // per force block (PairList::block_first)
+  long contacts_build = -1;             // NeighborState::builds of the list the contacts are of
+
   StageTimers timers;
-  std::vector<ForceBlock> blocks;       // scratch for the force stage
-  long blocks_build = -1;               // NeighborState::builds of the list the blocks were timed on
-  std::vector<std::size_t> block_cut;   // scratch: thread t starts with blocks [cut[t], cut[t + 1])
-  std::vector<std::uint8_t> block_claimed;  // scratch: 1 once a thread has taken the block this step
-  std::vector<double> thread_busy;      // scratch: each thread's seconds in its blocks this step
-  // The update region's particles: thread t owns [owner_first[t], owner_first[t + 1]), those of
-  // its blocks (set by the force stage with block_cut). contact_owner_first, (threads + 1) per
-  // block: block b's contacts whose j end thread t owns are the slots [row[t], row[t + 1]) of
-  // PairList::contact_pairs / contact_j, row = contact_owner_first + b (threads + 1).
-  std::vector<std::size_t> owner_first;
-  std::vector<std::uint32_t> contact_owner_first;
   std::vector<EllipsoidShape> shapes;   // scratch: per-particle shape matrices at time t
 };
 

@@ -7,8 +7,8 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
-#include <stdexcept>
 
+#include "qsdem/damping.hpp"
 #include "qsdem/forces.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/reorder.hpp"
@@ -19,7 +19,7 @@ namespace qsdem {
 namespace {
 
 // Stages 1 and 2: the pair forces at the current positions, with each particle's i-side sums.
-void pair_forces(const Model& model, State& s) {
+void pair_forces(const Model& model, State& s, Schedule& schedule) {
   {
     ScopedStage t(s.timers, Stage::neighbor);
     // The motion bounds are those of the skipping of apart pairs (kept by step()).
@@ -30,39 +30,40 @@ void pair_forces(const Model& model, State& s) {
   }
   {
     ScopedStage t(s.timers, Stage::contact_forces);
-    compute_contact_forces(model, s);
+    compute_contact_forces(model, s, schedule);
   }
 }
+
+}  // namespace
 
 // Stages 4-6 in one parallel region with no barrier: each thread owns a contiguous range of
 // particles, adds their j-end contact forces, kicks them and drifts them (a particle's update
 // reads only itself and the pair results). One fork-join per step instead of three, one pass
 // over the particle arrays. The region's wall time is shared among the three stages in
-// proportion to the threads' summed time in each. Returns the largest |v|^2 after the kick.
-double update_particles(const Model& model, State& s) {
+// proportion to the threads' summed time in each.
+double update_particles(const Model& model, State& s, Schedule& schedule) {
   Particles& p = s.particles;
-  // The force stage fixed the threads' particle ranges for this step (State::owner_first).
-  if (s.owner_first.size() < 2) throw std::logic_error("update_particles: the force stage has not set the owners");
-  const std::size_t owners = s.owner_first.size() - 1;
+  // The force stage fixed the threads' particle ranges for this step (Schedule::owner_first).
+  if (!schedule.has_owners_of(s)) assign_single_owner(schedule, s);
+  const std::size_t owners = schedule.owners();
   const int nthreads = static_cast<int>(owners);
   double v2max = 0;
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
   const double start = omp_get_wtime();
-  // Thread r takes the particles the force stage gave it (State::owner_first: those of its blocks,
+  // Thread r takes the particles the force stage gave it (Schedule::owner_first: those of its blocks,
   // whose i-side sums are in its cache) and reads only their contacts, which the force stage
-  // grouped by owner. (With the even split n r / nthreads, and the gather prefetching every
-  // contact, this region took longer on 2 threads than on 1; the two changes together: spheres-A
-  // gather 87 -> 68 us/step on 2 threads.)
+  // grouped by owner.
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();
     std::array<double, 3> mine{};
     double m = 0;
     for (int r = omp_get_thread_num(); r < nthreads; r += team) {
-      const std::size_t lo = s.owner_first[r], hi = s.owner_first[r + 1];
+      const std::size_t lo = schedule.owner_first[r], hi = schedule.owner_first[r + 1];
       const double t0 = omp_get_wtime();
-      gather_resultants(s.pairs, s.contact_owner_first, owners, p, static_cast<std::size_t>(r));
+      gather_resultants(s.pairs, schedule, p, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
+      update_damping(model, p, lo, hi);  // the damping stage, before the kick (damping.hpp)
       m = std::max(m, integrate_velocities(model, p, lo, hi));
       const double t2 = omp_get_wtime();
       advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);
@@ -82,16 +83,20 @@ double update_particles(const Model& model, State& s) {
   return v2max;
 }
 
-}  // namespace
-
 void evaluate_forces(const Model& model, State& s) {
-  pair_forces(model, s);
+  Schedule schedule;
+  pair_forces(model, s, schedule);
   ScopedStage t(s.timers, Stage::gather);
-  gather_resultants(s);
+  gather_resultants(s, schedule);
 }
 
 void step(const Model& model, State& s) {
-  pair_forces(model, s);
+  Schedule schedule;
+  step(model, s, schedule);
+}
+
+void step(const Model& model, State& s, Schedule& schedule) {
+  pair_forces(model, s, schedule);
   {
     // The cell's motion for the step needs only the stress and stiffness of the pair forces.
     ScopedStage t(s.timers, Stage::servo);
@@ -99,7 +104,7 @@ void step(const Model& model, State& s) {
     deform(s.cell, model.dt);
     s.neighbor.strain_path += model.dt * s.cell.L.norm();  // Frobenius >= 2-norm (neighbor.hpp)
   }
-  const double v2max = update_particles(model, s);
+  const double v2max = update_particles(model, s, schedule);
   // The skin test's bound of the motion (any shapes), by which a run of spheres only also skips
   // apart pairs (NeighborState::moved_any).
   s.neighbor.fluctuation_path += 2 * model.dt * std::sqrt(v2max);

@@ -3,8 +3,11 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cstdint>
+#include <functional>
+#include <map>
 #include <stdexcept>
 #include <string>
+#include <string_view>
 
 namespace qsdem {
 
@@ -39,8 +42,28 @@ inline const char* to_string(DampingModel m) {
   return "?";
 }
 
+// What the particle damping acts on (damping.hpp).
+enum class DampedMotion : std::uint8_t { both, translation, rotation };
+inline const char* to_string(DampedMotion m) {
+  switch (m) {
+    case DampedMotion::both: return "both";
+    case DampedMotion::translation: return "translation";
+    case DampedMotion::rotation: return "rotation";
+  }
+  return "?";
+}
+
+// The [contact] table: the contact law (contact/laws.hpp) and the values of its own keys.
+struct ContactSettings {
+  std::string law = "hertz_mindlin";
+  std::map<std::string, double, std::less<>> values;  // the law's keys that the case gives
+
+  bool has(std::string_view key) const { return values.find(key) != values.end(); }
+  double value(std::string_view key) const { return values.find(key)->second; }
+};
+
 // Loops shorter than this run on one thread: below it, the cost of waking the OpenMP team
-// exceeds the work (measured on 2 cores).
+// exceeds the work.
 inline constexpr std::size_t parallel_threshold = 4096;
 
 }  // namespace qsdem

@@ -1,0 +1,63 @@
+// Particle damping (SPEC 6) as a stage of the step, chosen per phase (Model::damping): it gives
+// every particle its viscous factors before the kick, A_i for translation (Particles::
+// damping_translation) and B_i for rotation (damping_rotation), which the kick applies (paper
+// Eq. 10, integrator.hpp). What is damped, translation, rotation or both, is data of the phase
+// (Model::damping_acts_on): the other factor is 0.
+//
+// A damping model is a struct with
+//   static constexpr DampingModel kind;   its name in the case ([damping] model)
+//   static constexpr bool per_step;       its factors change during a phase (else they are set
+//                                         once, when the phase starts)
+//   double factor(const Particles&, std::size_t i) const;   A_i = B_i (1/s), before acts_on
+// and an entry in the Damping variant (damping.cpp makes it from the Model).
+#pragma once
+#include <cstddef>
+#include <variant>
+
+#include "qsdem/model.hpp"
+#include "qsdem/particles.hpp"
+
+namespace qsdem {
+
+// `none`: A_i = B_i = 0.
+struct NoDamping {
+  static constexpr DampingModel kind = DampingModel::none;
+  static constexpr bool per_step = false;
+  double factor(const Particles&, std::size_t) const { return 0.0; }
+};
+
+// `od`, global mass damping (paper Eq. 13, 15): A_i = 2 xi_0 omega_max, omega_max = sqrt(E/rho) / R_min.
+struct GlobalMassDamping {
+  static constexpr DampingModel kind = DampingModel::od;
+  static constexpr bool per_step = false;
+  double alpha;  // 2 xi_0 omega_max (1/s)
+  double factor(const Particles&, std::size_t) const { return alpha; }
+};
+
+// `nd`, size-dependent damping (paper Eq. 17-19): A_i = 2 xi_0 omega#_i, omega#_i = sqrt(E/rho) / R_i.
+struct SizeDependentDamping {
+  static constexpr DampingModel kind = DampingModel::nd;
+  static constexpr bool per_step = false;
+  double two_xi0_c;  // 2 xi_0 sqrt(E/rho) (m/s)
+  double factor(const Particles& p, std::size_t i) const { return two_xi0_c / p.equiv_radius[i]; }
+};
+
+using Damping = std::variant<NoDamping, GlobalMassDamping, SizeDependentDamping>;
+
+// The damping model of a phase.
+Damping make_damping(const Model& model);
+
+// A_i = B_i of SPEC 6 for one particle of equivalent radius `radius`: 0 (none), 2 xi0 omega_max
+// (od), 2 xi0 omega#_i (nd).
+double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat);
+
+// The damping stage at the start of a phase: every particle's factors, translation and rotation
+// as Model::damping_acts_on says. InputError when a factor would reverse velocities (A dt/2 >= 1).
+void assign_damping(const Model& model, Particles& particles);
+
+// The damping stage before the kick, particles [lo, hi): the factors of a model whose factors
+// change during the phase (per_step). The models constant in a phase (none, od, nd) were set by
+// assign_damping, and this does nothing for them.
+void update_damping(const Model& model, Particles& particles, std::size_t lo, std::size_t hi);
+
+}  // namespace qsdem
