@@ -3,6 +3,7 @@
 #pragma once
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 #include <string>
 
 #include "qsdem/measures.hpp"
@@ -17,10 +18,15 @@ struct SeriesRow {
   double e1 = 0, ev = 0;
   const Measures& m;
   const std::string* phase = nullptr;  // the phase's name, when the file has a phase column
+  // The file has a strain_rate column (a phase writing to it has a rate controller); the row's
+  // eps' there, or none (an empty field) for a phase without one.
+  bool rate_column = false;
+  std::optional<double> strain_rate;
 };
 
-// The header: SPEC 10's columns, then those added after them, then `phase` when asked for.
-std::string series_header(bool phase_column);
+// The header: SPEC 10's columns, then those added after them, then `strain_rate` and `phase` when
+// asked for.
+std::string series_header(bool phase_column, bool rate_column = false);
 std::string series_row(const SeriesRow& row);
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
@@ -28,7 +34,8 @@ std::string series_row(const SeriesRow& row);
 // (a resumed run: rows written after the checkpoint are dropped and written again).
 class SeriesWriter {
  public:
-  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false);
+  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false,
+                        bool rate_column = false);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;
