@@ -8,6 +8,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -222,4 +223,140 @@ TEST(RateControl, RateStopsAtItsUpperBound) {
   const std::vector<double> rate = read_csv(dir / "series.csv").column("strain_rate");
   for (double r : rate) EXPECT_LE(r, 2e-4);
   EXPECT_EQ(rate.back(), 2e-4) << "IMom reached 60 % at 2e-4? then the test's premise is wrong";
+}
+
+namespace {
+
+// Compaction, then load1 (IMom held at 3 %, from eps' = 1e-4, to 1.5 %); `second`: then load2
+// (1 % from the rate load1 ended at, to 3 %), into the same series.csv.
+std::string two_targets(const std::string& second) {
+  std::string text = head;
+  text = text.substr(0, text.find("[compaction]")) + R"(
+[[phase]]
+name = "compaction"
+friction = 0.2
+stress = { 11 = "390 kPa", 22 = "390 kPa", 33 = "390 kPa", 12 = "0 Pa", 13 = "0 Pa", 23 = "0 Pa" }
+servo = { max_strain_rate = 1e-4 }
+stop = { equilibrium = { ufr = "1 %" } }
+output = { file = "compaction.csv", clock = "run" }
+
+[[phase]]
+name = "load1"
+friction = 0.5
+stress = { 11 = "390 kPa", 22 = "390 kPa" }
+strain_rate = { 33 = 1e-4 }
+stop = { strain = { 33 = "1.5 %" } }
+output = { every_strain = { 33 = "0.05 %" } }
+controller = { kind = "rate", component = "33", target = "3 %", min_rate = 1e-7, max_rate = 1e-3 }
+)";
+  return text + second;
+}
+
+}  // namespace
+
+// A step of the target from 3 % to 1 % at 1.5 % strain, the rate continuous across it (load2
+// starts at the rate load1 ended at, read from the run without load2, whose load1 is the same
+// bits). Followed without oscillation, defined as: the log of eps' reverses its direction at most
+// twice (one overshoot and its correction) by swings larger than log 1.25 (a noise-driven drift
+// over the filter's 4 rows is about 4 g/b 0.1 = 0.1, log 1.1, with the measured sd 0.1 of log IMom);
+// and the second half of load2 holds the new target as the first test holds its own (2/3 of its
+// rows within a factor 1.5).
+TEST(RateControl, FollowsAStepOfTheTargetWithoutOscillation) {
+  const fs::path first = scratch("target-first"), both = scratch("target-both");
+  run(case_file("target-first", two_targets("")), first);
+  const double r1 = summary(first)["phases"][1]["controller"]["final_strain_rate"].get<double>();
+  run(case_file("target-both", two_targets(fmt::format(R"(
+[[phase]]
+name = "load2"
+friction = 0.5
+stress = {{ 11 = "390 kPa", 22 = "390 kPa" }}
+strain_rate = {{ 33 = {:.17g} }}
+stop = {{ strain = {{ 33 = "1.5 %" }} }}
+output = {{ every_strain = {{ 33 = "0.05 %" }} }}
+controller = {{ kind = "rate", component = "33", target = "1 %", min_rate = 1e-7, max_rate = 1e-3 }}
+)",
+                                                                        r1))),
+      both);
+  // The file has a phase column (text): its rows of load2, split by hand.
+  std::istringstream in(slurp(both / "series.csv"));
+  std::string line;
+  std::getline(in, line);
+  std::vector<std::string> header;
+  for (std::stringstream hs(line); std::getline(hs, line, ',');) header.push_back(line);
+  ASSERT_EQ(header.back(), "phase");
+  ASSERT_EQ(header[header.size() - 2], "strain_rate");
+  const auto imom_col = static_cast<std::size_t>(std::find(header.begin(), header.end(), "imom") - header.begin());
+  std::vector<double> rate, imom;
+  while (std::getline(in, line)) {
+    std::vector<std::string> cells;
+    std::stringstream ls(line);
+    for (std::string c; std::getline(ls, c, ',');) cells.push_back(c);
+    if (cells.back() != "load2") continue;
+    rate.push_back(std::stod(cells[header.size() - 2]));
+    imom.push_back(std::stod(cells[imom_col]));
+  }
+  ASSERT_EQ(rate.size(), 30u);
+  EXPECT_NEAR(rate.front(), r1, 1e-9 * r1) << "load2 starts at the rate load1 ended at (10 digits in the file)";
+  // Reversals of log eps' by swings larger than log 1.25: from the last extremum, a move of more
+  // than that against the current direction.
+  const double swing = std::log(1.25);
+  int reversals = 0, direction = 0;  // 0: none yet; a first swing sets it without counting
+  double extremum = std::log(r1);
+  for (double r : rate) {
+    const double l = std::log(r);
+    if (direction >= 0) {
+      if (l > extremum) {
+        extremum = l;
+        if (direction == 0 && l - std::log(r1) > swing) direction = 1;
+      } else if (extremum - l > swing) reversals += direction > 0, direction = -1, extremum = l;
+    } else {
+      if (l < extremum) extremum = l;
+      else if (l - extremum > swing) ++reversals, direction = 1, extremum = l;
+    }
+  }
+  EXPECT_LE(reversals, 2) << "log eps' reversed " << reversals << " times after the step";
+  long within = 0;
+  for (std::size_t k = imom.size() / 2; k < imom.size(); ++k) within += imom[k] >= 0.01 / 1.5 && imom[k] <= 0.01 * 1.5;
+  EXPECT_GE(static_cast<double>(within) / static_cast<double>(imom.size() - imom.size() / 2), 2.0 / 3);
+  std::cout << "[ measured ] target step 3 % -> 1 %: eps' " << r1 << " -> " << rate.back() << ", " << reversals
+            << " reversals, " << within << "/" << imom.size() - imom.size() / 2 << " rows of the second half within 1.5x\n";
+}
+
+// Bad keys of a rate controller name the key, its value and what is allowed.
+TEST(RateControl, BadKeysNameKeyAndWhatIsAllowed) {
+  const std::string sample = std::string(head).substr(0, std::string(head).find("[compaction]"));
+  const std::string phase = "[[phase]]\nfriction = 0.5\nstress = { 11 = \"1 kPa\", 22 = \"1 kPa\" }\n"
+                            "strain_rate = { 33 = 1e-5 }\nstop = { strain = { 33 = \"1 %\" } }\n";
+  const std::string every = "output = { every_strain = { 33 = \"0.1 %\" } }\n";
+  const auto error = [](const std::string& text) -> std::string {
+    try {
+      parse_case(text, "bad.toml");
+    } catch (const InputError& e) {
+      return e.what();
+    }
+    return "(no error)";
+  };
+  const struct {
+    std::string text, expected;
+  } cases[] = {
+      {sample + phase + every + "controller = { kind = \"rate\", component = \"33\", min_rate = 1e-6, max_rate = 1e-4 }\n",
+       "'phase.0.controller.target'"},
+      {sample + phase + every +
+           "controller = { kind = \"rate\", component = \"33\", target = \"1 %\", min_rate = 1e-4, max_rate = 1e-3 }\n",
+       "must be within [min_rate, max_rate]"},
+      {sample + phase + every +
+           "controller = { kind = \"rate\", component = \"11\", target = \"1 %\", min_rate = 1e-6, max_rate = 1e-3 }\n",
+       "must be strain-rate controlled"},
+      {sample + phase + "controller = { kind = \"rate\", component = \"33\", target = \"1 %\", min_rate = 1e-6, max_rate = 1e-3 }\n",
+       "output.every_strain.33"},
+      {sample + phase + every +
+           "controller = { kind = \"rate\", component = \"33\", target = \"1 %\", min_rate = 1e-6, max_rate = 1e-3, "
+           "index = \"energy\" }\n",
+       "'phase.0.controller.index' = \"energy\""},
+      {std::string(head) + "[triaxial.rate_control]\ntarget = \"1 %\"\nmin_rate = 1e-6\nmax_rate = 2e-6\n",
+       "'triaxial.rate_control.max_rate'"},
+      {std::string(head) + "[triaxial.rate_control]\ntarget = \"1 %\"\nmin_rate = 1e-6\nmax_rate = 1e-4\ngain = 2\n",
+       "'triaxial.rate_control.gain' = 2"},
+  };
+  for (const auto& c : cases) EXPECT_NE(error(c.text).find(c.expected), std::string::npos) << error(c.text);
 }

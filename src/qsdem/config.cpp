@@ -842,6 +842,7 @@ std::vector<std::string> case_keys() {
     stress = { 11 = "1 Pa", 22 = "1 Pa" }
     strain_rate = { 33 = 1e-5 }
     stop = { strain = { 33 = 0.01 } }
+    output = { every_strain = { 33 = 0.001 } }
     controller = { kind = "rate", component = "33", target = 0.01, min_rate = 1e-6, max_rate = 1e-4 }
   )";
   static const char* const every_triaxial_rate_key = R"(

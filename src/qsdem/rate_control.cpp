@@ -143,7 +143,15 @@ ControllerFactory rate_control_factory(const RateControlSettings& settings) {
 }
 
 ControllerFactory read_rate_control(ControllerKeys& keys, const Phase& phase, double step_ratio) {
-  return rate_control_factory(read_rate_control_settings(keys, phase, -1, step_ratio));
+  const RateControlSettings s = read_rate_control_settings(keys, phase, -1, step_ratio);
+  // Rows at equal strain increments of the component, so that a mean over the rows (summary.json)
+  // is strain-weighted and a row does not stand for more strain when the rate rises.
+  const Cadence& c = phase.output.cadence;
+  if (c.kind != Cadence::Kind::every_strain || c.strain_component != s.component)
+    keys.fail("component", fmt::format("give the phase output.every_strain.{} (rows at equal increments of the "
+                                       "strain of the component whose rate the controller changes)",
+                                       component_names[static_cast<std::size_t>(s.component)]));
+  return rate_control_factory(s);
 }
 
 }  // namespace qsdem
