@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cctype>
 #include <cerrno>
 #include <cmath>
@@ -485,6 +486,35 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     if (stress) control = {ComponentControl::Kind::stress, *stress};
     any_rate = any_rate || rate.has_value();
   }
+  // The normal components whose shared rate keeps the cell's volume (an undrained test, SPEC 3.7).
+  const std::string cv_key = k + ".constant_volume";
+  if (r.get(cv_key, false)) {
+    const std::vector<std::string> normal{"11", "22", "33"};
+    const auto held = r.list<std::string>(cv_key, "normal components (\"11\", \"22\", \"33\")",
+                                          [&](const toml::node& e, std::string& why) -> std::optional<std::string> {
+                                            if (!e.is_string()) return why = "expected a string", std::nullopt;
+                                            const std::string v = *e.value<std::string>();
+                                            if (std::find(normal.begin(), normal.end(), v) == normal.end())
+                                              return why = "must be \"11\", \"22\" or \"33\"", std::nullopt;
+                                            return v;
+                                          });
+    if (held.empty()) r.fail(cv_key, r.find(cv_key), "give at least one normal component");
+    for (const std::string& name : held) {
+      auto& control = ph.controls.component[static_cast<std::size_t>(std::stoi(name) / 11 - 1)];
+      if (control.kind == ComponentControl::Kind::constant_volume)
+        r.fail(cv_key, r.find(cv_key), fmt::format("component {} is listed twice", name));
+      if (control.kind != ComponentControl::Kind::fixed)
+        r.fail(cv_key, r.find(cv_key),
+               fmt::format("component {} has a strain_rate or a stress too: give one control per component", name));
+      control.kind = ComponentControl::Kind::constant_volume;
+    }
+    bool driven = false;
+    for (const auto& c : ph.controls.component)
+      driven = driven || c.kind == ComponentControl::Kind::strain_rate || c.kind == ComponentControl::Kind::stress;
+    if (held.size() == 3 || !driven)
+      r.fail(cv_key, r.find(cv_key),
+             "another component must be driven (a strain_rate or a stress) for the volume to be held against");
+  }
   const auto cap = r.optional_number(k + ".servo.max_strain_rate", [](double v) { return v > 0 && v < 0.1; },
                                      "must be in (0, 0.1)");
   const auto factor = r.optional_number(k + ".servo.rate_factor", [](double v) { return v >= 1; }, "must be >= 1");
@@ -833,6 +863,7 @@ nlohmann::json to_json(const Phase& ph) {
     const char* name = component_names[static_cast<std::size_t>(c)];
     if (cc.kind == ComponentControl::Kind::strain_rate) controls[name] = {{"strain_rate", cc.value}};
     if (cc.kind == ComponentControl::Kind::stress) controls[name] = {{"stress_Pa", cc.value}};
+    if (cc.kind == ComponentControl::Kind::constant_volume) controls[name] = {{"constant_volume", true}};
   }
   nlohmann::json stop = nlohmann::json::object();
   if (ph.stop.steps > 0) stop["steps"] = ph.stop.steps;

@@ -52,12 +52,13 @@ constexpr Column columns[] = {
 
 }  // namespace
 
-std::string series_header(bool phase_column) {
+std::string series_header(bool phase_column, bool dp_column) {
   std::string h;
   for (const Column& c : columns) {
     if (!h.empty()) h += ',';
     h += c.name;
   }
+  if (dp_column) h += ",dp_Pa";
   return phase_column ? h + ",phase" : h;
 }
 
@@ -67,17 +68,19 @@ std::string series_row(const SeriesRow& r) {
     if (out.size() > 0) out.push_back(',');
     c.write(out, r);
   }
+  if (r.dp) fmt::format_to(std::back_inserter(out), ",{:.10g}", *r.dp);
   if (r.phase) fmt::format_to(std::back_inserter(out), ",{}", *r.phase);
   return fmt::to_string(out);
 }
 
-SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column) : path_(std::move(path)) {
+SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column, bool dp_column)
+    : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
     file_ = std::fopen(partial_.c_str(), "w");
     if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
-    write(series_header(phase_column));
+    write(series_header(phase_column, dp_column));
     return;
   }
   std::ifstream in(partial_);

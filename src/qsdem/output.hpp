@@ -17,10 +17,12 @@ struct SeriesRow {
   double e1 = 0, ev = 0;
   const Measures& m;
   const std::string* phase = nullptr;  // the phase's name, when the file has a phase column
+  const double* dp = nullptr;  // p - p0 of the row's phase, when the file has a dp_Pa column
 };
 
-// The header: SPEC 10's columns, then those added after them, then `phase` when asked for.
-std::string series_header(bool phase_column);
+// The header: SPEC 10's columns, then those added after them, then `dp_Pa` and `phase` when
+// asked for.
+std::string series_header(bool phase_column, bool dp_column = false);
 std::string series_row(const SeriesRow& row);
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
@@ -28,7 +30,8 @@ std::string series_row(const SeriesRow& row);
 // (a resumed run: rows written after the checkpoint are dropped and written again).
 class SeriesWriter {
  public:
-  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false);
+  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false,
+                        bool dp_column = false);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;
