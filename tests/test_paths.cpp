@@ -167,3 +167,34 @@ TEST(LoadingPaths, UndrainedTriaxialHoldsTheVolume) {
   EXPECT_EQ(c.header.back(), "tilt_deg")
       << "a file no constant-volume phase writes to has no dp_Pa column";
 }
+
+// examples/simple-shear.toml: gamma_13 grows at the given rate (L13 = gamma' / t_c, dgamma_13/dt =
+// L13 F33: 0.32 gamma' per step, times F33 = h33/H0 = 1 - e1), the servo holds s33 within 1 % of
+// 200 kPa at every row (measured 0.67 %, at the first row), the fixed components stay put
+// (e11 = e22 = 0, gamma_12 = gamma_23 = 0 to round-off) and the phase ends at gamma_13 = 5 %.
+TEST(LoadingPaths, SimpleShearHoldsTheNormalStress) {
+  const fs::path dir = run_example("simple-shear.toml", "simple-shear");
+  const Csv s = read_csv(dir / "series.csv");
+  ASSERT_GT(s.rows.size(), 50u);
+  double before = 0;
+  long step_before = 0;  // force evaluation n is at n steps of shear (as e1, SPEC 3.4)
+  for (std::size_t k = 0; k < s.rows.size(); ++k) {
+    EXPECT_LE(std::abs(s.at(k, "s33_Pa") / 200e3 - 1), 0.01) << "row " << k;
+    EXPECT_LE(std::abs(s.at(k, "g12")), 1e-15) << "row " << k;
+    EXPECT_LE(std::abs(s.at(k, "g23")), 1e-15) << "row " << k;
+    // ev = V/V0 - 1 = h33/H0 - 1 when h11, h22 are fixed: e1 = -ev (to the printed digits).
+    EXPECT_NEAR(s.at(k, "e1"), -s.at(k, "ev"), 1e-12) << "row " << k;
+    const double g = s.at(k, "g13");
+    const long step = std::stol(s.rows[k][s.col("step")]);
+    const double steps = static_cast<double>(step - step_before);
+    // F33 changes by < 0.1 % between rows: the mean of its two ends is exact to 1e-6 of the increment.
+    const double f33 = 1 - 0.5 * (s.at(k, "e1") + (k > 0 ? s.at(k - 1, "e1") : 0.0));
+    EXPECT_NEAR(g - before, steps * 0.32 * 2e-5 * f33, 1e-3 * steps * 0.32 * 2e-5) << "row " << k;
+    before = g;
+    step_before = step;
+    EXPECT_LT(s.at(k, "s13_Pa"), 0) << "compression positive: the shear resists gamma_13 > 0";
+  }
+  const double last = s.at(s.rows.size() - 1, "g13");
+  EXPECT_GE(last, 0.05);
+  EXPECT_LT(last, 0.05 + 0.32 * 2e-5 * 1.01);
+}

@@ -52,12 +52,13 @@ constexpr Column columns[] = {
 
 }  // namespace
 
-std::string series_header(bool phase_column, bool dp_column) {
+std::string series_header(bool phase_column, bool dp_column, bool shear_columns) {
   std::string h;
   for (const Column& c : columns) {
     if (!h.empty()) h += ',';
     h += c.name;
   }
+  if (shear_columns) h += ",s12_Pa,s13_Pa,s23_Pa,g12,g13,g23";
   if (dp_column) h += ",dp_Pa";
   return phase_column ? h + ",phase" : h;
 }
@@ -68,19 +69,26 @@ std::string series_row(const SeriesRow& r) {
     if (out.size() > 0) out.push_back(',');
     c.write(out, r);
   }
+  if (r.shear_strain) {
+    const Mat3& s = r.m.stress;
+    const auto& g = *r.shear_strain;
+    fmt::format_to(std::back_inserter(out), ",{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g}", s(0, 1), s(0, 2), s(1, 2),
+                   g[0], g[1], g[2]);
+  }
   if (r.dp) fmt::format_to(std::back_inserter(out), ",{:.10g}", *r.dp);
   if (r.phase) fmt::format_to(std::back_inserter(out), ",{}", *r.phase);
   return fmt::to_string(out);
 }
 
-SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column, bool dp_column)
+SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column, bool dp_column,
+                           bool shear_columns)
     : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
     file_ = std::fopen(partial_.c_str(), "w");
     if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
-    write(series_header(phase_column, dp_column));
+    write(series_header(phase_column, dp_column, shear_columns));
     return;
   }
   std::ifstream in(partial_);

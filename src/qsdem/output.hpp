@@ -1,6 +1,7 @@
 // Result files (SPEC 10). Files appear complete or not at all: each is written to a temporary
 // name and renamed into place.
 #pragma once
+#include <array>
 #include <cstdio>
 #include <filesystem>
 #include <string>
@@ -18,11 +19,14 @@ struct SeriesRow {
   const Measures& m;
   const std::string* phase = nullptr;  // the phase's name, when the file has a phase column
   const double* dp = nullptr;  // p - p0 of the row's phase, when the file has a dp_Pa column
+  // The shear strains gamma_12, gamma_13, gamma_23 of the file's reference, when the file has the
+  // shear columns (s12_Pa, s13_Pa, s23_Pa, g12, g13, g23).
+  const std::array<double, 3>* shear_strain = nullptr;
 };
 
-// The header: SPEC 10's columns, then those added after them, then `dp_Pa` and `phase` when
-// asked for.
-std::string series_header(bool phase_column, bool dp_column = false);
+// The header: SPEC 10's columns, then those added after them, then the shear columns, `dp_Pa`
+// and `phase` when asked for.
+std::string series_header(bool phase_column, bool dp_column = false, bool shear_columns = false);
 std::string series_row(const SeriesRow& row);
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
@@ -31,7 +35,7 @@ std::string series_row(const SeriesRow& row);
 class SeriesWriter {
  public:
   explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false,
-                        bool dp_column = false);
+                        bool dp_column = false, bool shear_columns = false);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;

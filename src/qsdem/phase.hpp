@@ -112,6 +112,9 @@ using Protocol = std::vector<Phase>;
 // Whether a normal component of the phase keeps the cell's volume (ComponentControl::constant_volume).
 bool holds_volume(const Phase& phase);
 
+// Whether a shear component of the phase has a strain rate (simple shear).
+bool shears(const Phase& phase);
+
 // Whether the phase ends when the strain of component c reaches a value at a step known in
 // advance: a normal strain-rate component, whose strain grows by exactly c_t eps' per step (SPEC 3.4).
 bool planned_strain(const Phase& phase, int c);

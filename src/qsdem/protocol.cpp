@@ -338,12 +338,18 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     if (row || ended) {
       const double ev = m.volume / ref.v0 - 1;
       const double dp = m.mean_stress - p0;
+      std::array<double, 3> gamma{};
+      if (sink.shear_columns) {
+        const auto e = phase_strain(st.stress_h, ref.h0);
+        gamma = {e[3], e[4], e[5]};
+      }
       const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
       if (sink.writer) {
         ScopedStage ts(st.timers, Stage::output);
         sink.writer->write(series_row({run_clock ? st.step - 1 : n,
                                        run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt, e1, ev, m,
-                                       sink.phase_column ? &phase.name : nullptr, sink.dp_column ? &dp : nullptr}));
+                                       sink.phase_column ? &phase.name : nullptr, sink.dp_column ? &dp : nullptr,
+                                       sink.shear_columns ? &gamma : nullptr}));
       }
       ++rec.rows;
       ps.last_row_step = n;

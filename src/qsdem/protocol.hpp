@@ -97,12 +97,14 @@ using StepHook = std::function<void(bool sample_point)>;
 // Where a phase's rows go: the writer of its file (none: rows are counted, not written), the
 // phase whose starting cell the file's strains are measured from, whether the file has a
 // `phase` column (more than one phase writes to it) and a `dp_Pa` column (one of its phases holds
-// the volume: holds_volume).
+// the volume: holds_volume) and the shear columns (one of its phases has a shear strain rate:
+// shears).
 struct RowSink {
   SeriesWriter* writer = nullptr;
   int reference_phase = 0;
   bool phase_column = false;
   bool dp_column = false;
+  bool shear_columns = false;
 };
 
 // The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).

@@ -345,12 +345,16 @@ class Execution {
     for (int q : file.phases)
       if (q < p || (q == p && run_.phase_started)) held += run_.phases[static_cast<std::size_t>(q)].rows;
     const bool begun = file.phases.front() < p || run_.phase_started;
-    bool dp_column = false;
-    for (int q : file.phases) dp_column = dp_column || holds_volume(params_.protocol[static_cast<std::size_t>(q)]);
-    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, file.phases.size() > 1, dp_column);
+    bool dp_column = false, shear_columns = false;
+    for (int q : file.phases) {
+      dp_column = dp_column || holds_volume(params_.protocol[static_cast<std::size_t>(q)]);
+      shear_columns = shear_columns || shears(params_.protocol[static_cast<std::size_t>(q)]);
+    }
+    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, file.phases.size() > 1, dp_column, shear_columns);
     rows_ = &writer;
     try {
-      run_phase(params_, st_, run_, {&writer, file.phases.front(), file.phases.size() > 1, dp_column}, progress_,
+      run_phase(params_, st_, run_, {&writer, file.phases.front(), file.phases.size() > 1, dp_column, shear_columns},
+                progress_,
                 [this](bool sample_point) { on_step(sample_point); });
     } catch (const InputError& e) {
       // A phase stopped by what only the run could find (the cell shrank below the size rule of
