@@ -11,6 +11,8 @@
 #include <functional>
 #include <set>
 #include <sstream>
+#include <tuple>
+#include <utility>
 
 #define TOML_EXCEPTIONS 1
 #include <toml++/toml.h>
@@ -25,6 +27,7 @@ const char* to_string(DampingModel m) {
     case DampingModel::none: return "none";
     case DampingModel::od: return "od";
     case DampingModel::nd: return "nd";
+    case DampingModel::local: return "local";
   }
   return "?";
 }
@@ -308,9 +311,17 @@ class Reader {
 const auto positive = [](double v) { return v > 0; };
 const auto non_negative = [](double v) { return v >= 0; };
 
-DampingModel damping_model(Reader& r, const std::string& path, const std::string& def) {
-  const std::string m = r.text(path, def, {"none", "od", "nd"});
-  return m == "none" ? DampingModel::none : m == "od" ? DampingModel::od : DampingModel::nd;
+// A phase's damping model and ratio; for `local` the ratio is Cundall's alpha, in [0, 1).
+std::pair<DampingModel, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key) {
+  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local"});
+  const DampingModel model = m == "none"    ? DampingModel::none
+                             : m == "od"    ? DampingModel::od
+                             : m == "local" ? DampingModel::local
+                                            : DampingModel::nd;
+  const double ratio = r.quantity(ratio_key, Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  if (model == DampingModel::local && ratio >= 1)
+    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"local\" it is Cundall's alpha, in [0, 1)");
+  return {model, ratio};
 }
 
 // [contact]: the law (contact/laws.hpp) and the keys it declares, checked by the law.
@@ -447,8 +458,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
 
   p.contact = read_contact(r);
 
-  p.damping.model = damping_model(r, "damping.model", "nd");
-  p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio");
   const std::string acts_on = r.text("damping.acts_on", std::string("both"), {"both", "translation", "rotation"});
   p.damping.acts_on = acts_on == "translation" ? DampedMotion::translation
                       : acts_on == "rotation"  ? DampedMotion::rotation
@@ -460,8 +470,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   c.max_strain_rate = r.number("compaction.max_strain_rate", 2e-5, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
   c.stress_tolerance = r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
   c.ufr_tolerance = r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
-  c.damping_model = damping_model(r, "compaction.damping_model", "nd");
-  c.damping_ratio = r.quantity("compaction.damping_ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  std::tie(c.damping_model, c.damping_ratio) = damping_model(r, "compaction.damping_model", "compaction.damping_ratio");
   c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
   c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
   c.zero_shear_stress = r.boolean("compaction.zero_shear_stress", true);

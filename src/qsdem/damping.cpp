@@ -10,13 +10,22 @@ Damping make_damping(const Model& model) {
     case DampingModel::none: return NoDamping{};
     case DampingModel::od: return GlobalMassDamping{two_xi0_c / model.r_min};        // Eq. 15
     case DampingModel::nd: return SizeDependentDamping{two_xi0_c};                    // Eq. 19
+    case DampingModel::local: return LocalDamping{};
   }
   return NoDamping{};
 }
 
+LocalDampingCoefficients local_damping(const Model& model) {
+  if (model.damping != DampingModel::local) return {};
+  const double alpha = model.damping_ratio;
+  return {model.damping_acts_on != DampedMotion::rotation ? alpha : 0.0,
+          model.damping_acts_on != DampedMotion::translation ? alpha : 0.0};
+}
+
 double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat) {
   switch (model) {
-    case DampingModel::none: return 0.0;
+    case DampingModel::none:
+    case DampingModel::local: return 0.0;
     case DampingModel::od: return 2 * xi0 * mat.wave_speed() / r_min;   // Eq. 15
     case DampingModel::nd: return 2 * xi0 * mat.wave_speed() / radius;  // Eq. 19
   }

@@ -42,13 +42,29 @@ struct SizeDependentDamping {
   double factor(const Particles& p, std::size_t i) const { return two_xi0_c / p.equiv_radius[i]; }
 };
 
-using Damping = std::variant<NoDamping, GlobalMassDamping, SizeDependentDamping>;
+// `local`, Cundall's non-viscous damping (SPEC 6; PFC's local damping, YADE's NewtonIntegrator
+// `damping`): no viscous factor; the kick damps each component k of the force and of the moment,
+// F_k <- F_k - alpha |F_k| sign(v_k) (integrator.cpp, LocalDampingKick), alpha = the phase's ratio.
+struct LocalDamping {
+  static constexpr DampingModel kind = DampingModel::local;
+  static constexpr bool per_step = false;
+  double factor(const Particles&, std::size_t) const { return 0.0; }
+};
+
+using Damping = std::variant<NoDamping, GlobalMassDamping, SizeDependentDamping, LocalDamping>;
+
+// Cundall's alpha of a phase on translation and on rotation (0 unless the model is `local`, and
+// on the motion Model::damping_acts_on leaves out).
+struct LocalDampingCoefficients {
+  double translation = 0, rotation = 0;
+};
+LocalDampingCoefficients local_damping(const Model& model);
 
 // The damping model of a phase.
 Damping make_damping(const Model& model);
 
-// A_i = B_i of SPEC 6 for one particle of equivalent radius `radius`: 0 (none), 2 xi0 omega_max
-// (od), 2 xi0 omega#_i (nd).
+// A_i = B_i of SPEC 6 for one particle of equivalent radius `radius`: 0 (none, local), 2 xi0
+// omega_max (od), 2 xi0 omega#_i (nd).
 double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat);
 
 // The damping stage at the start of a phase: every particle's factors, translation and rotation
