@@ -1,8 +1,9 @@
-// The damping models beyond the paper's (SPEC 6: local, ...) against closed forms: the energy a
+// The damping models beyond the paper's (SPEC 6: local, stiffness) against closed forms: the energy a
 // one-degree-of-freedom oscillator loses per cycle, the restitution of a binary Hertz collision,
 // and what a model leaves alone when damping.acts_on excludes a motion.
 #include <gtest/gtest.h>
 
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <string>
@@ -20,6 +21,21 @@ using namespace qsdem;
 namespace {
 
 constexpr double kRho = 2650, kE = 7.8e10, kNu = 0.3;
+
+// Damping ratio from the logarithmic decrement of a free oscillation's maxima (parabolic vertex
+// through the three samples around each): xi = Lambda / sqrt(4 pi^2 + Lambda^2) (test_integrator.cpp).
+double decrement_ratio(const std::vector<double>& x) {
+  std::vector<double> p;
+  for (std::size_t k = 1; k + 1 < x.size(); ++k) {
+    if (!(x[k] > x[k - 1] && x[k] >= x[k + 1] && x[k] > 0)) continue;
+    const double curv = x[k + 1] - 2 * x[k] + x[k - 1];
+    p.push_back(curv < 0 ? x[k] - (x[k + 1] - x[k - 1]) * (x[k + 1] - x[k - 1]) / (8 * curv) : x[k]);
+  }
+  EXPECT_GE(p.size(), 3u) << "too few periods for a decrement";
+  if (p.size() < 2) return NAN;
+  const double lambda = std::log(p.front() / p.back()) / static_cast<double>(p.size() - 1);
+  return lambda / std::sqrt(4 * pi * pi + lambda * lambda);
+}
 
 Model local_model(double alpha, double dt, DampedMotion acts_on = DampedMotion::both) {
   Model m;
@@ -216,3 +232,136 @@ TEST(LocalDamping, CaseKeys) {
   EXPECT_EQ(parse_case(base + "[damping]\nmodel = \"nd\"\nratio = 1.5\n", "case.toml").damping.ratio, 1.5)
       << "the viscous models' ratio is not bounded by 1";
 }
+
+namespace {
+
+// Four equal spheres in a ring along x (a periodic cell of 4 spacings d = 2R - delta0), each
+// pressed on its two neighbours with the overlap delta0; frictionless, the cell fixed.
+struct Ring {
+  Model model;
+  State state;
+  double spacing;
+};
+
+Ring preloaded_ring(DampingModel damping, double ratio, DampedMotion acts_on, double delta0_ratio) {
+  constexpr double r = 1e-3;
+  Ring ring;
+  Model& m = ring.model;
+  m.material = {kRho, kE, kNu};
+  m.friction = 0;
+  m.r_min = r;
+  m.critical_time = 2 * r * std::sqrt(kRho / kE);
+  m.dt = 0.32 * m.critical_time;
+  m.skin = 0.2 * r;
+  m.damping = damping;
+  m.damping_ratio = ratio;
+  m.damping_acts_on = acts_on;
+  ring.spacing = 2 * r - delta0_ratio * r;
+  Mat3 h = Mat3::Identity() * 10 * r;
+  h(0, 0) = 4 * ring.spacing;
+  ring.state.cell = make_cell(h);
+  for (std::uint32_t k = 0; k < 4; ++k)
+    ring.state.particles.add(k, ShapeKind::sphere, Vec3::Constant(r), kRho, Vec3((k + 0.5) / 4, 0.5, 0.5),
+                             Quat::Identity());
+  assign_damping(m, ring.state.particles);
+  return ring;
+}
+
+// Moves sphere k by u_k along x.
+void displace(Ring& ring, const std::array<double, 4>& u) {
+  for (std::size_t k = 0; k < 4; ++k) ring.state.particles.s[k].x() += u[k] / ring.state.cell.h(0, 0);
+}
+
+}  // namespace
+
+// `stiffness` damping (SPEC 6.3) on the ring's two modes along x. Each sphere has two contacts of
+// stiffness k = 2 E* sqrt(R_e delta0) (R_e = R/2), so the model gives A = 2 xi_0 sqrt(2k/m). The
+// mode (u, 0, -u, 0) has omega^2 = 2k/m: the ratio A/(2 omega) = xi_0 exactly; the mode
+// (u, -u, u, -u) has omega^2 = 4k/m: xi_0 / sqrt(2). Measured from the logarithmic decrement of
+// sphere 0 (test_integrator.cpp's method, whose discretisation error is (w dt)^2/24 ~ 2e-4 here)
+// at an amplitude of 1 % of delta0, where Hertz's nonlinearity changes k and A by ~1 % within a
+// cycle but their means by O(1e-4) (the two contacts' overlaps change in opposite senses).
+// Allowed 0.5 % of the ratio.
+TEST(StiffnessDamping, RingModesGetTheirClosedFormRatios) {
+  const qsdem_test::SingleThread one_thread;
+  constexpr double delta0 = 1e-3;  // of R
+  for (const double xi0 : {0.01, 0.05}) {
+    for (const int mode : {1, 2}) {
+      Ring ring = preloaded_ring(DampingModel::stiffness, xi0, DampedMotion::both, delta0);
+      const double u = 0.01 * delta0 * 1e-3;
+      displace(ring, mode == 1 ? std::array<double, 4>{u, 0, -u, 0} : std::array<double, 4>{u, -u, u, -u});
+      const double x0 = ring.state.particles.s[0].x() - u / ring.state.cell.h(0, 0);
+      const double k = 2 * (kE / (2 * (1 - kNu * kNu))) * std::sqrt(0.5e-3 * delta0 * 1e-3);
+      const double m = ring.state.particles.mass[0];
+      const double omega = std::sqrt((mode == 1 ? 2 : 4) * k / m);
+      const int steps = static_cast<int>(std::min(12.0, 3.0 / (2 * pi * xi0)) * 2 * pi / (omega * ring.model.dt));
+      std::vector<double> x;
+      for (int n = 0; n < steps; ++n) {
+        step(ring.model, ring.state);
+        x.push_back((ring.state.particles.s[0].x() - x0) * ring.state.cell.h(0, 0));
+      }
+      ASSERT_EQ(ring.state.pairs.size(), 4u);
+      // A_i of the model at the preload, against the formula.
+      const double a = ring.state.particles.damping_translation[0];
+      EXPECT_NEAR(a, 2 * xi0 * std::sqrt(2 * k / m), 0.02 * a) << "A_i = 2 xi0 sqrt(sum k_n / m)";
+      const double expected = mode == 1 ? xi0 : xi0 / std::sqrt(2.0), measured = decrement_ratio(x);
+      EXPECT_NEAR(measured, expected, 5e-3 * expected) << "xi0 " << xi0 << ", mode " << mode;
+      std::printf("[ info ] xi0 %g, mode %d: ratio %.5g, closed form %.5g (%+.2g)\n", xi0, mode, measured, expected,
+                  measured / expected - 1);
+    }
+  }
+}
+
+// What `stiffness` leaves alone. A rattler (no contact) keeps its velocity and spin to the bit (it
+// gets 0: SPEC 6.3). In the ring, spinning spheres with no friction feel no torque: with
+// translation only damped their spins stay to the bit; with rotation damped they decay by the
+// kick's factor ((1 - B dt/2)/(1 + B dt/2))^N, B = 2 xi_0 sqrt(2 k_t (R - delta0/2)^2 / I),
+// k_t = 8 G* sqrt(R_e delta0) (the ring at rest: B is constant); with rotation only damped the
+// ring's oscillation keeps its amplitude.
+TEST(StiffnessDamping, ActsOnAndRattlers) {
+  const qsdem_test::SingleThread one_thread;
+  constexpr double delta0 = 1e-3, xi0 = 0.05;
+  for (const DampedMotion acts_on : {DampedMotion::translation, DampedMotion::rotation, DampedMotion::both}) {
+    Ring ring = preloaded_ring(DampingModel::stiffness, xi0, acts_on, delta0);
+    Particles& p = ring.state.particles;
+    p.add(4, ShapeKind::sphere, Vec3::Constant(1e-3), kRho, Vec3(0.5, 0.1, 0.1), Quat::Identity());  // a rattler
+    p.v[4] = Vec3(1e-4, -2e-4, 0);
+    for (std::size_t k = 0; k < 5; ++k) {
+      p.angmom[k] = p.inertia[k].cwiseProduct(Vec3(30, -10, 20));
+      p.omega[k] = p.angmom[k] * p.inv_inertia[k].x();
+    }
+    const Vec3 rattler_x = p.s[4], rattler_l = p.angmom[4];
+    const std::vector<Vec3> l0 = p.angmom;
+    constexpr int steps = 400;
+    for (int n = 0; n < steps; ++n) step(ring.model, ring.state);
+    ASSERT_EQ(ring.state.pairs.size(), 4u) << "the ring's contacts; none for the rattler";
+    EXPECT_TRUE(p.v[4] == Vec3(1e-4, -2e-4, 0)) << "the rattler's velocity, undamped";
+    EXPECT_TRUE(p.angmom[4] == rattler_l) << "the rattler's spin, undamped";
+    EXPECT_NE(p.s[4], rattler_x);
+    const double r = 1e-3, g_star = kE / (2 * (1 + kNu)) / (2 * (2 - kNu));
+    const double kt = 8 * g_star * std::sqrt(0.5 * r * delta0 * r);
+    const double arm = r - 0.5 * delta0 * r;
+    for (std::size_t k = 0; k < 4; ++k) {
+      if (acts_on == DampedMotion::translation) {
+        EXPECT_TRUE(p.angmom[k] == l0[k]) << "sphere " << k << ": spin undamped";
+      } else {
+        const double b = 2 * xi0 * std::sqrt(2 * kt * arm * arm / p.inertia[k].x());
+        const double decay = std::pow((1 - 0.5 * b * ring.model.dt) / (1 + 0.5 * b * ring.model.dt), steps);
+        ASSERT_LT(decay, 0.9);
+        EXPECT_LE((p.angmom[k] - decay * l0[k]).norm(), 1e-9 * l0[k].norm()) << "sphere " << k;
+      }
+    }
+  }
+  // Rotation only: the ring's translation oscillates undamped.
+  Ring ring = preloaded_ring(DampingModel::stiffness, xi0, DampedMotion::rotation, delta0);
+  const double u = 1e-2 * delta0 * 1e-3;
+  displace(ring, {u, 0, -u, 0});
+  const double x0 = ring.state.particles.s[0].x() - u / ring.state.cell.h(0, 0);
+  std::vector<double> x;
+  for (int n = 0; n < 3000; ++n) {
+    step(ring.model, ring.state);
+    x.push_back((ring.state.particles.s[0].x() - x0) * ring.state.cell.h(0, 0));
+  }
+  EXPECT_LT(std::abs(decrement_ratio(x)), 1e-4) << "translation undamped";
+}
+

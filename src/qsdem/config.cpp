@@ -28,6 +28,7 @@ const char* to_string(DampingModel m) {
     case DampingModel::od: return "od";
     case DampingModel::nd: return "nd";
     case DampingModel::local: return "local";
+    case DampingModel::stiffness: return "stiffness";
   }
   return "?";
 }
@@ -311,16 +312,21 @@ class Reader {
 const auto positive = [](double v) { return v > 0; };
 const auto non_negative = [](double v) { return v >= 0; };
 
-// A phase's damping model and ratio; for `local` the ratio is Cundall's alpha, in [0, 1).
+// A phase's damping model and ratio; for `local` the ratio is Cundall's alpha, in [0, 1); for
+// `stiffness` at most 0.5, so that A_i dt / 2 = xi_0 omega_i dt < 1 wherever the undamped leapfrog
+// is stable (omega_i dt < 2).
 std::pair<DampingModel, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key) {
-  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local"});
-  const DampingModel model = m == "none"    ? DampingModel::none
-                             : m == "od"    ? DampingModel::od
-                             : m == "local" ? DampingModel::local
-                                            : DampingModel::nd;
+  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local", "stiffness"});
+  const DampingModel model = m == "none"        ? DampingModel::none
+                             : m == "od"        ? DampingModel::od
+                             : m == "local"     ? DampingModel::local
+                             : m == "stiffness" ? DampingModel::stiffness
+                                                : DampingModel::nd;
   const double ratio = r.quantity(ratio_key, Dimension::ratio, 0.005, non_negative, "must be >= 0");
   if (model == DampingModel::local && ratio >= 1)
     r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"local\" it is Cundall's alpha, in [0, 1)");
+  if (model == DampingModel::stiffness && ratio > 0.5)
+    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"stiffness\" it must be in [0, 50 %]");
   return {model, ratio};
 }
 

@@ -31,6 +31,8 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
   ReferenceForces out;
   out.force.assign(p.size(), Vec3::Zero());
   out.torque.assign(p.size(), Vec3::Zero());
+  out.contact_stiffness.assign(p.size(), 0.0);
+  out.contact_rotational_stiffness.assign(p.size(), 0.0);
   PairList adopted;  // the law's history, as the fast stage adopts it (adopt_history)
   adopted.i = pairs.i;
   adopted.history = pairs.history;
@@ -73,6 +75,10 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
       }
     }
     out.elastic_energy += o.energy;
+    out.contact_stiffness[i] += o.kn;
+    out.contact_stiffness[j] += o.kn;
+    out.contact_rotational_stiffness[i] += o.kt * g.arm_i.squaredNorm();
+    out.contact_rotational_stiffness[j] += o.kt * g.arm_j.squaredNorm();
     out.contacts.push_back({k, g.overlap, f, torque_i, torque_j, o});
   }
   const double volume = cell.volume;
