@@ -1,4 +1,4 @@
-// The damping models beyond the paper's (SPEC 6: local, stiffness) against closed forms: the energy a
+// The damping models beyond the paper's (SPEC 6: local, stiffness, contact) against closed forms: the energy a
 // one-degree-of-freedom oscillator loses per cycle, the restitution of a binary Hertz collision,
 // and what a model leaves alone when damping.acts_on excludes a motion.
 #include <gtest/gtest.h>
@@ -365,3 +365,76 @@ TEST(StiffnessDamping, ActsOnAndRattlers) {
   EXPECT_LT(std::abs(decrement_ratio(x)), 1e-4) << "translation undamped";
 }
 
+// `contact` damping (SPEC 6.4): the phase's law becomes hertz_mindlin_dashpot with damping ratio
+// zeta = damping.ratio, and the particles get no damping. A head-on impact of two spheres then
+// rebounds with the law's restitution e = exp(-pi zeta / sqrt(1 - zeta^2)) (beta = -zeta, the
+// inverse of beta = ln e / sqrt(ln^2 e + pi^2)), up to the leapfrog's first-order error of the
+// dashpot law itself (test_contact_dashpot.cpp: measured <= 0.0033 at c_t = 0.32; allowed 0.004).
+TEST(ContactDampingModel, ImpactReboundsWithTheRestitutionOfItsRatio) {
+  const qsdem_test::SingleThread one_thread;
+  for (const double zeta : {0.05, 0.2, 0.45}) {
+    Model m;
+    m.material = {kRho, kE, kNu};
+    m.friction = 0.5;
+    m.damping = DampingModel::contact;
+    m.damping_ratio = zeta;
+    const ContactSettings law = contact_settings(m);
+    EXPECT_EQ(law.law, "hertz_mindlin_dashpot");
+    EXPECT_EQ(law.value("damping_ratio"), zeta);
+    EXPECT_EQ(contact_settings(Model{}).law, "hertz_mindlin") << "other models keep the case's law";
+    const double r1 = 1e-3, r2 = 1.6e-3;
+    m.r_min = r1;
+    m.critical_time = 2 * r1 * std::sqrt(kRho / kE);
+    m.dt = 0.32 * m.critical_time;
+    m.skin = 0.2 * r1;
+    State st;
+    st.cell = make_cell(0.03 * Mat3::Identity());
+    const Vec3 n = Vec3(1, 0.5, -0.25).normalized();
+    st.particles.add(0, ShapeKind::sphere, Vec3::Constant(r1), kRho, Vec3::Zero(), Quat::Identity());
+    st.particles.add(1, ShapeKind::sphere, Vec3::Constant(r2), kRho, st.cell.h_inv * ((r1 + r2 + 0.02 * r1) * n),
+                     Quat::Identity());
+    Particles& p = st.particles;
+    p.v[0] = 0.1 * n;
+    p.v[1] = -0.2 * n;
+    assign_damping(m, p);
+    EXPECT_EQ(p.damping_translation[0], 0.0);
+    EXPECT_EQ(p.damping_rotation[1], 0.0);
+    const double before = (p.v[1] - p.v[0]).dot(n);
+    bool touched = false;
+    for (int k = 0; k < 200000; ++k) {
+      step(m, st);
+      const bool touching = st.pairs.size() > 0 && st.pairs.overlap[0] > 0;
+      touched = touched || touching;
+      if (touched && !touching) break;
+    }
+    ASSERT_TRUE(touched);
+    const double e = std::exp(-pi * zeta / std::sqrt(1 - zeta * zeta)), measured = -(p.v[1] - p.v[0]).dot(n) / before;
+    EXPECT_NEAR(measured, e, 0.004) << "zeta " << zeta;
+    std::printf("[ info ] zeta %g: e %.5f, closed form %.5f\n", zeta, measured, e);
+  }
+}
+
+// The keys: `contact` on the default law only, its ratio in [0, 1).
+TEST(ContactDampingModel, CaseKeys) {
+  const std::string base =
+      "[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\npoisson_ratio = 0.3\n"
+      "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 100\n";
+  const Params p = parse_case(base + "[damping]\nmodel = \"contact\"\nratio = \"20 %\"\n", "case.toml");
+  EXPECT_EQ(p.damping.model, DampingModel::contact);
+  EXPECT_EQ(p.damping.ratio, 0.2);
+  const auto error_of = [&](const std::string& extra) {
+    try {
+      parse_case(base + extra, "case.toml");
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  const std::string ratio = error_of("[damping]\nmodel = \"contact\"\nratio = 1\n");
+  EXPECT_NE(ratio.find("case.toml:10"), std::string::npos) << ratio;
+  EXPECT_NE(ratio.find("[0, 1)"), std::string::npos) << ratio;
+  const std::string both = error_of("[contact]\nlaw = \"hertz_mindlin_dashpot\"\nrestitution = 0.5\n"
+                                    "[compaction]\ndamping_model = \"contact\"\n");
+  EXPECT_NE(both.find("compaction.damping_model"), std::string::npos) << both;
+  EXPECT_NE(both.find("not both"), std::string::npos) << both;
+}

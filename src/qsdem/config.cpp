@@ -29,6 +29,7 @@ const char* to_string(DampingModel m) {
     case DampingModel::nd: return "nd";
     case DampingModel::local: return "local";
     case DampingModel::stiffness: return "stiffness";
+    case DampingModel::contact: return "contact";
   }
   return "?";
 }
@@ -314,19 +315,29 @@ const auto non_negative = [](double v) { return v >= 0; };
 
 // A phase's damping model and ratio; for `local` the ratio is Cundall's alpha, in [0, 1); for
 // `stiffness` at most 0.5, so that A_i dt / 2 = xi_0 omega_i dt < 1 wherever the undamped leapfrog
-// is stable (omega_i dt < 2).
-std::pair<DampingModel, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key) {
-  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local", "stiffness"});
+// is stable (omega_i dt < 2); for `contact` the dashpots' damping ratio, in [0, 1), on the elastic
+// law hertz_mindlin (`contact` makes it hertz_mindlin_dashpot for the phase).
+std::pair<DampingModel, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key,
+                                              const ContactSettings& contact) {
+  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local", "stiffness", "contact"});
   const DampingModel model = m == "none"        ? DampingModel::none
                              : m == "od"        ? DampingModel::od
                              : m == "local"     ? DampingModel::local
                              : m == "stiffness" ? DampingModel::stiffness
+                             : m == "contact"   ? DampingModel::contact
                                                 : DampingModel::nd;
+  if (model == DampingModel::contact && contact.law != "hertz_mindlin")
+    r.fail(model_key, r.find(model_key),
+           fmt::format("\"contact\" adds the dashpots to contact.law = \"hertz_mindlin\", not to \"{}\": give the "
+                       "dashpots either by this model and its ratio or by the law's keys, not both",
+                       contact.law));
   const double ratio = r.quantity(ratio_key, Dimension::ratio, 0.005, non_negative, "must be >= 0");
   if (model == DampingModel::local && ratio >= 1)
     r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"local\" it is Cundall's alpha, in [0, 1)");
   if (model == DampingModel::stiffness && ratio > 0.5)
     r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"stiffness\" it must be in [0, 50 %]");
+  if (model == DampingModel::contact && ratio >= 1)
+    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"contact\" it is the dashpots' damping ratio, in [0, 1)");
   return {model, ratio};
 }
 
@@ -464,7 +475,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
 
   p.contact = read_contact(r);
 
-  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio");
+  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio", p.contact);
   const std::string acts_on = r.text("damping.acts_on", std::string("both"), {"both", "translation", "rotation"});
   p.damping.acts_on = acts_on == "translation" ? DampedMotion::translation
                       : acts_on == "rotation"  ? DampedMotion::rotation
@@ -476,7 +487,8 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   c.max_strain_rate = r.number("compaction.max_strain_rate", 2e-5, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
   c.stress_tolerance = r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
   c.ufr_tolerance = r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
-  std::tie(c.damping_model, c.damping_ratio) = damping_model(r, "compaction.damping_model", "compaction.damping_ratio");
+  std::tie(c.damping_model, c.damping_ratio) =
+      damping_model(r, "compaction.damping_model", "compaction.damping_ratio", p.contact);
   c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
   c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
   c.zero_shear_stress = r.boolean("compaction.zero_shear_stress", true);

@@ -17,7 +17,7 @@
 namespace qsdem {
 
 enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
-enum class DampingModel : std::uint8_t { none, od, nd, local, stiffness };
+enum class DampingModel : std::uint8_t { none, od, nd, local, stiffness, contact };
 // What the particle damping acts on (damping.hpp).
 enum class DampedMotion : std::uint8_t { both, translation, rotation };
 

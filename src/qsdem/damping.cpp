@@ -11,6 +11,7 @@ Damping make_damping(const Model& model, const State* state) {
     case DampingModel::od: return GlobalMassDamping{two_xi0_c / model.r_min};        // Eq. 15
     case DampingModel::nd: return SizeDependentDamping{two_xi0_c};                    // Eq. 19
     case DampingModel::local: return LocalDamping{};
+    case DampingModel::contact: return ContactDamping{};
     case DampingModel::stiffness: {  // SPEC 6.3
       const bool summed = state && !state->contact_stiffness.empty();
       return StiffnessDamping{2 * model.damping_ratio, summed ? state->contact_stiffness.data() : nullptr,
@@ -18,6 +19,14 @@ Damping make_damping(const Model& model, const State* state) {
     }
   }
   return NoDamping{};
+}
+
+ContactSettings contact_settings(const Model& model) {
+  if (model.damping != DampingModel::contact) return model.contact;
+  ContactSettings s;
+  s.law = "hertz_mindlin_dashpot";
+  s.values["damping_ratio"] = model.damping_ratio;
+  return s;
 }
 
 LocalDampingCoefficients local_damping(const Model& model) {
@@ -31,7 +40,8 @@ double damping_factor(DampingModel model, double xi0, double radius, double r_mi
   switch (model) {
     case DampingModel::none:
     case DampingModel::local:
-    case DampingModel::stiffness: return 0.0;
+    case DampingModel::stiffness:
+    case DampingModel::contact: return 0.0;
     case DampingModel::od: return 2 * xi0 * mat.wave_speed() / r_min;   // Eq. 15
     case DampingModel::nd: return 2 * xi0 * mat.wave_speed() / radius;  // Eq. 19
   }

@@ -72,7 +72,20 @@ struct StiffnessDamping {
   }
 };
 
-using Damping = std::variant<NoDamping, GlobalMassDamping, SizeDependentDamping, LocalDamping, StiffnessDamping>;
+// `contact`: no particle damping; the phase's contact law is hertz_mindlin_dashpot with the damping
+// ratio zeta = the phase's ratio (contact_settings below, SPEC 6.4).
+struct ContactDamping {
+  static constexpr DampingModel kind = DampingModel::contact;
+  static constexpr bool per_step = false;
+  double factor(const Particles&, std::size_t) const { return 0.0; }
+};
+
+using Damping = std::variant<NoDamping, GlobalMassDamping, SizeDependentDamping, LocalDamping, StiffnessDamping,
+                             ContactDamping>;
+
+// The contact law of a phase: Model::contact, or for the damping `contact` the law with dashpots,
+// hertz_mindlin_dashpot, whose damping_ratio is the phase's ratio (contact/hertz_mindlin_dashpot.hpp).
+ContactSettings contact_settings(const Model& model);
 
 // Whether the force stage must sum each particle's contact stiffnesses for the phase's damping.
 inline bool needs_contact_stiffness(const Model& model) { return model.damping == DampingModel::stiffness; }
@@ -87,7 +100,7 @@ LocalDampingCoefficients local_damping(const Model& model);
 // The damping model of a phase (`state`: the contact stiffnesses a per-step model reads).
 Damping make_damping(const Model& model, const State* state = nullptr);
 
-// A_i = B_i of SPEC 6 for one particle of equivalent radius `radius`: 0 (none, local), 2 xi0
+// A_i = B_i of SPEC 6 for one particle of equivalent radius `radius`: 0 (none, local, contact), 2 xi0
 // omega_max (od), 2 xi0 omega#_i (nd); `stiffness` depends on the contacts (0 here).
 double damping_factor(DampingModel model, double xi0, double radius, double r_min, const Material& mat);
 

@@ -557,7 +557,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   // The law of the phase, chosen here once for the whole stage.
   const ContactLaw contact_law = make_contact_law({model.material.effective_modulus(),
                                                    model.material.effective_shear_modulus(), model.friction,
-                                                   model.contact});
+                                                   contact_settings(model)});
   std::visit(
       [&]<class Law>(const Law& law) {
         if (stiffness_sums) {
