@@ -136,8 +136,8 @@ void kill_and_resume(int sig) {
     // Killed between checkpoints: rows written after the last checkpoint are dropped on resume.
     const Checkpoint c = load_checkpoint(d / checkpoint_file);
     std::printf("[ info ] SIGKILL with %ld rows on disk, checkpoint at %ld rows\n",
-                lines(d / "series.csv.partial") - 1, c.run.rows);
-    EXPECT_LE(c.run.rows, lines(d / "series.csv.partial") - 1);
+                lines(d / "series.csv.partial") - 1, c.run.current().rows);
+    EXPECT_LE(c.run.current().rows, lines(d / "series.csv.partial") - 1);
   } else {
     EXPECT_EQ(code, 128 + sig) << read(d.string() + ".err");  // 143 for SIGTERM, 130 for SIGINT
     EXPECT_NE(read(d.string() + ".err").find("qsdem resume"), std::string::npos) << "says how to continue";
@@ -168,7 +168,7 @@ TEST(CheckpointProcess, SigintDuringCompactionResumes) {
   ::kill(pid, SIGINT);
   ASSERT_EQ(wait_exit(pid), 130);
   ASSERT_TRUE(fs::exists(d / checkpoint_file));
-  EXPECT_EQ(load_checkpoint(d / checkpoint_file).run.phase, RunProgress::Phase::compaction);
+  EXPECT_EQ(load_checkpoint(d / checkpoint_file).run.phase, 0) << "stopped in the compaction";
   ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0);
   EXPECT_EQ(read(d / "compaction.csv"), read(ref / "compaction.csv"));
   EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
@@ -212,12 +212,12 @@ TEST(CheckpointFile, RoundTripIsExact) {
   const Params params = parse_case(small_case, "small.toml");
   State st = generate_loose_sample(params);
   RunProgress run;
+  run.phases.resize(params.protocol.size());
   Progress quiet(Progress::Mode::quiet);
-  SeriesWriter* none = nullptr;
   Params short_params = params;
-  short_params.compaction.max_steps = 3000;
+  short_params.protocol[0].stop.max_steps = 3000;
   try {
-    compact(short_params, st, run, quiet, none, {});
+    run_phase(short_params, st, run, {}, quiet, {});
   } catch (const RunError&) {
     // stopped by the step budget: a mid-compaction state with contacts and history
   }
@@ -225,7 +225,11 @@ TEST(CheckpointFile, RoundTripIsExact) {
   save_checkpoint(f, params.case_text, params.source, st, run);
   const Checkpoint c = load_checkpoint(f);
   EXPECT_EQ(c.case_text, params.case_text);
-  EXPECT_EQ(c.run.phase_steps, run.phase_steps);
+  EXPECT_EQ(c.run.current().steps, 3000);
+  EXPECT_EQ(c.run.current().rows, run.current().rows);
+  EXPECT_EQ(c.run.current().h0, run.current().h0);
+  EXPECT_EQ(c.run.state.controls.component[0].value, run.state.controls.component[0].value);
+  EXPECT_TRUE(c.run.state.live);
   EXPECT_EQ(c.state.step, st.step);
   EXPECT_EQ(c.state.particles.s, st.particles.s);
   EXPECT_EQ(c.state.particles.v, st.particles.v);
@@ -331,7 +335,7 @@ TEST(BlowUp, InjectedNanStopsWithDiagnostic) {
   const std::uint32_t id = st.particles.id[17];  // the engine may re-sort particles: names them by id
   Progress quiet(Progress::Mode::quiet);
   try {
-    compact(params, st, quiet, nullptr);
+    run_phase(params, 0, st, quiet, nullptr);
     ADD_FAILURE() << "a NaN did not stop the run";
   } catch (const RunError& e) {
     const std::string what = e.what();
@@ -506,41 +510,42 @@ TEST(CheckpointFile, Format1PreparedSampleStillShears) {
   }
 }
 
-// The triaxial sums are written field by field: the bytes of a checkpoint do not depend on the
-// padding of TriaxialSums (format 4 wrote the struct's raw bytes, padding included); a format-4
-// file's sums still read back.
-TEST(CheckpointFile, TriaxialSumsAreWrittenFieldByField) {
+// The records of the phases are written field by field (formats 1 to 4 wrote the triaxial sums as
+// a struct's raw bytes, padding included): a checkpoint's bytes are the same whatever the memory
+// around the fields held, and a file of the default protocol in any older format still reads back.
+TEST(CheckpointFile, PhaseRecordsAreWrittenFieldByField) {
   const State st = generate_loose_sample(parse_case(small_case, "small.toml"));
-  const auto save_with_padding = [&](unsigned char fill, const fs::path& f, std::uint32_t format) {
+  const auto save = [&](unsigned char fill, const fs::path& f, std::uint32_t format) {
     RunProgress run;
-    run.phase = RunProgress::Phase::triaxial;
-    // the bytes between `rows` and `ufr`: indeterminate in a real run, set here
-    auto* sums = reinterpret_cast<unsigned char*>(&run.sums);
-    std::memset(sums + sizeof(int), fill, offsetof(TriaxialSums, ufr) - sizeof(int));
-    run.sums.rows = 7;
-    run.sums.ufr = 0.25;
-    run.sums.peak_phi_deg = 31.5;
-    run.sums.final_e1 = 0.02;
-    run.sums.wall_s = 12.5;
+    run.phase = 1;
+    run.phases.resize(2);
+    // Fill the records' bytes, then set every field: what a compiler's padding would hold differs.
+    std::memset(static_cast<void*>(run.phases.data()), fill, 2 * sizeof(PhaseRecord));
+    for (PhaseRecord& r : run.phases) r = PhaseRecord{};
+    run.phases[1].rows = 7;
+    run.phases[1].ufr = 0.25;
+    run.phases[1].peak_phi_deg = 31.5;
+    run.phases[1].final_e1 = 0.02;
+    run.phases[1].wall_s = 12.5;
     run.changes = "triaxial step 4: limits.max_kinetic_ratio=2\n";
     save_checkpoint(f, "", "", st, run, format);
   };
-  ASSERT_GT(offsetof(TriaxialSums, ufr), sizeof(int)) << "no padding to test on this platform";
-  const fs::path a = scratch("sums-a.qsck"), b = scratch("sums-b.qsck"), v4 = scratch("sums-v4.qsck");
-  save_with_padding(0x00, a, checkpoint_format_version);
-  save_with_padding(0xff, b, checkpoint_format_version);
+  const fs::path a = scratch("sums-a.qsck"), b = scratch("sums-b.qsck");
+  save(0x00, a, checkpoint_format_version);
+  save(0xff, b, checkpoint_format_version);
   EXPECT_EQ(read(a), read(b));
-  const Checkpoint c = load_checkpoint(b);
-  EXPECT_EQ(c.run.sums.rows, 7);
-  EXPECT_EQ(c.run.sums.ufr, 0.25);
-  EXPECT_EQ(c.run.sums.peak_phi_deg, 31.5);
-  EXPECT_EQ(c.run.sums.final_e1, 0.02);
-  EXPECT_EQ(c.run.sums.wall_s, 12.5);
-  EXPECT_EQ(c.run.changes, "triaxial step 4: limits.max_kinetic_ratio=2\n");
-  save_with_padding(0xff, v4, 4);
-  const Checkpoint old = load_checkpoint(v4);
-  EXPECT_EQ(old.run.sums.rows, 7);
-  EXPECT_EQ(old.run.sums.ufr, 0.25);
-  EXPECT_EQ(old.run.sums.final_e1, 0.02);
-  EXPECT_EQ(old.run.sums.wall_s, 0) << "format 4 kept no triaxial wall time";
+  for (std::uint32_t format = checkpoint_format_version; format >= 1; --format) {
+    SCOPED_TRACE("format " + std::to_string(format));
+    const fs::path f = scratch("sums-" + std::to_string(format) + ".qsck");
+    save(0xff, f, format);
+    const Checkpoint c = load_checkpoint(f);
+    ASSERT_EQ(c.run.phases.size(), 2u);
+    EXPECT_EQ(c.run.phase, 1);
+    EXPECT_EQ(c.run.phases[1].rows, 7);
+    EXPECT_EQ(c.run.phases[1].ufr, 0.25);
+    EXPECT_EQ(c.run.phases[1].peak_phi_deg, 31.5);
+    EXPECT_EQ(c.run.phases[1].final_e1, 0.02);
+    EXPECT_EQ(c.run.phases[1].wall_s, format < 5 ? 0.0 : 12.5) << "formats 1 to 4 kept no triaxial wall time";
+    EXPECT_EQ(c.run.changes, format < 5 ? "" : "triaxial step 4: limits.max_kinetic_ratio=2\n");
+  }
 }

@@ -220,6 +220,7 @@ TEST(Docs, AnnotatedExampleIsTheDefaultCaseWithEveryKeyWritten) {
     not_taken.erase("contact." + std::string(key.name));
   for (const std::string& key : qsdem::case_keys()) {
     if (not_taken.count(key)) continue;
+    if (key.rfind("phase.", 0) == 0) continue;  // a [[phase]] list replaces [compaction] and [triaxial]
     std::string pointer = "/" + key;
     for (char& c : pointer) c = c == '.' ? '/' : c;
     if (key.rfind("sample.particles.", 0) == 0) pointer.insert(std::string("/sample/particles").size(), "/0");
@@ -278,4 +279,25 @@ TEST(Docs, EveryRelativeLinkPointsToAFile) {
     }
   }
   EXPECT_GE(checked, 10u);
+}
+
+// The [[phase]] list of docs/config.md that writes the default protocol as phases reads as the
+// protocol the parser makes of [compaction] and [triaxial].
+TEST(Docs, DefaultProtocolWrittenAsPhasesIsTheDefaultProtocol) {
+  const std::string phases = toml_block_after(source_dir / "docs/config.md", "### `[[phase]]`: a protocol as a list of phases (SPEC 8)");
+  ASSERT_FALSE(phases.empty());
+  const std::string text = read_text(source_dir / "examples/spheres-A-small.toml");
+  // The example without its protocol tables ([compaction], [triaxial], [damping]), with the phases.
+  std::string head;
+  bool skip = false;
+  for (const std::string& line : lines_of(text)) {
+    if (line.rfind("[", 0) == 0) skip = line == "[compaction]" || line == "[triaxial]" || line == "[damping]";
+    if (!skip) head += line + "\n";
+  }
+  const qsdem::Params listed = qsdem::parse_case(head + phases, "docs/config.md (phases)");
+  const qsdem::Params plain = qsdem::parse_case(text, "examples/spheres-A-small.toml");
+  ASSERT_TRUE(listed.phase_list);
+  ASSERT_EQ(listed.protocol.size(), plain.protocol.size());
+  for (std::size_t k = 0; k < plain.protocol.size(); ++k)
+    EXPECT_EQ(qsdem::to_json(listed.protocol[k]), qsdem::to_json(plain.protocol[k])) << "phase " << k;
 }

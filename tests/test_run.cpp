@@ -20,6 +20,7 @@
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
+#include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/step.hpp"
 #include "qsdem/version.hpp"

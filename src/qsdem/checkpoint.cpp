@@ -113,44 +113,18 @@ void io_particles(IO& io, P& p, std::uint32_t version) {
   });
 }
 
-// TriaxialSums field by field (before format 5: the struct's raw bytes, 4 bytes of padding after
-// `rows` on LP64, and no wall time).
-template <class IO, class T>
-void io_sums(IO& io, T& s, std::uint32_t version) {
-  io.pod(s.rows);
-  if (version < 5) {
-    std::uint32_t padding = 0;
-    io.pod(padding);
-  }
-  io.pod(s.ufr);
-  io.pod(s.iuf);
-  io.pod(s.imom);
-  io.pod(s.lateral_error);
-  io.pod(s.max_lateral_error);
-  io.pod(s.peak_phi_deg);
-  io.pod(s.peak_phi_e1);
-  io.pod(s.final_ev);
-  io.pod(s.final_e1);
-  if (version >= 5) io.pod(s.wall_s);
-}
-
-template <class IO, class R>
-void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
-  io.pod(r.phase);
-  io.pod(r.phase_started);
-  io.pod(r.phase_steps);
-  io.pod(r.rows);
-  io.pod(r.v0);
-  io.pod(r.h0);
-  io.pod(r.compaction.steps);
-  io.pod(r.compaction.wall_s);
-  auto& m = r.compaction.final;
+template <class IO, class M>
+void io_measures(IO& io, M& m, std::uint32_t version) {
   io.pod(m.stress);
   io.pod(m.principal);
   io.pod(m.mean_stress);
   io.pod(m.deviator);
   io.pod(m.octahedral);
   io.pod(m.friction_angle_deg);
+  if (version >= 7) {
+    io.pod(m.friction_angle_al_deg);
+    io.pod(m.principal_tilt_deg);
+  }
   io.pod(m.ufr);
   io.pod(m.iuf);
   io.pod(m.imom);
@@ -161,13 +135,203 @@ void io_run(IO& io, R& r, std::uint32_t version = checkpoint_format_version) {
   io.pod(m.volume);
   io.pod(m.solid_volume);
   io.pod(m.void_ratio);
-  io_sums(io, r.sums, version);
+}
+
+// Where a run of the default protocol was, as formats 1 to 6 kept it: its phase (0 compaction, 1
+// triaxial, 2 done), the current phase's start, the compaction's end and the triaxial sums.
+struct LegacyRun {
+  std::int32_t phase = 0;
+  bool phase_started = false;
+  long phase_steps = 0, rows = 0;
+  double v0 = 0;
+  Mat3 h0 = Mat3::Identity();
+  long compaction_steps = 0;
+  double compaction_wall_s = 0;
+  Measures compaction_final;
+  int sums_rows = 0;
+  double ufr = 0, iuf = 0, imom = 0, lateral_error = 0, max_lateral_error = 0;
+  double peak_phi_deg = 0, peak_phi_e1 = 0, final_ev = 0, final_e1 = 0, sums_wall_s = 0;
+  double wall_s = 0;
+  long first_step = 0;
+  bool prepare_only = false;
+  std::string changes;
+};
+
+template <class IO, class R>
+void io_legacy_run(IO& io, R& r, std::uint32_t version) {
+  io.pod(r.phase);
+  io.pod(r.phase_started);
+  io.pod(r.phase_steps);
+  io.pod(r.rows);
+  io.pod(r.v0);
+  io.pod(r.h0);
+  io.pod(r.compaction_steps);
+  io.pod(r.compaction_wall_s);
+  io_measures(io, r.compaction_final, version);
+  // The triaxial sums (before format 5: a struct's raw bytes, 4 bytes of padding after the row
+  // count on LP64, and no wall time).
+  io.pod(r.sums_rows);
+  if (version < 5) {
+    std::uint32_t padding = 0;
+    io.pod(padding);
+  }
+  io.pod(r.ufr);
+  io.pod(r.iuf);
+  io.pod(r.imom);
+  io.pod(r.lateral_error);
+  io.pod(r.max_lateral_error);
+  io.pod(r.peak_phi_deg);
+  io.pod(r.peak_phi_e1);
+  io.pod(r.final_ev);
+  io.pod(r.final_e1);
+  if (version >= 5) io.pod(r.sums_wall_s);
   io.pod(r.wall_s);
   if (version >= 2) io.pod(r.first_step);
   if (version >= 5) {
     io.pod(r.prepare_only);
     io.str(r.changes);
   }
+}
+
+// The default protocol's phases 0 (compaction) and 1 (triaxial) to and from the old layout.
+RunProgress from_legacy(const LegacyRun& l) {
+  RunProgress r;
+  r.phase = l.phase;
+  r.phase_started = l.phase_started;
+  r.phases.resize(2);
+  PhaseRecord& c = r.phases[0];
+  PhaseRecord& t = r.phases[1];
+  c.steps = l.phase == 0 ? l.phase_steps : l.compaction_steps;
+  c.wall_s = l.compaction_wall_s;
+  c.final = l.compaction_final;
+  t.rows = l.sums_rows;
+  t.ufr = l.ufr, t.iuf = l.iuf, t.imom = l.imom;
+  t.stress_error = l.lateral_error, t.max_stress_error = l.max_lateral_error;
+  t.peak_phi_deg = l.peak_phi_deg, t.peak_phi_e1 = l.peak_phi_e1;
+  t.final_ev = l.final_ev, t.final_e1 = l.final_e1;
+  t.wall_s = l.sums_wall_s;
+  if (l.phase < 2) {
+    PhaseRecord& now = r.phases[static_cast<std::size_t>(l.phase)];
+    now.steps = l.phase_steps;
+    now.rows = l.rows;
+    now.v0 = l.v0;
+    now.h0 = l.h0;
+  }
+  r.wall_s = l.wall_s;
+  r.first_step = l.first_step;
+  r.prepare_only = l.prepare_only;
+  r.changes = l.changes;
+  return r;
+}
+
+LegacyRun to_legacy(const RunProgress& r) {
+  LegacyRun l;
+  l.phase = r.phase;
+  l.phase_started = r.phase_started;
+  const std::size_t n = r.phases.size();
+  if (static_cast<std::size_t>(r.phase) < n) {
+    const PhaseRecord& now = r.current();
+    l.phase_steps = now.steps;
+    l.rows = now.rows;
+    l.v0 = now.v0;
+    l.h0 = now.h0;
+  }
+  if (n > 0) {
+    l.compaction_steps = r.phases[0].steps;
+    l.compaction_wall_s = r.phases[0].wall_s;
+    l.compaction_final = r.phases[0].final;
+  }
+  if (n > 1) {
+    const PhaseRecord& t = r.phases[1];
+    l.sums_rows = static_cast<int>(t.rows);
+    l.ufr = t.ufr, l.iuf = t.iuf, l.imom = t.imom;
+    l.lateral_error = t.stress_error, l.max_lateral_error = t.max_stress_error;
+    l.peak_phi_deg = t.peak_phi_deg, l.peak_phi_e1 = t.peak_phi_e1;
+    l.final_ev = t.final_ev, l.final_e1 = t.final_e1;
+    l.sums_wall_s = t.wall_s;
+  }
+  l.wall_s = r.wall_s;
+  l.first_step = r.first_step;
+  l.prepare_only = r.prepare_only;
+  l.changes = r.changes;
+  return l;
+}
+
+// Format 7: any protocol. Every field on its own (no struct's raw bytes, so no padding).
+template <class IO, class P>
+void io_record(IO& io, P& p) {
+  io.pod(p.h0);
+  io.pod(p.v0);
+  io.pod(p.steps);
+  io.pod(p.rows);
+  io.pod(p.wall_s);
+  io.pod(p.ufr);
+  io.pod(p.iuf);
+  io.pod(p.imom);
+  io.pod(p.stress_error);
+  io.pod(p.max_stress_error);
+  io.pod(p.max_shear_stress);
+  io.pod(p.peak_phi_deg);
+  io.pod(p.peak_phi_e1);
+  io.pod(p.final_e1);
+  io.pod(p.final_ev);
+  io_measures(io, p.final, 7);
+}
+
+template <class IO, class S>
+void io_phase_state(IO& io, S& s) {
+  io.pod(s.live);
+  for (auto& c : s.controls.component) {
+    io.pod(c.kind);
+    io.pod(c.value);
+  }
+  io.pod(s.controls.max_strain_rate);
+  io.pod(s.controls.rate_factor);
+  io.pod(s.segment_step);
+  io.pod(s.segment_strain);
+  io.pod(s.row_base_step);
+  io.pod(s.row_base_rows);
+  io.pod(s.last_row_step);
+  io.pod(s.stress_side);
+  io.vec(s.controller);
+}
+
+void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
+  if (version < 7) {
+    LegacyRun l = to_legacy(r);
+    io_legacy_run(w, l, version);
+    return;
+  }
+  w.pod(r.phase);
+  w.pod(r.phase_started);
+  io_phase_state(w, r.state);
+  w.pod(static_cast<std::uint64_t>(r.phases.size()));
+  for (const PhaseRecord& p : r.phases) io_record(w, p);
+  w.pod(r.wall_s);
+  w.pod(r.first_step);
+  w.pod(r.prepare_only);
+  w.str(r.changes);
+}
+
+void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
+  if (version < 7) {
+    LegacyRun l;
+    io_legacy_run(in, l, version);
+    r = from_legacy(l);
+    return;
+  }
+  in.pod(r.phase);
+  in.pod(r.phase_started);
+  io_phase_state(in, r.state);
+  std::uint64_t n = 0;
+  in.pod(n);
+  if (n > 1000) in.damaged("more phases than a case can hold");
+  r.phases.resize(n);
+  for (PhaseRecord& p : r.phases) io_record(in, p);
+  in.pod(r.wall_s);
+  in.pod(r.first_step);
+  in.pod(r.prepare_only);
+  in.str(r.changes);
 }
 
 // The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats

@@ -14,8 +14,10 @@ namespace qsdem {
 // 2: skip state of apart pairs; 3: the same for runs of spheres only (fluctuation_path); 4: the
 // fluctuation_path of runs with ellipsoids too (the skin test's motion bound); 5: the triaxial
 // sums field by field with their wall time, the prepare flag and the `resume --set` changes; 6: the
-// contact history named by its law's layout
-inline constexpr std::uint32_t checkpoint_format_version = 6;
+// contact history named by its law's layout; 7: any protocol (phase.hpp): a record per phase, the
+// current phase's control values, plan and controller state (formats 1 to 6 are read as the
+// default protocol's two phases)
+inline constexpr std::uint32_t checkpoint_format_version = 7;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

@@ -9,6 +9,8 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <limits>
+#include <optional>
 #include <set>
 #include <sstream>
 #include <tuple>
@@ -18,32 +20,10 @@
 #include <toml++/toml.h>
 
 #include "qsdem/contact/laws.hpp"
+#include "qsdem/controller.hpp"
 #include "qsdem/units.hpp"
 
 namespace qsdem {
-
-const char* to_string(DampingModel m) {
-  switch (m) {
-    case DampingModel::none: return "none";
-    case DampingModel::od: return "od";
-    case DampingModel::nd: return "nd";
-    case DampingModel::local: return "local";
-    case DampingModel::stiffness: return "stiffness";
-    case DampingModel::contact: return "contact";
-  }
-  return "?";
-}
-
-const char* to_string(DampedMotion m) {
-  switch (m) {
-    case DampedMotion::both: return "both";
-    case DampedMotion::translation: return "translation";
-    case DampedMotion::rotation: return "rotation";
-  }
-  return "?";
-}
-
-const char* to_string(ShapeKind k) { return k == ShapeKind::sphere ? "sphere" : "ellipsoid"; }
 
 namespace {
 
@@ -256,8 +236,39 @@ class Reader {
     const toml::node* n = get(path, true);
     const auto* arr = n->as_array();
     if (!arr || arr->empty() || !arr->is_array_of_tables())
-      fail(path, n, "expected a non-empty array of tables ([[sample.particles]] entries)");
+      fail(path, n, fmt::format("expected a non-empty array of tables ([[{}]] entries)", path));
     return arr;
+  }
+
+  // An optional key: nullopt when absent (asked all the same, for case_keys).
+  std::optional<double> optional_number(const std::string& path, const Check& ok, const std::string& allowed) {
+    if (!get(path, false)) return std::nullopt;
+    return number(path, std::nullopt, ok, allowed);
+  }
+  std::optional<double> optional_quantity(const std::string& path, Dimension dim, const Check& ok,
+                                          const std::string& allowed) {
+    if (!get(path, false)) return std::nullopt;
+    return quantity(path, dim, std::nullopt, ok, allowed);
+  }
+  std::optional<long> optional_integer(const std::string& path, long lo, long hi) {
+    if (!get(path, false)) return std::nullopt;
+    return integer(path, std::nullopt, lo, hi);
+  }
+
+  // An array of plain values, each checked by `element` (which returns the value or a reason).
+  template <class T, class Element>
+  std::vector<T> list(const std::string& path, const char* expected, Element element) {
+    const toml::node* n = get(path, true);
+    const auto* arr = n->as_array();
+    if (!arr) fail(path, n, fmt::format("expected an array of {}", expected));
+    std::vector<T> out;
+    for (std::size_t k = 0; k < arr->size(); ++k) {
+      std::string why;
+      const std::optional<T> v = element(*arr->get(k), why);
+      if (!v) fail(path, n, fmt::format("entry {} ({}): {}", k, describe(*arr->get(k)), why));
+      out.push_back(*v);
+    }
+    return out;
   }
 
   // Reports the first key that no reader asked for.
@@ -275,14 +286,22 @@ class Reader {
     return "";
   }
 
+  // A table the case may hold, named without its array indices ("phase.0.stop" -> "phase.stop").
   static bool known_section(const std::string& path) {
-    static const std::set<std::string> sections{"material", "sample",     "sample.particles", "time",
-                                                "damping",  "compaction", "triaxial",         "servo",
-                                                "neighbor", "checkpoint", "limits",           "output",
-                                                "contact"};
-    const bool table_entry = path.rfind("sample.particles.", 0) == 0 &&
-                             path.find('.', std::string("sample.particles.").size()) == std::string::npos;
-    return sections.count(path) > 0 || table_entry;
+    static const std::set<std::string> sections{
+        "material",       "sample",           "sample.particles",
+        "time",           "contact",          "damping",
+        "compaction",     "triaxial",         "servo",
+        "neighbor",       "checkpoint",       "limits",
+        "output",         "phase",            "phase.damping",
+        "phase.strain_rate", "phase.stress",  "phase.servo",
+        "phase.stop",     "phase.stop.strain", "phase.stop.stress",
+        "phase.stop.equilibrium", "phase.output", "phase.output.every_strain",
+        "phase.controller"};
+    std::string name;
+    for (const auto& part : split_path(path))
+      if (!is_index(part)) name += (name.empty() ? "" : ".") + part;
+    return sections.count(name) > 0;
   }
 
   void visit_unknown(const toml::node& node, const std::string& prefix) const {
@@ -339,6 +358,11 @@ std::pair<DampingModel, double> damping_model(Reader& r, const std::string& mode
   if (model == DampingModel::contact && ratio >= 1)
     r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"contact\" it is the dashpots' damping ratio, in [0, 1)");
   return {model, ratio};
+}
+
+DampedMotion damped_motion(Reader& r, const std::string& path) {
+  const std::string m = r.text(path, std::string("both"), {"both", "translation", "rotation"});
+  return m == "translation" ? DampedMotion::translation : m == "rotation" ? DampedMotion::rotation : DampedMotion::both;
 }
 
 // [contact]: the law (contact/laws.hpp) and the keys it declares, checked by the law.
@@ -412,6 +436,222 @@ SizeClass read_size_class(Reader& r, const std::string& p) {
   return c;
 }
 
+// The [phase.controller] table for a controller kind: the Reader under the table's path.
+class ControllerTable final : public ControllerKeys {
+ public:
+  ControllerTable(Reader& r, std::string prefix) : r_(r), prefix_(std::move(prefix)) {}
+  std::string text(const std::string& key, const std::vector<std::string>& choices) override {
+    return r_.text(path(key), std::nullopt, choices);
+  }
+  std::vector<long> integers(const std::string& key, long lo, long hi) override {
+    return r_.list<long>(path(key), "whole numbers", [&](const toml::node& e, std::string& why) -> std::optional<long> {
+      if (!e.is_integer()) return why = "expected a whole number", std::nullopt;
+      const long v = static_cast<long>(*e.value<std::int64_t>());
+      if (v < lo || v > hi) return why = fmt::format("out of range: must be in [{}, {}]", lo, hi), std::nullopt;
+      return v;
+    });
+  }
+  std::vector<double> numbers(const std::string& key) override {
+    return r_.list<double>(path(key), "numbers", [](const toml::node& e, std::string& why) -> std::optional<double> {
+      if (!(e.is_floating_point() || e.is_integer()) || !std::isfinite(*e.value<double>()))
+        return why = "expected a finite number", std::nullopt;
+      return *e.value<double>();
+    });
+  }
+  std::vector<double> quantities(const std::string& key, Dimension dim) override {
+    return r_.list<double>(path(key), "strings with a unit",
+                           [dim](const toml::node& e, std::string& why) -> std::optional<double> {
+                             if (!e.is_string()) return why = "expected a string with a unit", std::nullopt;
+                             try {
+                               return parse_quantity(*e.value<std::string>(), dim);
+                             } catch (const InputError& err) {
+                               return why = err.what(), std::nullopt;
+                             }
+                           });
+  }
+  [[noreturn]] void fail(const std::string& key, const std::string& why) override {
+    r_.fail(path(key), r_.find(path(key)), why);
+  }
+
+ private:
+  std::string path(const std::string& key) const { return prefix_ + "." + key; }
+  Reader& r_;
+  std::string prefix_;
+};
+
+// Default sample points: 250 over a phase whose end is known in advance, else every 200 steps.
+constexpr long default_points = 250, default_every_steps = 200, default_max_steps = 2'000'000;
+
+// One [[phase]] entry, `k` = "phase.N" (docs/config.md).
+Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step_ratio, const ContactSettings& contact) {
+  Phase ph;
+  ph.name = r.text(k + ".name", fmt::format("phase-{}", index), {});
+  if (ph.name.empty() || ph.name.find_first_of(",\"\n\r") != std::string::npos)
+    r.fail(k + ".name", r.find(k + ".name"), "must be a non-empty name without commas, quotes or line breaks (a CSV column)");
+  ph.friction = r.number(k + ".friction", std::nullopt, non_negative, "must be >= 0");
+  std::tie(ph.damping.model, ph.damping.ratio) =
+      damping_model(r, k + ".damping.model", k + ".damping.ratio", contact);
+  ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
+
+  bool any_rate = false;
+  for (int c = 0; c < component_count; ++c) {
+    const std::string name = component_names[static_cast<std::size_t>(c)];
+    const std::string rate_key = k + ".strain_rate." + name, stress_key = k + ".stress." + name;
+    const auto rate = r.optional_number(rate_key, [](double v) { return v != 0 && std::abs(v) < 0.01; },
+                                        "eps' must be nonzero and in (-0.01, 0.01); leave the component out to fix it");
+    const auto stress = r.optional_quantity(
+        stress_key, Dimension::stress, [c](double v) { return !is_normal(c) || v > 0; },
+        is_normal(c) ? "a normal stress target must be > 0 (compression positive)" : "any stress");
+    if (rate && stress)
+      r.fail(stress_key, r.find(stress_key),
+             fmt::format("component {} has a strain_rate too: give one control per component", name));
+    auto& control = ph.controls.component[static_cast<std::size_t>(c)];
+    if (rate) control = {ComponentControl::Kind::strain_rate, *rate};
+    if (stress) control = {ComponentControl::Kind::stress, *stress};
+    any_rate = any_rate || rate.has_value();
+  }
+  const auto cap = r.optional_number(k + ".servo.max_strain_rate", [](double v) { return v > 0 && v < 0.1; },
+                                     "must be in (0, 0.1)");
+  const auto factor = r.optional_number(k + ".servo.rate_factor", [](double v) { return v >= 1; }, "must be >= 1");
+  if (cap && factor)
+    r.fail(k + ".servo.rate_factor", r.find(k + ".servo.rate_factor"), "give max_strain_rate or rate_factor, not both");
+  if (factor && !any_rate)
+    r.fail(k + ".servo.rate_factor", r.find(k + ".servo.rate_factor"),
+           "the phase has no strain-rate component to scale; give servo.max_strain_rate");
+  ph.controls.max_strain_rate = cap ? *cap : (factor || any_rate ? 0.0 : 2e-5);
+  ph.controls.rate_factor = factor ? *factor : (cap || !any_rate ? 0.0 : 10.0);
+
+  auto& stop = ph.stop;
+  stop.steps = r.optional_integer(k + ".stop.steps", 1, std::numeric_limits<long>::max()).value_or(0);
+  for (int c = 0; c < component_count; ++c) {
+    const auto kc = static_cast<std::size_t>(c);
+    const std::string name = component_names[kc];
+    stop.strain[kc] = r.optional_quantity(k + ".stop.strain." + name, Dimension::ratio,
+                                          [](double v) { return v != 0 && std::abs(v) < 1; },
+                                          "must be nonzero and in (-100 %, 100 %)");
+    stop.stress[kc] = r.optional_quantity(k + ".stop.stress." + name, Dimension::stress, [](double) { return true; }, "");
+    const auto& control = ph.controls.component[kc];
+    if (planned_strain(ph, c) && (*stop.strain[kc] > 0) != (control.value > 0))
+      r.fail(k + ".stop.strain." + name, r.find(k + ".stop.strain." + name),
+             fmt::format("the strain rate of component {} ({}) never reaches it", name, control.value));
+  }
+  if (r.find(k + ".stop.equilibrium")) {
+    const std::string e = k + ".stop.equilibrium";
+    StopCriteria::Equilibrium eq;
+    eq.stress_tolerance = r.quantity(e + ".stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
+    eq.ufr = r.optional_quantity(e + ".ufr", Dimension::ratio, positive, "must be > 0");
+    eq.imom = r.optional_quantity(e + ".imom", Dimension::ratio, positive, "must be > 0");
+    eq.every = r.integer(e + ".every", default_every_steps, 1, 1'000'000);
+    if (!eq.ufr && !eq.imom) r.fail(e, r.find(e), "give ufr or imom (or both): the index that says the sample is in equilibrium");
+    stop.equilibrium = eq;
+  }
+  bool any_stop = stop.steps > 0 || stop.equilibrium.has_value();
+  for (int c = 0; c < component_count; ++c)
+    any_stop = any_stop || stop.strain[static_cast<std::size_t>(c)] || stop.stress[static_cast<std::size_t>(c)];
+  if (!any_stop)
+    r.fail(k + ".stop", r.find(k + ".stop"), "give at least one end: steps, strain, stress or equilibrium");
+  const long end = planned_end(ph, step_ratio);
+  stop.max_steps = r.optional_integer(k + ".stop.max_steps", 1, std::numeric_limits<long>::max())
+                       .value_or(end < 0 ? default_max_steps : 0);
+
+  auto& out = ph.output;
+  out.file = r.text(k + ".output.file", std::string("series.csv"), {});
+  if (out.file.size() < 5 || out.file.substr(out.file.size() - 4) != ".csv" || out.file.find('/') != std::string::npos ||
+      out.file.front() == '.')
+    r.fail(k + ".output.file", r.find(k + ".output.file"), "must be a file name ending in .csv, in the run directory");
+  out.clock = r.text(k + ".output.clock", std::string("phase"), {"phase", "run"}) == "run" ? PhaseOutput::Clock::run
+                                                                                      : PhaseOutput::Clock::phase;
+  const auto points = r.optional_integer(k + ".output.points", 1, 1'000'000);
+  const auto every = r.optional_integer(k + ".output.every_steps", 1, std::numeric_limits<long>::max());
+  std::optional<double> strain_step;
+  for (int c = 0; c < 3; ++c) {
+    const std::string key = k + ".output.every_strain." + component_names[static_cast<std::size_t>(c)];
+    const auto d = r.optional_quantity(key, Dimension::ratio, positive, "must be > 0");
+    if (!d) continue;
+    if (strain_step) r.fail(key, r.find(key), "give the strain interval of one component only");
+    if (ph.controls.component[static_cast<std::size_t>(c)].kind != ComponentControl::Kind::strain_rate)
+      r.fail(key, r.find(key), "the component must be strain-rate controlled (give it a strain_rate)");
+    strain_step = d;
+    out.cadence.strain_component = c;
+  }
+  if ((points ? 1 : 0) + (every ? 1 : 0) + (strain_step ? 1 : 0) > 1)
+    r.fail(k + ".output", r.find(k + ".output"), "give one of points, every_steps, every_strain");
+  if (points && end < 0)
+    r.fail(k + ".output.points", r.find(k + ".output.points"),
+           "points spreads the rows over a phase whose end is known in advance (stop.steps, or stop.strain of a "
+           "strain-rate component): give every_steps or every_strain");
+  if (points && *points > end)
+    r.fail(k + ".output.points", r.find(k + ".output.points"),
+           fmt::format("more sample points than the {} steps of the phase: lower it", end));
+  if (strain_step) {
+    out.cadence.kind = Cadence::Kind::every_strain;
+    out.cadence.every_strain = *strain_step;
+  } else if (every || end < 0) {
+    out.cadence.kind = Cadence::Kind::every_steps;
+    out.cadence.every_steps = every.value_or(default_every_steps);
+  } else {
+    out.cadence.kind = Cadence::Kind::points;
+    out.cadence.points = points.value_or(std::min(default_points, end));
+  }
+
+  if (r.find(k + ".controller")) {
+    std::vector<std::string> names;
+    for (const ControllerKind& kind : controller_kinds()) names.emplace_back(kind.name);
+    ph.controller = r.text(k + ".controller.kind", std::nullopt, names);
+    ControllerTable table(r, k + ".controller");
+    for (const ControllerKind& kind : controller_kinds())
+      if (kind.name == ph.controller) ph.make_controller = kind.read(table, ph, step_ratio);
+  }
+  int planned = 2;
+  for (int c = 0; c < 3; ++c)
+    if (planned_strain(ph, c)) planned = c;
+  ph.keys = {k + ".stop.max_steps", k + ".damping.ratio", k + ".stop.equilibrium.ufr",
+             k + ".strain_rate." + component_names[static_cast<std::size_t>(planned)], k + ".output.points"};
+  return ph;
+}
+
+// [compaction] then [triaxial] as two phases (SPEC 8.2, 8.3).
+Protocol default_protocol(const Params& p) {
+  const auto& c = p.compaction;
+  const auto& t = p.triaxial;
+  Phase compaction;
+  compaction.name = "compaction";
+  compaction.contact = p.contact;
+  compaction.friction = c.friction;
+  compaction.damping = {c.damping_model, c.damping_ratio, DampedMotion::both};
+  for (int k = 0; k < component_count; ++k)
+    if (is_normal(k) || c.zero_shear_stress)
+      compaction.controls.component[static_cast<std::size_t>(k)] = {ComponentControl::Kind::stress,
+                                                                     is_normal(k) ? c.stress : 0.0};
+  compaction.controls.max_strain_rate = c.max_strain_rate;
+  compaction.stop.equilibrium = StopCriteria::Equilibrium{c.stress_tolerance, c.ufr_tolerance, std::nullopt, c.check_interval};
+  compaction.stop.max_steps = c.max_steps;
+  compaction.output = {"compaction.csv", PhaseOutput::Clock::run, {}};
+  compaction.output.cadence.kind = Cadence::Kind::every_steps;
+  compaction.output.cadence.every_steps = c.check_interval;
+  compaction.keys = {"compaction.max_steps", "compaction.damping_ratio", "compaction.ufr_tolerance",
+                     "compaction.max_strain_rate", "compaction.check_interval"};
+
+  Phase triaxial;
+  triaxial.name = "triaxial";
+  triaxial.contact = p.contact;
+  triaxial.friction = t.friction;
+  triaxial.damping = {p.damping.model, p.damping.ratio, p.damping.acts_on};
+  triaxial.controls.component[0] = {ComponentControl::Kind::stress, t.confining_stress};
+  triaxial.controls.component[1] = {ComponentControl::Kind::stress, t.confining_stress};
+  triaxial.controls.component[2] = {ComponentControl::Kind::strain_rate, t.strain_rate};
+  if (t.zero_shear_stress)
+    for (int k = 3; k < component_count; ++k)
+      triaxial.controls.component[static_cast<std::size_t>(k)] = {ComponentControl::Kind::stress, 0.0};
+  triaxial.controls.rate_factor = t.lateral_rate_factor;
+  triaxial.stop.strain[2] = t.final_axial_strain;
+  triaxial.output.file = "series.csv";
+  triaxial.output.cadence.kind = Cadence::Kind::points;
+  triaxial.output.cadence.points = t.sample_points;
+  triaxial.keys = {"", "damping.ratio", "", "triaxial.strain_rate", "triaxial.sample_points"};
+  return {compaction, triaxial};
+}
+
 nlohmann::json to_json(const toml::table& tbl) {
   std::ostringstream os;
   os << toml::json_formatter{tbl};
@@ -476,10 +716,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   p.contact = read_contact(r);
 
   std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio", p.contact);
-  const std::string acts_on = r.text("damping.acts_on", std::string("both"), {"both", "translation", "rotation"});
-  p.damping.acts_on = acts_on == "translation" ? DampedMotion::translation
-                      : acts_on == "rotation"  ? DampedMotion::rotation
-                                               : DampedMotion::both;
+  p.damping.acts_on = damped_motion(r, "damping.acts_on");
 
   auto& c = p.compaction;
   c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
@@ -501,16 +738,37 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
                                     [](double v) { return v > 0 && v < 0.5; }, "must be in (0, 50 %)");
   t.sample_points = static_cast<int>(r.integer("triaxial.sample_points", 250, 1, 1'000'000));
   t.lateral_rate_factor = r.number("triaxial.lateral_rate_factor", 10.0, [](double v) { return v >= 1; }, "must be >= 1");
+  t.zero_shear_stress = r.boolean("triaxial.zero_shear_stress", false);
 
   p.servo.proportional_gain = r.number("servo.proportional_gain", 0.1, [](double v) { return v > 0 && v < 1; }, "must be in (0, 1)");
   p.servo.integral_gain = r.number("servo.integral_gain", 0.002, [](double v) { return v >= 0 && v <= 0.1; }, "must be in [0, 0.1]");
 
-  const double steps = t.final_axial_strain / (p.step_ratio * t.strain_rate);
-  if (t.sample_points > steps)
-    r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
-           fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "
-                       "strain_rate)): lower it or lower triaxial.strain_rate",
-                       steps));
+  p.phase_list = r.find("phase") != nullptr;
+  if (!p.phase_list) {
+    const double steps = t.final_axial_strain / (p.step_ratio * t.strain_rate);
+    if (t.sample_points > steps)
+      r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
+             fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "
+                         "strain_rate)): lower it or lower triaxial.strain_rate",
+                         steps));
+    p.protocol = default_protocol(p);
+  } else {
+    // The phase list is the whole protocol: the tables of the default one would be ignored.
+    for (const char* section : {"compaction", "triaxial", "damping"})
+      if (const toml::node* n = r.find(section))
+        throw InputError(fmt::format("{}: [{}] with [[phase]]: the protocol is the phase list, which does not read "
+                                     "[{}]; write its settings in the phases (docs/config.md)",
+                                     r.where(n), section, section));
+    const auto* phases = r.array_of_tables("phase");
+    for (std::size_t k = 0; k < phases->size(); ++k) {
+      p.protocol.push_back(read_phase(r, "phase." + std::to_string(k), k, p.step_ratio, p.contact));
+      p.protocol.back().contact = p.contact;
+      for (std::size_t j = 0; j < k; ++j)
+        if (p.protocol[j].name == p.protocol[k].name)
+          r.fail("phase." + std::to_string(k) + ".name", r.find("phase." + std::to_string(k) + ".name"),
+                 fmt::format("phase.{} has the same name: each phase needs its own", j));
+    }
+  }
 
   p.neighbor.skin_ratio = r.number("neighbor.skin_ratio", 0.2, [](double v) { return v > 0 && v <= 2; }, "must be in (0, 2]");
 
@@ -539,7 +797,8 @@ Params parse_case(const std::string& toml_text, const std::string& source,
 }
 
 std::vector<std::string> case_keys() {
-  // A case with one size-table row of each shape: the parser then asks for every key it knows.
+  // A case with one size-table row of each shape, and one with a phase list that names each
+  // optional table: the parser then asks for every key it knows.
   static const char* const every_shape = R"(
     material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
     [[sample.particles]]
@@ -556,19 +815,81 @@ std::vector<std::string> case_keys() {
     semi_axes = ["1 m", "1 m", "1 m"]
     count = 1
   )";
-  std::set<std::string> asked;
+  static const char* const every_phase_key = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa", 33 = "1 Pa" }
+    stop = { equilibrium = { ufr = 0.01 } }
+    controller = { kind = "schedule", component = "11", at_sample = [1], values = ["2 Pa"] }
+  )";
+  std::set<std::string> asked, phase_asked;
   parse(every_shape, "<case_keys>", {}, {}, &asked);
+  parse(every_phase_key, "<case_keys>", {}, {}, &phase_asked);
+  asked.insert(phase_asked.begin(), phase_asked.end());
+  // The keys of an array's entries without the index: sample.particles.2.count -> sample.particles.count.
+  const auto unindexed = [](const std::string& key, const std::string& array) {
+    const std::string head = array + ".";
+    if (key.rfind(head, 0) != 0 || key.size() <= head.size() || !std::isdigit(static_cast<unsigned char>(key[head.size()])))
+      return std::optional<std::string>();
+    const auto dot = key.find('.', head.size());
+    return std::optional<std::string>(dot == std::string::npos ? array : head + key.substr(dot + 1));
+  };
   std::set<std::string> keys;
-  const std::string row = "sample.particles.";
   for (const std::string& k : asked) {
-    if (k.rfind(row, 0) == 0 && k.size() > row.size() && std::isdigit(static_cast<unsigned char>(k[row.size()])))
-      keys.insert(row + k.substr(k.find('.', row.size()) + 1));  // sample.particles.2.count -> sample.particles.count
-    else
-      keys.insert(k);
+    if (const auto row = unindexed(k, "sample.particles")) keys.insert(*row);
+    else if (const auto phase = unindexed(k, "phase")) keys.insert(*phase);
+    else keys.insert(k);
   }
+  keys.erase("phase");  // the array itself
   for (std::string_view law : contact_law_names())  // each law's own keys, read only for that law
     for (const LawKey& key : contact_law_keys(law)) keys.insert("contact." + std::string(key.name));
   return {keys.begin(), keys.end()};
+}
+
+nlohmann::json to_json(const Phase& ph) {
+  nlohmann::json controls = nlohmann::json::object();
+  for (int c = 0; c < component_count; ++c) {
+    const ComponentControl& cc = ph.controls.component[static_cast<std::size_t>(c)];
+    const char* name = component_names[static_cast<std::size_t>(c)];
+    if (cc.kind == ComponentControl::Kind::strain_rate) controls[name] = {{"strain_rate", cc.value}};
+    if (cc.kind == ComponentControl::Kind::stress) controls[name] = {{"stress_Pa", cc.value}};
+  }
+  nlohmann::json stop = nlohmann::json::object();
+  if (ph.stop.steps > 0) stop["steps"] = ph.stop.steps;
+  for (int c = 0; c < component_count; ++c) {
+    const auto k = static_cast<std::size_t>(c);
+    if (ph.stop.strain[k]) stop["strain"][component_names[k]] = *ph.stop.strain[k];
+    if (ph.stop.stress[k]) stop["stress_Pa"][component_names[k]] = *ph.stop.stress[k];
+  }
+  if (const auto& e = ph.stop.equilibrium) {
+    stop["equilibrium"] = {{"stress_tolerance", e->stress_tolerance}, {"every", e->every}};
+    if (e->ufr) stop["equilibrium"]["ufr"] = *e->ufr;
+    if (e->imom) stop["equilibrium"]["imom"] = *e->imom;
+  }
+  if (ph.stop.max_steps > 0) stop["max_steps"] = ph.stop.max_steps;
+  const Cadence& cd = ph.output.cadence;
+  nlohmann::json output = {{"file", ph.output.file}, {"clock", ph.output.clock == PhaseOutput::Clock::run ? "run" : "phase"}};
+  if (cd.kind == Cadence::Kind::points) output["points"] = cd.points;
+  if (cd.kind == Cadence::Kind::every_steps) output["every_steps"] = cd.every_steps;
+  if (cd.kind == Cadence::Kind::every_strain)
+    output["every_strain"] = {{component_names[static_cast<std::size_t>(cd.strain_component)], cd.every_strain}};
+  nlohmann::json servo = nlohmann::json::object();
+  if (ph.controls.max_strain_rate > 0) servo["max_strain_rate"] = ph.controls.max_strain_rate;
+  if (ph.controls.rate_factor > 0) servo["rate_factor"] = ph.controls.rate_factor;
+  nlohmann::json j = {{"name", ph.name},
+                      {"friction", ph.friction},
+                      {"damping", {{"model", to_string(ph.damping.model)}, {"ratio", ph.damping.ratio},
+                                   {"acts_on", to_string(ph.damping.acts_on)}}},
+                      {"control", controls},
+                      {"servo", servo},
+                      {"stop", stop},
+                      {"output", output}};
+  if (!ph.controller.empty()) j["controller"] = ph.controller;
+  return j;
 }
 
 nlohmann::json to_json(const Params& p) {
@@ -579,6 +900,8 @@ nlohmann::json to_json(const Params& p) {
                      {"count", c.count}});
   const auto& c = p.compaction;
   const auto& t = p.triaxial;
+  nlohmann::json protocol = nlohmann::json::array();
+  for (const Phase& ph : p.protocol) protocol.push_back(to_json(ph));
   nlohmann::json contact = {{"law", p.contact.law}};
   for (const auto& [key, value] : p.contact.values) contact[key] = value;
   return {
@@ -599,13 +922,15 @@ nlohmann::json to_json(const Params& p) {
                       {"zero_shear_stress", c.zero_shear_stress}}},
       {"triaxial", {{"friction", t.friction}, {"confining_stress_Pa", t.confining_stress},
                     {"strain_rate", t.strain_rate}, {"final_axial_strain", t.final_axial_strain},
-                    {"sample_points", t.sample_points}, {"lateral_rate_factor", t.lateral_rate_factor}}},
+                    {"sample_points", t.sample_points}, {"lateral_rate_factor", t.lateral_rate_factor},
+                    {"zero_shear_stress", t.zero_shear_stress}}},
       {"servo", {{"proportional_gain", p.servo.proportional_gain}, {"integral_gain", p.servo.integral_gain}}},
       {"neighbor", {{"skin_ratio", p.neighbor.skin_ratio}}},
       {"checkpoint", {{"every_sample_points", p.checkpoint.every_sample_points},
                       {"every_minutes", p.checkpoint.every_minutes}}},
       {"limits", {{"max_overlap", p.limits.max_overlap}, {"max_kinetic_ratio", p.limits.max_kinetic_ratio}}},
       {"output", {{"vtk_every", p.output.vtk_every}}},
+      {"protocol", protocol},
   };
 }
 

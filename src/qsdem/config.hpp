@@ -12,33 +12,16 @@
 
 #include <nlohmann/json.hpp>
 
+#include "qsdem/phase.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {
-
-enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
-enum class DampingModel : std::uint8_t { none, od, nd, local, stiffness, contact };
-// What the particle damping acts on (damping.hpp).
-enum class DampedMotion : std::uint8_t { both, translation, rotation };
-
-const char* to_string(DampingModel m);
-const char* to_string(DampedMotion m);
-const char* to_string(ShapeKind k);
 
 // One row of the particle-size table (SPEC 9): a shape and how many of it.
 struct SizeClass {
   ShapeKind shape = ShapeKind::sphere;
   Vec3 semi_axes = Vec3::Zero();  // a >= b >= c (m); a sphere has a = b = c = R
   long count = 0;
-};
-
-// The [contact] table: the contact law (contact/laws.hpp) and the values of its own keys.
-struct ContactSettings {
-  std::string law = "hertz_mindlin";
-  std::map<std::string, double, std::less<>> values;  // the law's keys that the case gives
-
-  bool has(std::string_view key) const { return values.find(key) != values.end(); }
-  double value(std::string_view key) const { return values.find(key)->second; }
 };
 
 struct Params {
@@ -90,6 +73,7 @@ struct Params {
     double final_axial_strain = 0.10;
     int sample_points = 250;
     double lateral_rate_factor = 10.0;  // max lateral rate = factor * axial rate
+    bool zero_shear_stress = false;     // hold the shear stresses at zero (a flexible boundary)
   } triaxial;
 
   struct Servo {
@@ -115,12 +99,18 @@ struct Params {
     double max_kinetic_ratio = 1.0;  // Ekin / (p V) that stops the triaxial test as a blow-up
   } limits;
 
+  // The phases of the run: the [[phase]] list, or [compaction] then [triaxial] (with [damping])
+  // written as two phases.
+  Protocol protocol;
+  bool phase_list = false;  // the case gives a [[phase]] list
+
   nlohmann::json as_written;  // the TOML as read, after --set overrides
   std::string case_text;      // the same as TOML text (checkpoints keep it for resume)
 };
 
 // Every parameter, defaults included, in SI units (for summary.json).
 nlohmann::json to_json(const Params& p);
+nlohmann::json to_json(const Phase& phase);
 
 // Reads a case from TOML text. `overrides` are "dotted.key=value" strings (value is TOML, or a
 // bare string) applied before validation. A relative sample.from of the text is relative to
@@ -130,8 +120,8 @@ Params parse_case(const std::string& toml_text, const std::string& source,
 Params load_case(const std::string& path, const std::vector<std::string>& overrides = {});
 
 // Every key the parser reads, dotted, sorted ("material.density", ...; the keys of a
-// [[sample.particles]] row as "sample.particles.count"), from the parser itself: docs/config.md
-// documents each of them (tests/test_docs.cpp).
+// [[sample.particles]] row as "sample.particles.count", of a [[phase]] as "phase.stop.steps"),
+// from the parser itself: docs/config.md documents each of them (tests/test_docs.cpp).
 std::vector<std::string> case_keys();
 
 }  // namespace qsdem

@@ -1,6 +1,7 @@
 #include "qsdem/measures.hpp"
 
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <cmath>
 
 #include "qsdem/forces.hpp"
@@ -22,6 +23,13 @@ Measures measure(const State& state) {
   m.deviator = std::sqrt(0.5 * ((s1 - s2) * (s1 - s2) + (s2 - s3) * (s2 - s3) + (s3 - s1) * (s3 - s1)));
   m.octahedral = m.principal.norm() / std::sqrt(3.0);  // paper Eq. 5
   m.friction_angle_deg = (s1 + s3) > 0 ? std::asin((s1 - s3) / (s1 + s3)) * 180 / pi : 0;
+  // The axial-lateral angle and the tilt of the principal frame (SPEC 7): they differ from phi and
+  // 0 when the cell's shear stresses are not zero. (A second solve, so that the eigenvalues above
+  // keep the bits of the values-only solver.)
+  const double axial = m.stress(2, 2), lateral = 0.5 * (m.stress(0, 0) + m.stress(1, 1));
+  m.friction_angle_al_deg = (axial + lateral) > 0 ? std::asin((axial - lateral) / (axial + lateral)) * 180 / pi : 0;
+  const Eigen::SelfAdjointEigenSolver<Mat3> frame(m.stress);
+  m.principal_tilt_deg = std::acos(std::min(1.0, std::abs(frame.eigenvectors()(2, 2)))) * 180 / pi;
 
   // Contact sums: n_c, sum |f_c|, sum |f_c|^2, in pair order (for any thread count).
   const std::vector<Vec3> force = contact_forces_by_pair(state);

@@ -12,6 +12,8 @@ struct Measures {
   double deviator = 0;         // q = sqrt(3 J2) (Pa); = s1 - s3 under axisymmetry
   double octahedral = 0;       // sigma_oct = sqrt(s1^2+s2^2+s3^2)/sqrt(3) (paper Eq. 5)
   double friction_angle_deg = 0;  // asin((s1 - s3)/(s1 + s3))
+  double friction_angle_al_deg = 0;  // axial-lateral: asin((s33 - sl)/(s33 + sl)), sl = (s11 + s22)/2
+  double principal_tilt_deg = 0;  // angle between the direction of s1 and the x3 axis
   double ufr = 0;              // paper Eq. 3
   double iuf = 0;              // paper Eq. 2
   double imom = 0;             // paper Eq. 4

@@ -1,9 +1,9 @@
-// The immutable parameters of one phase of a run (MuJoCo-style model): material, contact law
-// constants, time step, damping model and loading. Protocols build one Model per phase.
+// The immutable parameters of a step (MuJoCo-style model): material, contact law constants, time
+// step, damping model and the control of the cell. The phase loop (protocol.hpp) builds one per
+// phase and a new one when a controller changes a control value.
 #pragma once
 #include <array>
 
-#include "qsdem/config.hpp"
 #include "qsdem/particles.hpp"
 #include "qsdem/types.hpp"
 
@@ -21,18 +21,19 @@ struct Material {
   double wave_speed() const;  // sqrt(E / rho)
 };
 
-// How one axis of the cell is driven (SPEC 3). Compression positive.
+// How one component of the cell's velocity gradient is driven (SPEC 3, servo.hpp).
 struct AxisControl {
   enum class Kind { fixed, strain_rate, stress } kind = Kind::fixed;
-  double value = 0;  // strain_rate: engineering rate de/dt (1/s); stress: target (Pa)
-  double reference_length = 0;  // strain_rate: H0 = h_kk at e = 0 (m), see servo.hpp
+  // strain_rate: a normal component's engineering rate de/dt (1/s, compression positive), a shear
+  // component's L_ab (1/s); stress: the target (Pa, compression positive).
+  double value = 0;
+  double reference_length = 0;  // a normal strain_rate: H0 = h_kk at e = 0 (m), see servo.hpp
 };
 
 struct Servo {
   double proportional_gain = 0.1;  // beta: fraction of the stress error removed per step
   double integral_gain = 0.002;    // gamma: per-step weight of the accumulated error
-  double max_strain_rate = 0;      // |L_kk| cap on stress-controlled axes (1/s)
-  bool zero_shear_stress = false;  // also drive the shear stresses to zero (servo.hpp)
+  double max_strain_rate = 0;      // |L_ab| cap on stress-controlled components (1/s)
 };
 
 struct Model {
@@ -45,7 +46,8 @@ struct Model {
   DampingModel damping = DampingModel::none;  // the damping stage's model (damping.hpp)
   double damping_ratio = 0;     // xi_0
   DampedMotion damping_acts_on = DampedMotion::both;
-  std::array<AxisControl, 3> control{};
+  std::array<AxisControl, 3> control{};        // the normal components 11, 22, 33
+  std::array<AxisControl, 3> shear_control{};  // the shear components 12, 13, 23
   Servo servo;
   double skin = 0;              // Verlet skin (m)
   bool sort_particles = false;  // re-sort particles in space at every list rebuild (reorder.hpp);
@@ -58,8 +60,5 @@ struct Model {
 double critical_time(const Material& mat, double r_min);
 
 double smallest_equiv_radius(const Particles& particles);
-
-// The model of a phase from the case parameters; the caller sets friction, damping, control.
-Model base_model(const Params& params, const Particles& particles);
 
 }  // namespace qsdem

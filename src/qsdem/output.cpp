@@ -8,26 +8,76 @@
 #include <cerrno>
 #include <cstring>
 #include <fstream>
+#include <iterator>
 
 #include "qsdem/types.hpp"
 
 namespace qsdem {
 
-std::string series_row(long step, double time, double e1, double ev, const Measures& m) {
-  return fmt::format("{},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.8g},{:.8g},{:.8g},"
-                     "{:.8g},{:.8g},{:.8g},{:.8g},{:.8g},{:.8g}",
-                     step, time, e1, ev, m.stress(0, 0), m.stress(1, 1), m.stress(2, 2), m.mean_stress,
-                     m.deviator, m.friction_angle_deg, m.void_ratio, m.coordination, m.ufr, m.iuf, m.imom,
-                     m.ekin_trans + m.ekin_rot, m.ekin_trans, m.ekin_rot);
+namespace {
+
+// The columns, in order: SPEC 10's (10.1), then phi_al_deg and tilt_deg (SPEC 7). Each appends its
+// value; the header and the rows are made from this one list.
+struct Column {
+  const char* name;
+  void (*write)(fmt::memory_buffer& out, const SeriesRow& r);
+};
+
+constexpr Column columns[] = {
+    {"step", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{}", r.step); }},
+    {"time_s", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.time); }},
+    {"e1", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.e1); }},
+    {"ev", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.ev); }},
+    {"s11_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.stress(0, 0)); }},
+    {"s22_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.stress(1, 1)); }},
+    {"s33_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.stress(2, 2)); }},
+    {"p_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.mean_stress); }},
+    {"q_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.deviator); }},
+    {"phi_deg", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.friction_angle_deg); }},
+    {"void_ratio", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.void_ratio); }},
+    {"cn", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.coordination); }},
+    {"ufr", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ufr); }},
+    {"iuf", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.iuf); }},
+    {"imom", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.imom); }},
+    {"ekin_J", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ekin_trans + r.m.ekin_rot);
+     }},
+    {"ekin_trans_J", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ekin_trans); }},
+    {"ekin_rot_J", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ekin_rot); }},
+    {"phi_al_deg", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.friction_angle_al_deg);
+     }},
+    {"tilt_deg", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.principal_tilt_deg); }},
+};
+
+}  // namespace
+
+std::string series_header(bool phase_column) {
+  std::string h;
+  for (const Column& c : columns) {
+    if (!h.empty()) h += ',';
+    h += c.name;
+  }
+  return phase_column ? h + ",phase" : h;
 }
 
-SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows) : path_(std::move(path)) {
+std::string series_row(const SeriesRow& r) {
+  fmt::memory_buffer out;
+  for (const Column& c : columns) {
+    if (out.size() > 0) out.push_back(',');
+    c.write(out, r);
+  }
+  if (r.phase) fmt::format_to(std::back_inserter(out), ",{}", *r.phase);
+  return fmt::to_string(out);
+}
+
+SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column) : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
     file_ = std::fopen(partial_.c_str(), "w");
     if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
-    write(series_header);
+    write(series_header(phase_column));
     return;
   }
   std::ifstream in(partial_);

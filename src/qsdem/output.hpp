@@ -9,20 +9,26 @@
 
 namespace qsdem {
 
-// The exact header of SPEC 10 (more columns may follow).
-inline constexpr const char* series_header =
-    "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
-    "ekin_trans_J,ekin_rot_J";
+// One row of series.csv / compaction.csv: the step and time of the row's clock and the strains
+// of its file's reference are given by the caller (they depend on the phase).
+struct SeriesRow {
+  long step = 0;
+  double time = 0;
+  double e1 = 0, ev = 0;
+  const Measures& m;
+  const std::string* phase = nullptr;  // the phase's name, when the file has a phase column
+};
 
-// One row of series.csv: strains are given by the caller (they depend on the phase's reference).
-std::string series_row(long step, double time, double e1, double ev, const Measures& m);
+// The header: SPEC 10's columns, then those added after them, then `phase` when asked for.
+std::string series_header(bool phase_column);
+std::string series_row(const SeriesRow& row);
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
 // With keep_rows >= 0 it continues an existing `path.partial` after its first keep_rows rows
 // (a resumed run: rows written after the checkpoint are dropped and written again).
 class SeriesWriter {
  public:
-  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1);
+  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;

@@ -8,7 +8,6 @@
 #include <type_traits>
 #include <vector>
 
-#include "qsdem/config.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {

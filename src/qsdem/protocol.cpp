@@ -2,10 +2,15 @@
 
 #include <fmt/format.h>
 
+#include <Eigen/LU>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <memory>
 
+#include "qsdem/controller.hpp"
+#include "qsdem/damping.hpp"
+#include "qsdem/schedule.hpp"
 #include "qsdem/step.hpp"
 
 namespace qsdem {
@@ -16,7 +21,7 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 }
 
 // Stops the run with a diagnostic when the state is no longer finite. `step`: the phase's step
-// number, counted from 0 as in compaction.csv and series.csv.
+// number, counted from 0 as in its rows.
 void check_finite(const Measures& m, const State& st, const char* phase, long step) {
   if (std::isfinite(m.stress.sum()) && std::isfinite(m.ekin_trans + m.ekin_rot)) return;
   for (std::size_t i = 0; i < st.particles.size(); ++i)
@@ -29,15 +34,131 @@ void check_finite(const Measures& m, const State& st, const char* phase, long st
                              step));
 }
 
-// Kinetic energy beyond limits.max_kinetic_ratio * p V: the sample is flying apart, not sheared.
-void check_kinetic(const Measures& m, const Params& params, long step) {
+// Kinetic energy beyond limits.max_kinetic_ratio * p V: the sample is flying apart, not loaded.
+void check_kinetic(const Measures& m, const Params& params, const Phase& phase, long step) {
   const double ratio = (m.ekin_trans + m.ekin_rot) / (std::max(m.mean_stress, 0.0) * m.volume);
   if (ratio > params.limits.max_kinetic_ratio)
     throw RunError(fmt::format(
-        "triaxial: blow-up at triaxial step {}: kinetic energy {:.3g} J is {:.3g} times p V (limit "
+        "{}: blow-up at {} step {}: kinetic energy {:.3g} J is {:.3g} times p V (limit "
         "limits.max_kinetic_ratio = {:.3g}): the loading is far too fast for the damping; lower "
-        "triaxial.strain_rate or time.step_ratio",
-        step, m.ekin_trans + m.ekin_rot, ratio, params.limits.max_kinetic_ratio));
+        "{} or time.step_ratio",
+        phase.name, phase.name, step, m.ekin_trans + m.ekin_rot, ratio, params.limits.max_kinetic_ratio,
+        phase.keys.strain_rate));
+}
+
+using Kind = ComponentControl::Kind;
+
+// The largest stress target of the stress-controlled normal components (0 without any).
+double largest_normal_target(const PhaseControls& c) {
+  double t = 0;
+  for (int k = 0; k < 3; ++k)
+    if (c.component[static_cast<std::size_t>(k)].kind == Kind::stress)
+      t = std::max(t, c.component[static_cast<std::size_t>(k)].value);
+  return t;
+}
+
+// The largest relative error of the stress-controlled components (StopCriteria::Equilibrium):
+// a normal one against its target, a shear one relative to the largest normal target (or p).
+double stress_error(const Measures& m, const PhaseControls& c) {
+  const double largest = largest_normal_target(c);
+  const double scale = largest > 0 ? largest : std::abs(m.mean_stress);
+  double worst = 0;
+  for (int k = 0; k < component_count; ++k) {
+    const ComponentControl& cc = c.component[static_cast<std::size_t>(k)];
+    if (cc.kind != Kind::stress) continue;
+    const auto [a, b] = component_axes[static_cast<std::size_t>(k)];
+    worst = std::max(worst, std::abs(m.stress(a, b) - cc.value) / (is_normal(k) ? cc.value : scale));
+  }
+  return worst;
+}
+
+// The phase's state at its start: its own control values, segments from force evaluation 0.
+PhaseState fresh_state(const Phase& phase) {
+  PhaseState s;
+  s.live = true;
+  s.controls = phase.controls;
+  return s;
+}
+
+// The last force evaluation of the phase as planned now (-1: it ends on measured criteria only).
+long planned_end(const Phase& phase, const PhaseState& s, double step_ratio) {
+  long end = phase.stop.steps > 0 ? phase.stop.steps - 1 : -1;
+  for (int c = 0; c < 3; ++c)
+    if (planned_strain(phase, c)) {
+      const auto k = static_cast<std::size_t>(c);
+      const long n = planned_step(s.segment_step[k], s.segment_strain[k], *phase.stop.strain[k], step_ratio,
+                                  s.controls.component[k].value);
+      end = end < 0 ? n : std::min(end, n);
+    }
+  return end;
+}
+
+// The force evaluation of the phase's next sample point by its cadence (the end is one too).
+long next_sample(const Phase& phase, const PhaseState& s, long rows, long end, double step_ratio) {
+  const Cadence& c = phase.output.cadence;
+  switch (c.kind) {
+    case Cadence::Kind::points: {
+      // row k of P at base + round((k - base_k) (end - base) / (P - base_k)); SPEC 8.4 from 0.
+      const long k = rows + 1;
+      if (k >= c.points) return end;
+      return s.row_base_step + std::lround(static_cast<double>(k - s.row_base_rows) *
+                                           static_cast<double>(end - s.row_base_step) /
+                                           static_cast<double>(c.points - s.row_base_rows));
+    }
+    case Cadence::Kind::every_steps:
+      return (rows + 1) * c.every_steps - 1;  // after every every_steps steps of the phase
+    case Cadence::Kind::every_strain: {
+      const auto k = static_cast<std::size_t>(c.strain_component);
+      const double eps = s.controls.component[k].value;
+      const double target = static_cast<double>(rows + 1) * c.every_strain * (eps > 0 ? 1 : -1);
+      return planned_step(s.segment_step[k], s.segment_strain[k], target, step_ratio, eps);
+    }
+  }
+  return end;
+}
+
+// Whether a measured end (phase.hpp: stop.stress, stop.strain of a component whose strain is not
+// planned) holds at the state's last force evaluation.
+bool measured_end(const Phase& phase, PhaseState& s, const State& st, const Mat3& h0) {
+  bool reached = false;
+  bool strain_needed = false;
+  for (int c = 0; c < component_count; ++c) {
+    const auto k = static_cast<std::size_t>(c);
+    if (const auto& target = phase.stop.stress[k]) {
+      const auto [a, b] = component_axes[k];
+      const double sigma = st.stress(a, b);
+      if (s.stress_side[k] == 0) s.stress_side[k] = sigma < *target ? 1 : -1;
+      reached = reached || (s.stress_side[k] > 0 ? sigma >= *target : sigma <= *target);
+    }
+    strain_needed = strain_needed || (phase.stop.strain[k] && !planned_strain(phase, c));
+  }
+  if (!strain_needed) return reached;
+  const auto strain = phase_strain(st.stress_h, h0);
+  for (int c = 0; c < component_count; ++c) {
+    const auto k = static_cast<std::size_t>(c);
+    if (!phase.stop.strain[k] || planned_strain(phase, c)) continue;
+    const double target = *phase.stop.strain[k];
+    reached = reached || (target > 0 ? strain[k] >= target : strain[k] <= target);
+  }
+  return reached;
+}
+
+bool in_equilibrium(const Measures& m, const StopCriteria::Equilibrium& e, double error) {
+  return m.contacts > 0 && error < e.stress_tolerance && (!e.ufr || m.ufr < *e.ufr) && (!e.imom || m.imom < *e.imom);
+}
+
+// After a controller changed the control values at force evaluation n (they apply from n + 1):
+// a planned strain's segment restarts at n + 1 with its nominal strain there, and the rows still
+// to come are spread from the last one.
+void controls_changed(const PhaseControls& before, PhaseState& s, long n, long rows, double step_ratio) {
+  for (std::size_t k = 0; k < 3; ++k) {
+    const ComponentControl& old = before.component[k];
+    if (old.kind != Kind::strain_rate || old.value == s.controls.component[k].value) continue;
+    s.segment_strain[k] += static_cast<double>(n + 1 - s.segment_step[k]) * (step_ratio * old.value);
+    s.segment_step[k] = n + 1;
+  }
+  s.row_base_step = std::max(s.last_row_step, 0L);
+  s.row_base_rows = rows;
 }
 
 }  // namespace
@@ -67,169 +188,137 @@ void BlowUpWatch::check(const State& st, const Params& params, const char* phase
     throw RunError(fmt::format(
         "{}: blow-up at {} step {}: {} overlap by {:.3g} % of the smaller radius (limit limits.max_overlap = {:.3g} "
         "%: beyond it the contact geometry is meaningless). The time step may be too large (time.step_ratio) or "
-        "the loading too fast (triaxial.strain_rate, compaction.max_strain_rate)",
+        "the loading too fast (a strain rate, the servo's max_strain_rate)",
         phase, phase, step, pair(), 100 * now, 100 * params.limits.max_overlap));
   recent_[static_cast<std::size_t>(seen_ % window)] = now;
   ++seen_;
 }
 
-TriaxialResult triaxial_result(const RunProgress& run) {
-  const TriaxialSums& r = run.sums;
-  const double rows = std::max(1, r.rows);
-  TriaxialResult res;
-  res.steps = run.phase_steps;
-  res.rows = r.rows;
-  res.mean_ufr = r.ufr / rows;
-  res.mean_iuf = r.iuf / rows;
-  res.mean_imom = r.imom / rows;
-  res.peak_phi_deg = r.peak_phi_deg;
-  res.peak_phi_e1 = r.peak_phi_e1;
-  res.final_ev = r.final_ev;
-  res.final_e1 = r.final_e1;
-  res.max_lateral_stress_error = r.max_lateral_error;
-  res.mean_lateral_stress_error = r.lateral_error / (2.0 * rows);
-  res.wall_s = r.wall_s;
-  return res;
+Model base_model(const Params& params, const Particles& particles) {
+  Model m;
+  m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
+  m.contact = params.contact;
+  m.r_min = smallest_equiv_radius(particles);
+  m.critical_time = critical_time(m.material, m.r_min);
+  m.dt = params.step_ratio * m.critical_time;
+  m.servo.proportional_gain = params.servo.proportional_gain;
+  m.servo.integral_gain = params.servo.integral_gain;
+  m.skin = params.neighbor.skin_ratio * m.r_min;
+  m.sort_particles = true;
+  m.skip_apart_pairs = true;
+  return m;
+}
+
+Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
+                  const Mat3& h0) {
+  Model m = base_model(params, particles);
+  m.contact = phase.contact;
+  m.friction = phase.friction;
+  m.damping = phase.damping.model;
+  m.damping_ratio = phase.damping.ratio;
+  m.damping_acts_on = phase.damping.acts_on;
+  double fastest = 0;  // the fastest strain-rate component (1/s)
+  for (int c = 0; c < component_count; ++c) {
+    const ComponentControl& cc = controls.component[static_cast<std::size_t>(c)];
+    AxisControl& axis = is_normal(c) ? m.control[static_cast<std::size_t>(c)] : m.shear_control[static_cast<std::size_t>(c - 3)];
+    switch (cc.kind) {
+      case Kind::fixed: axis = {}; break;
+      case Kind::strain_rate: {
+        const double rate = cc.value / m.critical_time;  // eps' = rate t_c (SPEC 8)
+        axis = {AxisControl::Kind::strain_rate, rate, is_normal(c) ? h0(c, c) : 0.0};
+        fastest = std::max(fastest, std::abs(rate));
+        break;
+      }
+      case Kind::stress: axis = {AxisControl::Kind::stress, cc.value, 0.0}; break;
+    }
+  }
+  m.servo.max_strain_rate =
+      controls.rate_factor > 0 ? controls.rate_factor * fastest : controls.max_strain_rate / m.critical_time;
+  return m;
 }
 
 Model compaction_model(const Params& params, const State& state) {
-  Model m = base_model(params, state.particles);
-  m.friction = params.compaction.friction;
-  m.damping = params.compaction.damping_model;
-  m.damping_ratio = params.compaction.damping_ratio;
-  for (auto& c : m.control) c = {AxisControl::Kind::stress, params.compaction.stress, 0.0};
-  m.servo.max_strain_rate = params.compaction.max_strain_rate / m.critical_time;
-  m.servo.zero_shear_stress = params.compaction.zero_shear_stress;
-  return m;
-}
-
-Model triaxial_model(const Params& params, const State& state, double axial_reference_length) {
-  Model m = base_model(params, state.particles);
-  m.friction = params.triaxial.friction;
-  m.damping = params.damping.model;
-  m.damping_ratio = params.damping.ratio;
-  m.damping_acts_on = params.damping.acts_on;
-  const double rate = params.triaxial.strain_rate / m.critical_time;  // eps' = rate t_c (SPEC 8)
-  m.control[0] = {AxisControl::Kind::stress, params.triaxial.confining_stress, 0.0};
-  m.control[1] = {AxisControl::Kind::stress, params.triaxial.confining_stress, 0.0};
-  m.control[2] = {AxisControl::Kind::strain_rate, rate, axial_reference_length};
-  m.servo.max_strain_rate = params.triaxial.lateral_rate_factor * rate;
-  return m;
+  const Phase& p = params.protocol.front();
+  return phase_model(params, p, p.controls, state.particles, state.cell.h);
 }
 
 Model triaxial_model(const Params& params, const State& state) {
-  return triaxial_model(params, state, state.cell.h(2, 2));
+  const Phase& p = params.protocol.back();
+  return phase_model(params, p, p.controls, state.particles, state.cell.h);
 }
 
-long triaxial_steps(const Params& params) {
-  return std::max(1L, std::lround(params.triaxial.final_axial_strain /
-                                  (params.step_ratio * params.triaxial.strain_rate)));
-}
-
-// Starts a phase once (not again on resume): reference cell and servo memory.
-static void start_phase(RunProgress& run, State& st) {
-  if (run.phase_started) return;
-  run.phase_started = true;
-  run.phase_steps = 0;
-  run.rows = 0;
-  run.v0 = st.cell.volume;
-  run.h0 = st.cell.h;
-  st.servo_integral.setZero();
-}
-
-CompactionResult compact(const Params& params, State& st, RunProgress& run, Progress& progress, SeriesWriter* log,
-                         const StepHook& hook) {
-  const auto t0 = std::chrono::steady_clock::now();
-  const Model model = compaction_model(params, st);
-  start_phase(run, st);
-  assign_damping(model, st.particles);
-  const auto& c = params.compaction;
-  progress.begin("compaction", 0);
-  const double wall_before = run.compaction.wall_s;
-  const long run_steps_at_start = run.phase_steps;
-  BlowUpWatch watch;
-  Schedule schedule;
-  while (run.phase_steps < c.max_steps) {
-    step(model, st, schedule);
-    watch.check(st, params, "compaction", run.phase_steps);
-    const long n = ++run.phase_steps;
-    if (n % c.check_interval != 0) {
-      if (hook) hook(false);
-      continue;
-    }
-    Measures m;
-    {
-      ScopedStage t(st.timers, Stage::measures);
-      m = measure(st);
-    }
-    check_finite(m, st, "compaction", n - 1);
-    // Stress error: each normal stress against the target and, when they are servo-controlled,
-    // each shear stress against zero, relative to the target.
-    double worst = 0;
-    for (int a = 0; a < 3; ++a)
-      for (int b = a; b < 3; ++b)
-        if (a == b || c.zero_shear_stress)
-          worst = std::max(worst, std::abs(m.stress(a, b) - (a == b ? c.stress : 0.0)) / c.stress);
-    if (log) {
-      ScopedStage t(st.timers, Stage::output);
-      const double e1 = 1 - st.stress_h(2, 2) / run.h0(2, 2);
-      log->write(series_row(st.step - 1, st.time - model.dt, e1, m.volume / run.v0 - 1, m));
-      ++run.rows;
-    }
-    progress.update(static_cast<double>(n - run_steps_at_start), fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}",
-                                   n, m.mean_stress / 1e3, 100 * worst, m.ufr, m.void_ratio));
-    const bool done = m.contacts > 0 && worst < c.stress_tolerance && m.ufr < c.ufr_tolerance;
-    if (done) {
-      run.compaction.steps = n;
-      run.compaction.final = m;
-      run.compaction.wall_s = wall_before + seconds_since(t0);
-      progress.end(fmt::format("compaction done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}",
-                               n, m.mean_stress / 1e3, m.void_ratio, m.ufr, format_duration(run.compaction.wall_s)));
-      return run.compaction;
-    }
-    run.compaction.wall_s = wall_before + seconds_since(t0);
-    if (hook) hook(true);
+std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0) {
+  std::array<double, component_count> e{};
+  for (int k = 0; k < 3; ++k) e[static_cast<std::size_t>(k)] = 1 - h(k, k) / h0(k, k);
+  const Mat3 f = h * h0.inverse();
+  for (int c = 3; c < component_count; ++c) {
+    const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
+    e[static_cast<std::size_t>(c)] = f(a, b) + f(b, a);
   }
-  const Measures m = measure(st);
-  throw RunError(fmt::format(
-      "compaction did not reach equilibrium in {} steps (compaction.max_steps): p = {:.4g} kPa (target {:.4g}), "
-      "UFR {:.3g} (tolerance {:.3g}); raise compaction.max_steps or compaction.damping_ratio, or relax "
-      "compaction.ufr_tolerance",
-      c.max_steps, m.mean_stress / 1e3, c.stress / 1e3, m.ufr, c.ufr_tolerance));
+  return e;
 }
 
-TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWriter& series, Progress& progress,
-                     const StepHook& hook) {
+void run_phase(const Params& params, State& st, RunProgress& run, const RowSink& sink, Progress& progress,
+               const StepHook& hook) {
   const auto t0 = std::chrono::steady_clock::now();
-  const auto& t = params.triaxial;
-  const long total = triaxial_steps(params);
-  if (t.sample_points > total)
-    throw InputError(fmt::format("triaxial.sample_points = {} is more than the {} steps of the test: lower it or "
-                                 "lower triaxial.strain_rate",
-                                 t.sample_points, total));
-  const double h_start = run.phase_started ? run.h0(2, 2) : st.cell.h(2, 2);
-  const Model model = triaxial_model(params, st, h_start);
-  start_phase(run, st);
-  assign_damping(model, st.particles);
-  const double v0 = run.v0, h0 = run.h0(2, 2);
-  TriaxialSums& r = run.sums;
-  const double wall_before = r.wall_s;
-  const long steps_at_start = run.phase_steps;
-  BlowUpWatch watch;
-  progress.begin("triaxial", static_cast<double>(total - steps_at_start));
-  auto sample_step = [&](long k) {
-    return std::lround(static_cast<double>(k) * static_cast<double>(total) / t.sample_points);
+  const Phase& phase = params.protocol.at(static_cast<std::size_t>(run.phase));
+  PhaseRecord& rec = run.current();
+  PhaseState& ps = run.state;
+  if (!run.phase_started) {
+    run.phase_started = true;
+    rec = {};
+    rec.h0 = st.cell.h;
+    rec.v0 = st.cell.volume;
+    st.servo_integral.setZero();
+    ps = fresh_state(phase);
+  } else if (!ps.live) {
+    ps = fresh_state(phase);  // a checkpoint of an older format: no controller changed anything
+  }
+  std::unique_ptr<Controller> controller = phase.make_controller ? phase.make_controller() : nullptr;
+  if (controller && !ps.controller.empty()) controller->restore(ps.controller);
+  const auto keep_controller = [&] {
+    if (controller) ps.controller = controller->save();
   };
-  // Force evaluation n (0..total) happens at axial strain n c_t eps'; sample k is taken at n_k.
-  Schedule schedule;
-  while (run.phase_steps <= total) {
-    const long n = run.phase_steps;
+
+  Model model = phase_model(params, phase, ps.controls, st.particles, rec.h0);
+  assign_damping(model, st.particles);
+  const PhaseRecord& ref = run.phases.at(static_cast<std::size_t>(sink.reference_phase));
+  const std::optional<StopCriteria::Equilibrium>& equilibrium = phase.stop.equilibrium;
+  const char* name = phase.name.c_str();
+  const double wall_before = rec.wall_s;
+  const long steps_at_start = rec.steps;
+  long end = planned_end(phase, ps, params.step_ratio);
+  long sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
+  BlowUpWatch watch;
+  Schedule schedule;  // the threads' shares of the step, kept over the phase
+  progress.begin(phase.name, end >= 0 ? static_cast<double>(end - steps_at_start) : 0.0);
+  const auto limit_reached = [&] { return phase.stop.max_steps > 0 && rec.steps >= phase.stop.max_steps; };
+  const auto replan = [&](const PhaseControls& before, long n) {
+    controls_changed(before, ps, n, rec.rows, params.step_ratio);
+    model = phase_model(params, phase, ps.controls, st.particles, rec.h0);
+    end = planned_end(phase, ps, params.step_ratio);
+  };
+  bool ended = false;
+  while (!ended) {
+    const long n = rec.steps;  // the force evaluation of this step
     step(model, st, schedule);
-    watch.check(st, params, "triaxial", n);
-    ++run.phase_steps;
-    r.wall_s = wall_before + seconds_since(t0);  // before the hook, which may save a checkpoint
-    if (n != sample_step(run.rows + 1)) {
+    watch.check(st, params, name, n);
+    ++rec.steps;
+    rec.wall_s = wall_before + seconds_since(t0);  // before the hook, which may save a checkpoint
+    ended = (end >= 0 && n >= end) || measured_end(phase, ps, st, rec.h0);
+    if (controller && controller->every_step()) {
+      const PhaseControls before = ps.controls;
+      if (controller->at_step(st, n, ps.controls)) {
+        replan(before, n);
+        sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
+      }
+      keep_controller();
+    }
+    const bool row = ended || (sample >= 0 && n >= sample);
+    const bool check = equilibrium && rec.steps % equilibrium->every == 0;
+    if (!row && !check) {
       if (hook) hook(false);
+      if (limit_reached()) break;
       continue;
     }
     Measures m;
@@ -237,53 +326,98 @@ TriaxialResult shear(const Params& params, State& st, RunProgress& run, SeriesWr
       ScopedStage ts(st.timers, Stage::measures);
       m = measure(st);
     }
-    check_finite(m, st, "triaxial", n);
-    check_kinetic(m, params, n);
-    const double e1 = 1 - st.stress_h(2, 2) / h0;
-    const double ev = m.volume / v0 - 1;
-    {
-      ScopedStage ts(st.timers, Stage::output);
-      series.write(series_row(n, static_cast<double>(n) * model.dt, e1, ev, m));
-      ++run.rows;
+    check_finite(m, st, name, n);
+    if (!equilibrium) check_kinetic(m, params, phase, n);
+    const double error = stress_error(m, ps.controls);
+    ended = ended || (check && in_equilibrium(m, *equilibrium, error));
+    const double e1 = 1 - st.stress_h(2, 2) / ref.h0(2, 2);
+    if (row || ended) {
+      const double ev = m.volume / ref.v0 - 1;
+      const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
+      if (sink.writer) {
+        ScopedStage ts(st.timers, Stage::output);
+        sink.writer->write(series_row({run_clock ? st.step - 1 : n,
+                                       run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt, e1, ev, m,
+                                       sink.phase_column ? &phase.name : nullptr}));
+      }
+      ++rec.rows;
+      ps.last_row_step = n;
+      rec.ufr += m.ufr;
+      rec.iuf += m.iuf;
+      rec.imom += m.imom;
+      if (m.friction_angle_deg > rec.peak_phi_deg) {
+        rec.peak_phi_deg = m.friction_angle_deg;
+        rec.peak_phi_e1 = e1;
+      }
+      for (int c = 0; c < component_count; ++c) {
+        const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
+        const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
+        if (is_normal(c) && cc.kind == Kind::stress) {
+          const double err = std::abs(m.stress(a, a) / cc.value - 1);
+          rec.max_stress_error = std::max(rec.max_stress_error, err);
+          rec.stress_error += err;
+        } else if (!is_normal(c) && m.mean_stress > 0) {
+          const double target = cc.kind == Kind::stress ? cc.value : 0.0;
+          rec.max_shear_stress = std::max(rec.max_shear_stress, std::abs(m.stress(a, b) - target) / m.mean_stress);
+        }
+      }
+      rec.final_ev = ev;
+      rec.final_e1 = e1;
+      rec.final = m;
     }
-    ++r.rows;
-    r.ufr += m.ufr;
-    r.iuf += m.iuf;
-    r.imom += m.imom;
-    if (m.friction_angle_deg > r.peak_phi_deg) {
-      r.peak_phi_deg = m.friction_angle_deg;
-      r.peak_phi_e1 = e1;
+    if (equilibrium)
+      progress.update(static_cast<double>(rec.steps - steps_at_start),
+                      fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}", rec.steps,
+                                  m.mean_stress / 1e3, 100 * error, m.ufr, m.void_ratio));
+    else
+      progress.update(static_cast<double>(n - steps_at_start),
+                      fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}", 100 * e1,
+                                  m.friction_angle_deg, m.ufr, m.imom));
+    if (ended) break;
+    if (row && controller) {
+      const SamplePoint point{n, rec.rows, &m, phase_strain(st.stress_h, rec.h0), model.critical_time};
+      const PhaseControls before = ps.controls;
+      if (controller->at_sample(point, ps.controls)) replan(before, n);
+      keep_controller();
     }
-    for (int a = 0; a < 2; ++a) {
-      const double err = std::abs(m.stress(a, a) / t.confining_stress - 1);
-      r.max_lateral_error = std::max(r.max_lateral_error, err);
-      r.lateral_error += err;
-    }
-    r.final_ev = ev;
-    r.final_e1 = e1;
-    progress.update(static_cast<double>(n - steps_at_start),
-                    fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}", 100 * e1,
-                                m.friction_angle_deg, m.ufr, m.imom));
-    if (run.rows == t.sample_points) break;
-    if (hook) hook(true);
+    if (row) sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
+    if (hook) hook(row);
+    if (limit_reached()) break;
   }
-  const TriaxialResult out = triaxial_result(run);
-  progress.end(fmt::format("triaxial done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean "
-                           "IMom {:.3g}, {}",
-                           out.steps, out.peak_phi_deg, 100 * out.peak_phi_e1, out.mean_ufr, out.mean_imom,
-                           format_duration(out.wall_s)));
-  return out;
+  if (!ended) {
+    const Measures m = measure(st);
+    if (equilibrium) {
+      const double target = largest_normal_target(ps.controls);
+      throw RunError(fmt::format(
+          "{} did not reach equilibrium in {} steps ({}): p = {:.4g} kPa (target {:.4g}), {} {:.3g} (tolerance {:.3g}); "
+          "raise {} or {}, or relax {}",
+          phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3, target / 1e3,
+          equilibrium->ufr ? "UFR" : "IMom", equilibrium->ufr ? m.ufr : m.imom,
+          equilibrium->ufr ? *equilibrium->ufr : *equilibrium->imom, phase.keys.max_steps, phase.keys.damping_ratio,
+          phase.keys.ufr_tolerance));
+    }
+    throw RunError(fmt::format("{} did not reach its end in {} steps ({}): p = {:.4g} kPa, e1 = {:.4g} %; raise {} or "
+                               "check its stop criteria",
+                               phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3,
+                               100 * (1 - st.stress_h(2, 2) / rec.h0(2, 2)), phase.keys.max_steps));
+  }
+  const double rows = static_cast<double>(std::max(1L, rec.rows));
+  if (equilibrium)
+    progress.end(fmt::format("{} done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}", phase.name,
+                             rec.steps, rec.final.mean_stress / 1e3, rec.final.void_ratio, rec.final.ufr,
+                             format_duration(rec.wall_s)));
+  else
+    progress.end(fmt::format("{} done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean IMom {:.3g}, {}",
+                             phase.name, rec.steps, rec.peak_phi_deg, 100 * rec.peak_phi_e1, rec.ufr / rows,
+                             rec.imom / rows, format_duration(rec.wall_s)));
 }
 
-CompactionResult compact(const Params& params, State& st, Progress& progress, SeriesWriter* log) {
+PhaseRecord run_phase(const Params& params, std::size_t index, State& state, Progress& progress, SeriesWriter* rows) {
   RunProgress run;
-  return compact(params, st, run, progress, log, {});
-}
-
-TriaxialResult shear(const Params& params, State& st, SeriesWriter& series, Progress& progress) {
-  RunProgress run;
-  run.phase = RunProgress::Phase::triaxial;
-  return shear(params, st, run, series, progress, {});
+  run.phase = static_cast<std::int32_t>(index);
+  run.phases.resize(params.protocol.size());
+  run_phase(params, state, run, {rows, run.phase, false}, progress, {});
+  return run.current();
 }
 
 }  // namespace qsdem

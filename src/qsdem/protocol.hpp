@@ -1,67 +1,75 @@
-// Protocols (SPEC 8): loose sample -> isotropic compaction -> drained triaxial compression.
-// The phase loops are resumable: everything they need to continue exactly where they stopped is in
-// RunProgress, which checkpoints save with the State.
+// The phase loop (SPEC 8): runs one phase of a protocol (phase.hpp) step by step, takes its sample
+// points, writes its rows, ends it by its stop criteria, and calls its controller. The loop owns
+// the phase's control values and builds the immutable Model of the step from them (again when a
+// controller changes them). It is resumable: everything it needs to continue exactly where it
+// stopped is in RunProgress, which checkpoints save with the State.
 #pragma once
 #include <array>
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <vector>
 
 #include "qsdem/config.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/output.hpp"
+#include "qsdem/phase.hpp"
 #include "qsdem/progress.hpp"
 #include "qsdem/state.hpp"
 
 namespace qsdem {
 
-struct CompactionResult {
-  long steps = 0;
-  double wall_s = 0;
-  Measures final;  // at the step that met the criteria
+// What a run keeps of a phase: its start, the sums over its rows (SPEC 8.4) and its end.
+struct PhaseRecord {
+  Mat3 h0 = Mat3::Identity();  // cell matrix at the start of the phase (m)
+  double v0 = 0;               // cell volume at the start (m^3)
+  long steps = 0;              // steps taken
+  long rows = 0;               // rows written to its file
+  double wall_s = 0;           // wall time of every process that ran it (s)
+  double ufr = 0, iuf = 0, imom = 0;  // sums over the rows
+  // |sigma_kk / target - 1| over the rows and the stress-controlled normal components: sum, largest
+  double stress_error = 0, max_stress_error = 0;
+  // The largest |sigma_ab - target| / p over the rows and the shear components (target 0 unless
+  // the component is stress-controlled).
+  double max_shear_stress = 0;
+  double peak_phi_deg = 0, peak_phi_e1 = 0;  // the largest phi over the rows and the e1 of its row
+  double final_e1 = 0, final_ev = 0;         // of the last row
+  Measures final;                            // the measures of the last row
 };
 
-struct TriaxialResult {
-  long steps = 0;
-  double wall_s = 0;
-  int rows = 0;
-  double peak_phi_deg = 0;
-  double peak_phi_e1 = 0;
-  double mean_ufr = 0, mean_iuf = 0, mean_imom = 0;
-  double final_ev = 0, final_e1 = 0;
-  double max_lateral_stress_error = 0;   // max |sigma_kk / sigma_c - 1| over the rows, k = 1, 2
-  double mean_lateral_stress_error = 0;
-};
-
-// Running sums over the rows of series.csv, and the phase's wall time over every process that ran it.
-struct TriaxialSums {
-  int rows = 0;
-  double ufr = 0, iuf = 0, imom = 0, lateral_error = 0, max_lateral_error = 0;
-  double peak_phi_deg = 0, peak_phi_e1 = 0, final_ev = 0, final_e1 = 0;
-  double wall_s = 0;
+// The current phase's own state besides its record: what it needs to continue exactly.
+struct PhaseState {
+  bool live = false;  // set at the phase's start (a checkpoint of format < 6 has none: the phase's own values)
+  PhaseControls controls;  // the control values now (a controller may have changed them)
+  // A planned strain (phase.hpp) of normal component k: its rate is constant from force evaluation
+  // segment_step[k], at nominal strain segment_strain[k].
+  std::array<long, 3> segment_step{};
+  std::array<double, 3> segment_strain{};
+  // `points` cadence: the rows still to come are spread evenly from this force evaluation and
+  // row count to the phase's end.
+  long row_base_step = 0, row_base_rows = 0;
+  long last_row_step = -1;  // force evaluation of the last row
+  // stop.stress of component c: +1 when reached from below, -1 from above (0 until the first step)
+  std::array<std::int8_t, component_count> stress_side{};
+  std::vector<double> controller;  // Controller::save() after its last call
 };
 
 // Where a run is.
 struct RunProgress {
-  enum class Phase : std::int32_t { compaction = 0, triaxial = 1, done = 2 };
-  Phase phase = Phase::compaction;
-  bool phase_started = false;  // v0, h0 and the damping of the phase are set
-  long phase_steps = 0;        // steps taken in the current phase
-  long rows = 0;               // rows written to the current phase's CSV file
-  double v0 = 0;               // cell volume at the start of the phase (m^3)
-  Mat3 h0 = Mat3::Identity();  // cell matrix at the start of the phase (m)
-  CompactionResult compaction; // set when compaction ends
-  TriaxialSums sums;
+  std::int32_t phase = 0;      // the current phase of the protocol; its size once all are done
+  bool phase_started = false;  // its record's start and the servo's memory are set
+  PhaseState state;
+  std::vector<PhaseRecord> phases;  // one per phase of the protocol
   double wall_s = 0;           // wall time of the processes that ran it before (s)
   long first_step = 0;         // State::step when this run's own work began (a prepared
-                               // sample's compaction steps are not this run's)
-  bool prepare_only = false;   // `qsdem prepare`: the run ends with the compacted sample
-  std::string changes;         // `resume --set` changes, one "from triaxial step N: key=value" a line
-};
+                               // sample's first phase is not this run's)
+  bool prepare_only = false;   // `qsdem prepare`: the run ends with its first phase
+  std::string changes;         // `resume --set` changes, one "from PHASE step N: key=value" a line
 
-// The triaxial result of the rows summed so far (SPEC 10's summary).
-TriaxialResult triaxial_result(const RunProgress& run);
+  PhaseRecord& current() { return phases.at(static_cast<std::size_t>(phase)); }
+  const PhaseRecord& current() const { return phases.at(static_cast<std::size_t>(phase)); }
+};
 
 // The blow-up watch (docs/runs.md), checked after every step. A numerical instability (a time
 // step too large for the contact stiffness) makes the largest overlap grow geometrically from
@@ -74,7 +82,7 @@ class BlowUpWatch {
  public:
   static constexpr double watch_level = 0.05;  // overlap / smaller radius
   static constexpr long window = 20;           // steps
-  // `step`: the phase's step number, counted from 0 as in compaction.csv and series.csv.
+  // `step`: the phase's step number, counted from 0 as in the rows of its file.
   void check(const State& st, const Params& params, const char* phase, long step);
 
  private:
@@ -82,29 +90,39 @@ class BlowUpWatch {
   long seen_ = 0;
 };
 
-// Called after every step; `sample_point` is true when a CSV row was just written. It may save a
+// Called after every step; `sample_point` is true when a row was just written. It may save a
 // checkpoint or stop the run (by throwing).
 using StepHook = std::function<void(bool sample_point)>;
 
-// The phase models of SPEC 8. The triaxial model's axial reference length H0 = h33 at e1 = 0.
+// Where a phase's rows go: the writer of its file (none: rows are counted, not written), the
+// phase whose starting cell the file's strains are measured from, and whether the file has a
+// `phase` column (more than one phase writes to it).
+struct RowSink {
+  SeriesWriter* writer = nullptr;
+  int reference_phase = 0;
+  bool phase_column = false;
+};
+
+// The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).
+Model base_model(const Params& params, const Particles& particles);
+// The model of a phase with the given control values; strain-rate axes measured from h0.
+Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
+                  const Mat3& h0);
+// The first and the last phase's model in the current cell (of the default protocol: compaction
+// and triaxial test), for tools that step a state.
 Model compaction_model(const Params& params, const State& state);
-Model triaxial_model(const Params& params, const State& state, double axial_reference_length);
-Model triaxial_model(const Params& params, const State& state);  // H0 = the current h33
+Model triaxial_model(const Params& params, const State& state);
 
-// Number of steps to the final axial strain: final / (c_t eps') (SPEC 8).
-long triaxial_steps(const Params& params);
+// The strain components of the cell h against the cell h0 (StopCriteria): e_kk = 1 - h_kk/h0_kk,
+// gamma_ab = F_ab + F_ba with F = h h0^-1.
+std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0);
 
-// Isotropic compaction with friction mu_0 to the target stress until the stress is within
-// tolerance and UFR below its tolerance. Continues from `run` (phase_steps, rows); writes its
-// history to `log` (compaction.csv) when given.
-CompactionResult compact(const Params& params, State& state, RunProgress& run, Progress& progress, SeriesWriter* log,
-                         const StepHook& hook);
-// Drained triaxial compression to the final axial strain, sample points written to `series`.
-TriaxialResult shear(const Params& params, State& state, RunProgress& run, SeriesWriter& series, Progress& progress,
-                     const StepHook& hook);
+// Runs phase run.phase of params.protocol, from its start or on from where `run` stopped, to its
+// end. Throws RunError when it cannot end (a step limit, a blow-up).
+void run_phase(const Params& params, State& state, RunProgress& run, const RowSink& rows, Progress& progress,
+               const StepHook& hook);
 
-// A fresh phase without hooks (tests, tools).
-CompactionResult compact(const Params& params, State& state, Progress& progress, SeriesWriter* log);
-TriaxialResult shear(const Params& params, State& state, SeriesWriter& series, Progress& progress);
+// Phase `index` from its start, without hooks (tests, tools); its file's strains from its start.
+PhaseRecord run_phase(const Params& params, std::size_t index, State& state, Progress& progress, SeriesWriter* rows);
 
 }  // namespace qsdem

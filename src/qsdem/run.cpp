@@ -74,11 +74,33 @@ nlohmann::json size_table_json(const Params& params) {
 
 namespace fs = std::filesystem;
 
-// The files a run writes into its directory (besides vtk/): what --force removes.
+// The files a run writes into its directory (besides vtk/ and its phases' files): what --force removes.
 constexpr const char* run_files[] = {"summary.json",      "series.csv",      "series.csv.partial",
                                      "compaction.csv",    "compaction.csv.partial", "compacted.packing",
                                      "final.packing",     checkpoint_file,   "checkpoint.qsck.prev",
                                      prepared_sample_file, "case.toml"};
+
+// The files the phases of a protocol write, each with the phases that write to it, in order.
+struct PhaseFile {
+  std::string name;
+  std::vector<int> phases;
+};
+
+std::vector<PhaseFile> phase_files(const Protocol& protocol) {
+  std::vector<PhaseFile> files;
+  for (std::size_t p = 0; p < protocol.size(); ++p) {
+    const std::string& name = protocol[p].output.file;
+    auto f = std::find_if(files.begin(), files.end(), [&](const PhaseFile& x) { return x.name == name; });
+    if (f == files.end()) f = files.insert(files.end(), {name, {}});
+    f->phases.push_back(static_cast<int>(p));
+  }
+  return files;
+}
+
+const PhaseFile& file_of(const std::vector<PhaseFile>& files, const Protocol& protocol, int phase) {
+  const std::string& name = protocol[static_cast<std::size_t>(phase)].output.file;
+  return *std::find_if(files.begin(), files.end(), [&](const PhaseFile& f) { return f.name == name; });
+}
 
 // What `dir` holds, for the checks before a run writes into it.
 enum class DirKind { absent, empty, run_finished, run_unfinished, run_started, foreign };
@@ -179,12 +201,14 @@ class SignalGuard {
 
 const char* signal_name(int sig) { return sig == SIGINT ? "SIGINT" : "SIGTERM"; }
 
-const char* phase_name(RunProgress::Phase p) {
-  return p == RunProgress::Phase::compaction ? "compaction" : "triaxial";
+// The name of phase p of the protocol (the last one's once all are done), for messages.
+const std::string& phase_name(const Params& params, std::int32_t p) {
+  return params.protocol[std::min(static_cast<std::size_t>(p), params.protocol.size() - 1)].name;
 }
 
-// Snapshot k (0: the compacted sample, k: after row k of series.csv) and the .pvd of all snapshots
-// on disk, whose time is each snapshot's nominal axial strain (so a resumed run rebuilds it).
+// Snapshot k (0: the prepared sample, k: after the k-th row of the phases after the first) and the
+// .pvd of all snapshots on disk, whose time is each snapshot's nominal axial strain for the default
+// protocol, else its number (so a resumed run rebuilds it from the files).
 void write_snapshot(const std::filesystem::path& dir, const Params& params, const State& st, long k) {
   namespace fs = std::filesystem;
   const fs::path vtk = dir / "vtk";
@@ -198,181 +222,259 @@ void write_snapshot(const std::filesystem::path& dir, const Params& params, cons
   }
   std::sort(files.begin(), files.end());
   std::vector<PvdEntry> entries;
-  const double strain_per_row = params.triaxial.final_axial_strain / params.triaxial.sample_points;
-  for (const auto& [row, file] : files) entries.push_back({static_cast<double>(row) * strain_per_row, file});
+  const double per_row =
+      params.phase_list ? 1.0 : params.triaxial.final_axial_strain / params.triaxial.sample_points;
+  for (const auto& [row, file] : files) entries.push_back({static_cast<double>(row) * per_row, file});
   write_pvd(vtk / "series.pvd", entries);
 }
 
+// The rows of the phases after the first, up to the current one: the number of a snapshot.
+long snapshot_rows(const RunProgress& run) {
+  long k = 0;
+  for (std::size_t p = 1; p < run.phases.size() && p <= static_cast<std::size_t>(run.phase); ++p) k += run.phases[p].rows;
+  return k;
+}
+
+nlohmann::json phase_json(const Phase& phase, const PhaseRecord& r) {
+  const double rows = static_cast<double>(std::max(1L, r.rows));
+  int normal_targets = 0;
+  for (int c = 0; c < 3; ++c)
+    normal_targets += phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::stress;
+  return {{"name", phase.name},
+          {"file", phase.output.file},
+          {"steps", r.steps},
+          {"rows", r.rows},
+          {"wall_s", r.wall_s},
+          {"mean_ufr", r.ufr / rows},
+          {"mean_iuf", r.iuf / rows},
+          {"mean_imom", r.imom / rows},
+          {"peak_phi_deg", r.peak_phi_deg},
+          {"peak_phi_e1", r.peak_phi_e1},
+          {"final_e1", r.final_e1},
+          {"final_ev", r.final_ev},
+          {"max_stress_error", r.max_stress_error},
+          {"mean_stress_error", normal_targets > 0 ? r.stress_error / (normal_targets * rows) : 0.0},
+          {"max_shear_stress", r.max_shear_stress},
+          {"final", measures_json(r.final)}};
+}
 
 // Everything after the sample exists: the phases from wherever `run` stands, checkpoints, results.
 // The end of each phase is ordered so that a crash at any instant leaves a directory that
 // `resume` finishes: the phase's rows are synced, a checkpoint of the phase's end is saved, and
 // only then are the results renamed and written (again, by a resume, when a crash cut that short).
-nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
-                       const std::string& note) {
-  const auto t0 = std::chrono::steady_clock::now();
-  const fs::path dir = options.out;
-  Progress progress(Progress::detect(options.quiet));
-  const double wall_before = run.wall_s;
-  auto process_s = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(); };
-  auto last_save = std::chrono::steady_clock::now();
-  SeriesWriter* rows = nullptr;  // the phase's CSV file: on disk before each checkpoint counts its rows
-  const auto done = [&](const std::string& what) {
-    if (options.after_write) options.after_write(what);
-  };
-  auto save = [&](const fs::path& file) {
-    run.wall_s = wall_before + process_s();
-    ScopedStage t(st.timers, Stage::output);
-    if (rows) rows->sync();
-    save_checkpoint(file, params.case_text, params.source, st, run);
-    last_save = std::chrono::steady_clock::now();
-  };
-  // After every step: stop on a signal, checkpoint every N sample points or M minutes.
-  const StepHook hook = [&](bool sample_point) {
+class Execution {
+ public:
+  Execution(const Params& params, State& st, RunProgress& run, const RunOptions& options)
+      : params_(params),
+        st_(st),
+        run_(run),
+        options_(options),
+        dir_(options.out),
+        files_(phase_files(params.protocol)),
+        progress_(Progress::detect(options.quiet)),
+        wall_before_(run.wall_s) {
+    run_.phases.resize(params_.protocol.size());
+  }
+
+  nlohmann::json operator()(const std::string& note) {
+    const int count = static_cast<int>(params_.protocol.size());
+    const int last = run_.prepare_only ? std::min(1, count) : count;  // prepare: the first phase only
+    bool just_ended = false;  // the previous phase ended in this process (else its end is redone)
+    while (run_.phase < last) {
+      if (run_.phase > 0 && !run_.phase_started && !just_ended) finish_phase(run_.phase - 1, nullptr);
+      run_current_phase();
+      just_ended = true;
+    }
+    if (!just_ended && run_.phase > 0) finish_phase(run_.phase - 1, nullptr);  // stopped while writing them
+    const nlohmann::json s = summary(note);
+    write_file_atomic(dir_ / "summary.json", s.dump(2) + "\n");
+    done("summary.json written");
+    // A finished run needs no checkpoint: the older first, so that a checkpoint.qsck present means
+    // "not finished".
+    fs::remove(dir_ / "checkpoint.qsck.prev");
+    done("checkpoint.qsck.prev removed");
+    fs::remove(dir_ / checkpoint_file);
+    done("checkpoint.qsck removed");
+    return s;
+  }
+
+ private:
+  double process_s() const {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0_).count();
+  }
+  void done(const std::string& what) const {
+    if (options_.after_write) options_.after_write(what);
+  }
+  void save(const fs::path& file) {
+    run_.wall_s = wall_before_ + process_s();
+    ScopedStage t(st_.timers, Stage::output);
+    if (rows_) rows_->sync();
+    save_checkpoint(file, params_.case_text, params_.source, st_, run_);
+    last_save_ = std::chrono::steady_clock::now();
+  }
+
+  // After every step: stop on a signal, checkpoint every N sample points or M minutes, snapshots.
+  void on_step(bool sample_point) {
     if (stop_signal != 0) {
       const int sig = stop_signal;
-      save(dir / checkpoint_file);
+      save(dir_ / checkpoint_file);
       throw Interrupted(fmt::format("stopped by {} after {} step {}; checkpoint written: continue with `qsdem resume {}`",
-                                    signal_name(sig), phase_name(run.phase), run.phase_steps - 1, dir.string()),
+                                    signal_name(sig), phase_name(params_, run_.phase), run_.current().steps - 1,
+                                    dir_.string()),
                         sig);
     }
-    const auto& c = params.checkpoint;
-    const bool by_points = sample_point && c.every_sample_points > 0 && run.rows % c.every_sample_points == 0;
+    const auto& c = params_.checkpoint;
+    const long rows = run_.current().rows;
+    const bool by_points = sample_point && c.every_sample_points > 0 && rows % c.every_sample_points == 0;
     const bool by_time =
         c.every_minutes > 0 &&
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - last_save).count() > 60 * c.every_minutes;
-    if (by_points || by_time) save(dir / checkpoint_file);
-    const int vtk = params.output.vtk_every;
-    if (sample_point && vtk > 0 && run.phase == RunProgress::Phase::triaxial && run.rows % vtk == 0)
-      write_snapshot(dir, params, st, run.rows);
-  };
-  // A phase stopped by what only the run could find (the cell shrank below the size rule of SPEC
-  // 3 during compaction) is a failed run, not a bad case: its checkpoints stay.
-  const auto phase = [&](const auto& body) {
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - last_save_).count() > 60 * c.every_minutes;
+    if (by_points || by_time) save(dir_ / checkpoint_file);
+    const int vtk = params_.output.vtk_every;
+    if (sample_point && vtk > 0 && run_.phase > 0 && snapshot_rows(run_) % vtk == 0)
+      write_snapshot(dir_, params_, st_, snapshot_rows(run_));
+  }
+
+  // The current phase, with its file open, to its end and the checkpoint of its end.
+  void run_current_phase() {
+    const int p = run_.phase;
+    const Phase& phase = params_.protocol[static_cast<std::size_t>(p)];
+    const PhaseFile& file = file_of(files_, params_.protocol, p);
+    // The rows its file holds: those of the phases before that write to it, and this one's so far.
+    long held = 0;
+    for (int q : file.phases)
+      if (q < p || (q == p && run_.phase_started)) held += run_.phases[static_cast<std::size_t>(q)].rows;
+    const bool begun = file.phases.front() < p || run_.phase_started;
+    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, file.phases.size() > 1);
+    rows_ = &writer;
     try {
-      body();
+      run_phase(params_, st_, run_, {&writer, file.phases.front(), file.phases.size() > 1}, progress_,
+                [this](bool sample_point) { on_step(sample_point); });
     } catch (const InputError& e) {
-      throw RunError(fmt::format("{} stopped after {} step {}: {}", phase_name(run.phase), phase_name(run.phase),
-                                 run.phase_steps - 1, e.what()));
+      // A phase stopped by what only the run could find (the cell shrank below the size rule of
+      // SPEC 3) is a failed run, not a bad case: its checkpoints stay.
+      throw RunError(fmt::format("{} stopped after {} step {}: {}", phase.name, phase.name, run_.current().steps - 1,
+                                 e.what()));
     }
-  };
-  // Every run that compacted leaves its compacted state as a prepared sample (sample.qsck).
-  const auto finish_compaction = [&](SeriesWriter* log) {
-    if (log) log->commit();
-    else if (fs::exists(dir / "compaction.csv.partial")) commit_partial(dir / "compaction.csv");
-    done("compaction.csv renamed");
-    write_packing(dir / "compacted.packing", st.particles, st.cell);
-    done("compacted.packing written");
-    save(dir / prepared_sample_file);
-    done("sample.qsck written");
-    if (params.output.vtk_every > 0) {
-      write_snapshot(dir, params, st, 0);
-      done("vtk snapshot 0 written");
-    }
-  };
-  const auto finish_triaxial = [&](SeriesWriter* series) {
-    if (series) series->commit();
-    else if (fs::exists(dir / "series.csv.partial")) commit_partial(dir / "series.csv");
-    done("series.csv renamed");
-    write_packing(dir / "final.packing", st.particles, st.cell);
-    done("final.packing written");
-    if (params.output.vtk_every > 0 && run.rows % params.output.vtk_every == 0) {
-      write_snapshot(dir, params, st, run.rows);
-      done("last vtk snapshot written");
-    }
-  };
-
-  const Model m0 = compaction_model(params, st);
-  if (run.phase == RunProgress::Phase::compaction) {
-    SeriesWriter log(dir / "compaction.csv", run.phase_started ? run.rows : -1);
-    rows = &log;
-    phase([&] { compact(params, st, run, progress, &log, hook); });
-    run.phase = RunProgress::Phase::triaxial;
-    run.phase_started = false;
-    run.phase_steps = 0;
-    run.rows = 0;
-    log.sync();
-    done("compaction.csv.partial synced");
-    save(dir / checkpoint_file);
-    done("checkpoint at the end of compaction written");
-    rows = nullptr;
-    finish_compaction(&log);
-  } else if (run.phase == RunProgress::Phase::triaxial && !run.phase_started && run.first_step == 0) {
-    finish_compaction(nullptr);  // stopped while writing them
-  }
-  if (!run.prepare_only && run.phase == RunProgress::Phase::triaxial) {
-    SeriesWriter series(dir / "series.csv", run.phase_started ? run.rows : -1);
-    rows = &series;
-    phase([&] { shear(params, st, run, series, progress, hook); });
-    run.phase = RunProgress::Phase::done;
-    series.sync();
-    done("series.csv.partial synced");
-    save(dir / checkpoint_file);
-    done("checkpoint at the end of the triaxial test written");
-    rows = nullptr;
-    finish_triaxial(&series);
-  } else if (run.phase == RunProgress::Phase::done) {
-    finish_triaxial(nullptr);  // stopped while writing them
+    ++run_.phase;
+    run_.phase_started = false;
+    run_.state = {};
+    writer.sync();
+    done(phase.output.file + ".partial synced");
+    save(dir_ / checkpoint_file);
+    done("checkpoint at the end of " + phase.name + " written");
+    rows_ = nullptr;
+    finish_phase(p, &writer);
   }
 
-  const double wall = wall_before + process_s();
-  const long own_steps = st.step - run.first_step;  // steps this run took (not a prepared sample's)
-  const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st.particles.size());
-  const CompactionResult& comp = run.compaction;
-  nlohmann::json s;
-  s["version"] = QSDEM_VERSION;
-  s["case"] = params.name;
-  s["config"] = {{"resolved_si", to_json(params)}, {"as_written", params.as_written}};
-  s["derived"] = {{"particles", st.particles.size()},
-                  {"size_table", params.sample.from.empty() ? size_table_json(params) : nlohmann::json()},
-                  {"sample_from", params.sample.from},
-                  {"r_min_m", m0.r_min},
-                  {"critical_time_s", m0.critical_time},
-                  {"dt_s", m0.dt},
-                  {"threads", omp_get_max_threads()},
-                  {"triaxial_strain_rate_per_s", params.triaxial.strain_rate / m0.critical_time}};
-  if (!note.empty()) s["note"] = note;
-  if (!run.changes.empty()) {
-    nlohmann::json changes = nlohmann::json::array();
-    std::istringstream lines(run.changes);
-    for (std::string line; std::getline(lines, line);) changes.push_back(line);
-    s["resume_changes"] = changes;
+  // What follows the end of phase p: its file renamed when no later phase writes to it; after the
+  // first phase the prepared sample (compacted.packing, sample.qsck, snapshot 0), after the last
+  // the final packing. `writer`: its open file, or none when a resume redoes an end a crash cut short.
+  void finish_phase(int p, SeriesWriter* writer) {
+    const PhaseFile& file = file_of(files_, params_.protocol, p);
+    if (file.phases.back() == p) {
+      if (writer) writer->commit();
+      else if (fs::exists(dir_ / (file.name + ".partial"))) commit_partial(dir_ / file.name);
+      done(file.name + " renamed");
+    }
+    if (p == 0 && run_.first_step == 0) {  // a run of a prepared sample did not run its first phase
+      write_packing(dir_ / "compacted.packing", st_.particles, st_.cell);
+      done("compacted.packing written");
+      save(dir_ / prepared_sample_file);
+      done("sample.qsck written");
+      if (params_.output.vtk_every > 0) {
+        write_snapshot(dir_, params_, st_, 0);
+        done("vtk snapshot 0 written");
+      }
+    }
+    if (p + 1 == static_cast<int>(params_.protocol.size())) {
+      write_packing(dir_ / "final.packing", st_.particles, st_.cell);
+      done("final.packing written");
+      const long k = snapshot_rows(run_);
+      if (params_.output.vtk_every > 0 && p > 0 && k % params_.output.vtk_every == 0) {
+        write_snapshot(dir_, params_, st_, k);
+        done("last vtk snapshot written");
+      }
+    }
   }
-  s["compaction"] = {{"steps", comp.steps}, {"wall_s", comp.wall_s}, {"final", measures_json(comp.final)}};
-  s["void_ratio_after_compaction"] = comp.final.void_ratio;
-  if (!run.prepare_only) {
-    const TriaxialResult tri = triaxial_result(run);
-    s["triaxial"] = {{"steps", tri.steps},
-                     {"rows", tri.rows},
-                     {"wall_s", tri.wall_s},
-                     {"final_e1", tri.final_e1},
-                     {"max_lateral_stress_error", tri.max_lateral_stress_error},
-                     {"mean_lateral_stress_error", tri.mean_lateral_stress_error}};
-    s["mean_ufr"] = tri.mean_ufr;
-    s["mean_iuf"] = tri.mean_iuf;
-    s["mean_imom"] = tri.mean_imom;
-    s["peak_phi_deg"] = tri.peak_phi_deg;
-    s["peak_phi_e1"] = tri.peak_phi_e1;
-    s["final_ev"] = tri.final_ev;
+
+  nlohmann::json summary(const std::string& note) const {
+    const double wall = wall_before_ + process_s();
+    const Model m0 = base_model(params_, st_.particles);
+    const long own_steps = st_.step - run_.first_step;  // steps this run took (not a prepared sample's)
+    const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st_.particles.size());
+    nlohmann::json s;
+    s["version"] = QSDEM_VERSION;
+    s["case"] = params_.name;
+    s["config"] = {{"resolved_si", to_json(params_)}, {"as_written", params_.as_written}};
+    s["derived"] = {{"particles", st_.particles.size()},
+                    {"size_table", params_.sample.from.empty() ? size_table_json(params_) : nlohmann::json()},
+                    {"sample_from", params_.sample.from},
+                    {"r_min_m", m0.r_min},
+                    {"critical_time_s", m0.critical_time},
+                    {"dt_s", m0.dt},
+                    {"threads", omp_get_max_threads()}};
+    if (!params_.phase_list)
+      s["derived"]["triaxial_strain_rate_per_s"] = params_.triaxial.strain_rate / m0.critical_time;
+    if (!note.empty()) s["note"] = note;
+    if (!run_.changes.empty()) {
+      nlohmann::json changes = nlohmann::json::array();
+      std::istringstream lines(run_.changes);
+      for (std::string line; std::getline(lines, line);) changes.push_back(line);
+      s["resume_changes"] = changes;
+    }
+    nlohmann::json phases = nlohmann::json::array();
+    for (std::size_t p = 0; p < params_.protocol.size() && p < static_cast<std::size_t>(run_.phase); ++p)
+      phases.push_back(phase_json(params_.protocol[p], run_.phases[p]));
+    s["phases"] = phases;
+    // The first phase as the sample's compaction; the last, when it is another, as the test.
+    const PhaseRecord& first = run_.phases.front();
+    s["compaction"] = {{"steps", first.steps}, {"wall_s", first.wall_s}, {"final", measures_json(first.final)}};
+    s["void_ratio_after_compaction"] = first.final.void_ratio;
+    if (!run_.prepare_only && run_.phases.size() > 1) {
+      const nlohmann::json last = phase_json(params_.protocol.back(), run_.phases.back());
+      s["triaxial"] = {{"steps", last["steps"]},
+                       {"rows", last["rows"]},
+                       {"wall_s", last["wall_s"]},
+                       {"final_e1", last["final_e1"]},
+                       {"max_lateral_stress_error", last["max_stress_error"]},
+                       {"mean_lateral_stress_error", last["mean_stress_error"]},
+                       {"max_shear_stress", last["max_shear_stress"]}};
+      for (const char* key : {"mean_ufr", "mean_iuf", "mean_imom", "peak_phi_deg", "peak_phi_e1", "final_ev"})
+        s[key] = last[key];
+    }
+    s["steps"] = own_steps;
+    if (!params_.phase_list)
+      s["steps_cover"] = run_.first_step == 0 ? (run_.prepare_only ? "compaction" : "compaction + triaxial")
+                                              : "triaxial of a prepared sample";
+    else
+      s["steps_cover"] = run_.first_step == 0 ? (run_.prepare_only ? "the first phase" : "every phase")
+                                              : "the phases after the first, of a prepared sample";
+    s["wall_s"] = wall;
+    s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
+    s["neighbor_builds"] = st_.neighbor.builds;
+    s["peak_rss_kib"] = peak_rss_kib();
+    s["stages"] = stage_json(st_.timers, own_steps);
+    s["stage_table"] = format_stage_table(st_.timers, own_steps);
+    return s;
   }
-  s["steps"] = own_steps;
-  s["steps_cover"] = run.first_step == 0 ? (run.prepare_only ? "compaction" : "compaction + triaxial")
-                                         : "triaxial of a prepared sample";
-  s["wall_s"] = wall;
-  s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
-  s["neighbor_builds"] = st.neighbor.builds;
-  s["peak_rss_kib"] = peak_rss_kib();
-  s["stages"] = stage_json(st.timers, own_steps);
-  s["stage_table"] = format_stage_table(st.timers, own_steps);
-  write_file_atomic(dir / "summary.json", s.dump(2) + "\n");
-  done("summary.json written");
-  // A finished run needs no checkpoint: the older first, so that a checkpoint.qsck present means
-  // "not finished".
-  fs::remove(dir / "checkpoint.qsck.prev");
-  done("checkpoint.qsck.prev removed");
-  fs::remove(dir / checkpoint_file);
-  done("checkpoint.qsck removed");
-  return s;
+
+  const Params& params_;
+  State& st_;
+  RunProgress& run_;
+  const RunOptions& options_;
+  const fs::path dir_;
+  const std::vector<PhaseFile> files_;
+  Progress progress_;
+  const double wall_before_;
+  const std::chrono::steady_clock::time_point t0_ = std::chrono::steady_clock::now();
+  std::chrono::steady_clock::time_point last_save_ = std::chrono::steady_clock::now();
+  SeriesWriter* rows_ = nullptr;  // the phase's file: on disk before each checkpoint counts its rows
+};
+
+nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
+                       const std::string& note) {
+  return Execution(params, st, run, options)(note);
 }
 
 // The sample named by sample.from: a prepared sample (directory of `qsdem prepare`, or of a run
@@ -394,10 +496,11 @@ State load_sample(const Params& params, RunProgress& run) {
           "this case has {}, {}, {}, {}: they must be equal",
           from.string(), a.density, a.young_modulus, a.poisson_ratio, prepared.step_ratio, b.density, b.young_modulus,
           b.poisson_ratio, params.step_ratio));
-    if (c.run.phase != RunProgress::Phase::triaxial || c.run.phase_started)
+    if (c.run.phase != 1 || c.run.phase_started)
       throw InputError(fmt::format("sample.from = '{}': {} is not a sample at the end of compaction", from.string(),
                                    prepared_sample_file));
     run = c.run;
+    run.phases.resize(params.protocol.size());  // its first phase's record; the others are this run's
     run.wall_s = 0;
     run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
     run.prepare_only = false;
@@ -454,6 +557,10 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
   const DirectoryLock lock = lock_run_directory(dir);
   check_out(dir, options.force, true);  // again under the lock: another process may have written since
   for (const char* f : run_files) fs::remove(dir / f);
+  for (const Phase& phase : params.protocol) {
+    fs::remove(dir / phase.output.file);
+    fs::remove(dir / (phase.output.file + ".partial"));
+  }
   fs::remove_all(dir / "vtk");
   write_file_atomic(dir / "case.toml", params.case_text);
   return execute(params, st, run, options, "");
@@ -477,15 +584,22 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
                                    "depends on it); allowed: {}",
                                    set, key, allowed));
     }
-    if (key == "time.step_ratio" && c.run.phase != RunProgress::Phase::compaction)
-      throw InputError(fmt::format("resume --set '{}': the triaxial test takes its rows at fixed step numbers, so "
-                                   "time.step_ratio can change only during compaction; shear the run's compacted "
-                                   "sample anew (sample.from = '{}')",
+    if (key == "time.step_ratio" && c.run.phase != 0)
+      throw InputError(fmt::format("resume --set '{}': the phases after the first take their rows and end at fixed "
+                                   "step numbers, so time.step_ratio can change only during compaction (the first "
+                                   "phase); shear the run's compacted sample anew (sample.from = '{}')",
                                    set, fs::absolute(dir).string()));
   }
   const Params params = parse_case(c.case_text, c.case_source, options.sets);
-  for (const std::string& set : options.sets)
-    c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(c.run.phase), c.run.phase_steps, set);
+  for (const std::string& set : options.sets) {
+    if (set.rfind("time.step_ratio=", 0) == 0 && planned_end(params.protocol.front(), params.step_ratio) >= 0)
+      throw InputError(fmt::format("resume --set '{}': the first phase ends at a fixed step number, so "
+                                   "time.step_ratio cannot change in it; start the run anew",
+                                   set));
+    c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(params, c.run.phase),
+                                 c.run.phase < static_cast<std::int32_t>(c.run.phases.size()) ? c.run.current().steps : 0,
+                                 set);
+  }
   RunOptions o = options;
   o.out = dir;
   return execute(params, c.state, c.run, o, note);
@@ -579,7 +693,7 @@ BenchInput bench_input(const std::filesystem::path& source, const std::string& c
     in.params = load_case(case_path, overrides);
     in.state = read_packing(file, in.params.material.density);
     in.source = "packing";
-    in.phase = "triaxial";
+    in.phase = in.params.protocol.back().name;
     return in;
   }
   Checkpoint c = load_checkpoint(file);
@@ -596,7 +710,7 @@ BenchInput bench_input(const std::filesystem::path& source, const std::string& c
                                  b.young_modulus, b.poisson_ratio, in.params.step_ratio));
   in.state = std::move(c.state);
   in.source = "checkpoint";
-  in.phase = c.run.phase == RunProgress::Phase::compaction ? "compaction" : "triaxial";
+  in.phase = phase_name(in.params, c.run.phase);
   return in;
 }
 
@@ -627,9 +741,11 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
   for (ShapeKind k : st.particles.shape) ellipsoids += k == ShapeKind::ellipsoid;
   // The phase's friction and damping in a fixed cell: a peer code runs the same physics on the
   // same packing in a fixed periodic box.
-  Model model = in.phase == "compaction" ? compaction_model(params, st) : triaxial_model(params, st);
+  const Phase& phase = *std::find_if(params.protocol.begin(), params.protocol.end(),
+                                     [&](const Phase& p) { return p.name == in.phase; });
+  Model model = phase_model(params, phase, phase.controls, st.particles, st.cell.h);
   for (auto& c : model.control) c = {};
-  model.servo.zero_shear_stress = false;
+  for (auto& c : model.shear_control) c = {};
   assign_damping(model, st.particles);
   // A packing's first list build is set-up, not stepping (LIGGGHTS' loop time leaves its own
   // out); at rest it changes no history. A checkpoint's list and history are stepped as they are.

@@ -44,17 +44,27 @@ void servo_update(const Model& model, State& state) {
     const AxisControl& c = model.control[static_cast<std::size_t>(k)];
     if (c.kind == AxisControl::Kind::stress && std::abs(state.stress(k, k) / c.value - 1) > 0.1) jammed = false;
   }
-  if (model.servo.zero_shear_stress && jammed) {
-    constexpr int pair[3][2] = {{0, 1}, {0, 2}, {1, 2}};
-    for (int s = 0; s < 3; ++s) {
-      const int a = pair[s][0], b = pair[s][1];
-      const double g = state.shear_stiffness[s], viscosity = state.shear_viscosity[s];
-      if (g <= 0) continue;
-      const double cap = model.servo.max_strain_rate;
-      const double rate = std::clamp(
-          (model.servo.proportional_gain * state.stress(a, b) + viscosity * last(a, b)) / (g * model.dt + viscosity),
-          -cap, cap);
-      L(a, b) = L(b, a) = rate;
+  constexpr int pair[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+  for (int s = 0; s < 3; ++s) {
+    const AxisControl& c = model.shear_control[static_cast<std::size_t>(s)];
+    const int a = pair[s][0], b = pair[s][1];
+    switch (c.kind) {
+      case AxisControl::Kind::fixed:
+        break;
+      case AxisControl::Kind::strain_rate:
+        L(a, b) = c.value;  // simple shear: x_a moves in proportion to x_b
+        break;
+      case AxisControl::Kind::stress: {
+        const double g = state.shear_stiffness[s], viscosity = state.shear_viscosity[s];
+        if (!jammed || g <= 0) break;
+        const double cap = model.servo.max_strain_rate;
+        const double rate = std::clamp((model.servo.proportional_gain * (state.stress(a, b) - c.value) +
+                                        viscosity * last(a, b)) /
+                                           (g * model.dt + viscosity),
+                                       -cap, cap);
+        L(a, b) = L(b, a) = rate;
+        break;
+      }
     }
   }
   state.cell.L = L;

@@ -1,16 +1,16 @@
-// Cell control (SPEC 3): each axis is fixed, strain-rate controlled or stress controlled.
+// Cell control (SPEC 3): each component of L is fixed, strain-rate controlled or stress controlled.
 #pragma once
 #include "qsdem/model.hpp"
 #include "qsdem/state.hpp"
 
 namespace qsdem {
 
-// Sets state.cell.L (diagonal) for the coming step from the stress at t.
+// Sets state.cell.L for the coming step from the stress at t.
 //
 // Strain-rate axis k: the engineering strain e = (H0 - H)/H0 grows at the given rate, so
 //   L_kk = -rate H0 / H,
 // with H = h_kk: a diagonal L scales row k of h by (1 + dt L_kk), so h_kk measures the axis
-// exactly even when the cell carries a small tilt (zero_shear_stress below).
+// exactly even when the cell carries a small tilt (the shear servo below).
 // Stress axis k (compression positive), a PI servo scaled by the affine stiffness C_kk
 // (State::affine_stiffness, the stress change per unit affine strain of the contacts):
 //   e_k = (sigma_target - sigma_kk) / sigma_target,   S_k += e_k,
@@ -28,11 +28,13 @@ namespace qsdem {
 // the form above for eta_kk = 0. (Left out, eta would make the loop gain beta eta / (C dt),
 // ~2.6 on paper-A-small with e = 0.5: the rate would switch sign at the cap every step.)
 //
-// Shear stresses (when Servo::zero_shear_stress, used by the isotropic compaction): SPEC 3 keeps
-// L diagonal, so nothing would relax the shear stress a finite packing locks in while it jams
-// (10-16 % of p measured at 200-8000 particles). A pure shear rate D_ab = D_ba drives each
-// sigma_ab (a != b) to zero, proportionally:
-//   L_ab = L_ba = (beta sigma_ab + eta_ab L'_ab) / (G_ab dt + eta_ab),   |L_ab| <= max rate,
+// Shear component ab (12, 13, 23), strain-rate controlled: simple shear L_ab = rate (x_a moves in
+// proportion to x_b; L_ba = 0).
+// Shear component ab, stress controlled (a target, most often zero): SPEC 3 keeps L diagonal,
+// so nothing would relax the shear stress a finite packing locks in while it jams (10-16 % of p
+// measured at 200-8000 particles) or builds while it is sheared. A pure shear rate D_ab = D_ba
+// drives sigma_ab to its target, proportionally:
+//   L_ab = L_ba = (beta (sigma_ab - target) + eta_ab L'_ab) / (G_ab dt + eta_ab),   |L_ab| <= max rate,
 // with G_ab (State::shear_stiffness) the affine stiffness -d sigma_ab / d(D_ab dt) of the contacts:
 //   G_ab = (1/V) sum |l|^2 [2 k_n n_a^2 n_b^2 + k_t ((n_a^2 + n_b^2)/2 - 2 n_a^2 n_b^2)],
 // and eta_ab (State::shear_viscosity) the same sum of the dashpots' coefficients (0 without).

@@ -3,8 +3,11 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cstdint>
+#include <functional>
+#include <map>
 #include <stdexcept>
 #include <string>
+#include <string_view>
 
 namespace qsdem {
 
@@ -24,6 +27,43 @@ struct RunError : std::runtime_error {
 };
 
 inline constexpr double pi = 3.14159265358979323846;
+
+enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
+// The particle damping law of a phase (SPEC 6).
+enum class DampingModel : std::uint8_t { none, od, nd, local, stiffness, contact };
+
+inline const char* to_string(ShapeKind k) { return k == ShapeKind::sphere ? "sphere" : "ellipsoid"; }
+inline const char* to_string(DampingModel m) {
+  switch (m) {
+    case DampingModel::none: return "none";
+    case DampingModel::od: return "od";
+    case DampingModel::nd: return "nd";
+    case DampingModel::local: return "local";
+    case DampingModel::stiffness: return "stiffness";
+    case DampingModel::contact: return "contact";
+  }
+  return "?";
+}
+
+// What the particle damping acts on (damping.hpp).
+enum class DampedMotion : std::uint8_t { both, translation, rotation };
+inline const char* to_string(DampedMotion m) {
+  switch (m) {
+    case DampedMotion::both: return "both";
+    case DampedMotion::translation: return "translation";
+    case DampedMotion::rotation: return "rotation";
+  }
+  return "?";
+}
+
+// The [contact] table: the contact law (contact/laws.hpp) and the values of its own keys.
+struct ContactSettings {
+  std::string law = "hertz_mindlin";
+  std::map<std::string, double, std::less<>> values;  // the law's keys that the case gives
+
+  bool has(std::string_view key) const { return values.find(key) != values.end(); }
+  double value(std::string_view key) const { return values.find(key)->second; }
+};
 
 // Loops shorter than this run on one thread: below it, the cost of waking the OpenMP team
 // exceeds the work.

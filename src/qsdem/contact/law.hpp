@@ -28,8 +28,8 @@
 #include <string>
 #include <string_view>
 
-#include "qsdem/config.hpp"
 #include "qsdem/contact/geometry.hpp"
+#include "qsdem/types.hpp"
 
 namespace qsdem {
 

@@ -1,0 +1,69 @@
+// Controllers: objects a phase calls at each of its sample points (and, when they ask, after every
+// step) that see the measures and may change the phase's control values: strain rates, stress
+// targets, the servo's cap. The phase loop builds a new Model from the changed values before the
+// next step (the step itself only ever sees an immutable Model), and keeps the controller's
+// saved state in the checkpoint, so that a resumed run gives the same bits.
+//
+// A new kind: a class derived from Controller, a function that reads its keys from the case
+// (ControllerKeys) and returns a factory, and an entry in controller_kinds() (controller.cpp).
+#pragma once
+#include <array>
+#include <memory>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "qsdem/measures.hpp"
+#include "qsdem/phase.hpp"
+#include "qsdem/state.hpp"
+#include "qsdem/units.hpp"
+
+namespace qsdem {
+
+// What a controller sees at a sample point of its phase.
+struct SamplePoint {
+  long step = 0;  // the phase's force evaluation of the row (0, 1, ...)
+  long row = 0;   // the row's number in the phase (1, 2, ...)
+  const Measures* measures = nullptr;
+  std::array<double, component_count> strain{};  // the phase's strain components (StopCriteria)
+  double critical_time = 0;                       // t_c (s): eps' = rate t_c
+};
+
+class Controller {
+ public:
+  virtual ~Controller() = default;
+  // At each sample point: may change the values of `controls` (not their kinds); they apply from
+  // the next step. Returns whether it changed any.
+  virtual bool at_sample(const SamplePoint& point, PhaseControls& controls) = 0;
+  // A controller that acts between sample points too returns true here; at_step is then called
+  // after every step with the state of the last force evaluation (State::stress, stress_h).
+  virtual bool every_step() const { return false; }
+  virtual bool at_step(const State& /*state*/, long /*step*/, PhaseControls& /*controls*/) { return false; }
+  // What it needs to continue exactly after a resume (saved in the checkpoint), and its restoration.
+  virtual std::vector<double> save() const { return {}; }
+  virtual void restore(const std::vector<double>& /*saved*/) {}
+};
+
+// The case parser's reader of one [phase.controller] table: each accessor reads the key (relative to
+// the table) and, on a bad value, throws InputError naming the file, line, key, value and what is allowed.
+class ControllerKeys {
+ public:
+  virtual ~ControllerKeys() = default;
+  virtual std::string text(const std::string& key, const std::vector<std::string>& choices) = 0;
+  virtual std::vector<long> integers(const std::string& key, long lo, long hi) = 0;
+  virtual std::vector<double> numbers(const std::string& key) = 0;
+  virtual std::vector<double> quantities(const std::string& key, Dimension dim) = 0;
+  [[noreturn]] virtual void fail(const std::string& key, const std::string& why) = 0;
+};
+
+struct ControllerKind {
+  std::string_view name;
+  std::string_view meaning;
+  // Reads the kind's own keys for `phase` (whose controls are read) and returns its factory.
+  ControllerFactory (*read)(ControllerKeys& keys, const Phase& phase, double step_ratio);
+};
+
+// Every controller kind a case may name (phase.controller.kind).
+const std::vector<ControllerKind>& controller_kinds();
+
+}  // namespace qsdem

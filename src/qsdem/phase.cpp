@@ -1,0 +1,28 @@
+#include "qsdem/phase.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace qsdem {
+
+bool planned_strain(const Phase& phase, int c) {
+  return is_normal(c) && phase.stop.strain[static_cast<std::size_t>(c)].has_value() &&
+         phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::strain_rate;
+}
+
+long planned_step(long from, double strain, double target, double step_ratio, double eps) {
+  return std::max(std::max(from, 1L), from + std::lround((target - strain) / (step_ratio * eps)));
+}
+
+long planned_end(const Phase& phase, double step_ratio) {
+  long end = phase.stop.steps > 0 ? phase.stop.steps - 1 : -1;
+  for (int c = 0; c < component_count; ++c)
+    if (planned_strain(phase, c)) {
+      const auto k = static_cast<std::size_t>(c);
+      const long n = planned_step(0, 0.0, *phase.stop.strain[k], step_ratio, phase.controls.component[k].value);
+      end = end < 0 ? n : std::min(end, n);
+    }
+  return end;
+}
+
+}  // namespace qsdem

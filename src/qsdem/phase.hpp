@@ -1,0 +1,123 @@
+// A loading phase as data (SPEC 8): what drives each of the six components of the cell, the
+// phase's contact law, friction and particle damping, when it ends, when it takes a sample point
+// and which file the rows go to, and an optional controller that may change the control values
+// during the phase. A run is a list of phases, a Protocol; the case parser writes the default one
+// ([compaction] then [triaxial]) in the same terms as a [[phase]] list (docs/config.md).
+#pragma once
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "qsdem/types.hpp"
+
+namespace qsdem {
+
+class Controller;
+
+// The six components of the cell, in the order of the case keys 11, 22, 33, 12, 13, 23.
+inline constexpr int component_count = 6;
+inline constexpr std::array<const char*, component_count> component_names{"11", "22", "33", "12", "13", "23"};
+inline constexpr std::array<std::array<int, 2>, component_count> component_axes{
+    {{0, 0}, {1, 1}, {2, 2}, {0, 1}, {0, 2}, {1, 2}}};
+inline constexpr bool is_normal(int component) { return component < 3; }
+
+struct ComponentControl {
+  enum class Kind : std::int32_t { fixed, strain_rate, stress };
+  Kind kind = Kind::fixed;
+  // strain_rate: eps' = rate t_c (dimensionless, SPEC 8), de/dt of a normal component
+  // (compression positive) or L_ab of a shear one; stress: the target (Pa, compression positive).
+  double value = 0;
+};
+
+// What drives the cell in a phase. A controller changes the values, never the kinds.
+struct PhaseControls {
+  std::array<ComponentControl, component_count> component{};
+  // The cap of the servo's rate on stress-controlled components, one of: an eps' (> 0), or a
+  // factor (> 0) times the fastest strain-rate component.
+  double max_strain_rate = 0;
+  double rate_factor = 0;
+};
+
+struct PhaseDamping {
+  DampingModel model = DampingModel::nd;
+  double ratio = 0.005;  // xi_0
+  DampedMotion acts_on = DampedMotion::both;
+};
+
+// When a phase ends: after the step where the first of the given criteria holds.
+struct StopCriteria {
+  long steps = 0;  // > 0: after this many steps
+  // A component reaching a value: its strain from the phase's start (a normal one compression
+  // positive, a shear one gamma_ab = F_ab + F_ba), its stress (Pa).
+  std::array<std::optional<double>, component_count> strain{}, stress{};
+  // Equilibrium, checked every `every` steps: contacts, every stress-controlled component within
+  // stress_tolerance of its target (relative to it; a shear one relative to the largest normal
+  // target), and the given indices below their tolerances.
+  struct Equilibrium {
+    double stress_tolerance = 0.01;
+    std::optional<double> ufr, imom;
+    long every = 200;
+  };
+  std::optional<Equilibrium> equilibrium;
+  long max_steps = 0;  // > 0: not ending within this many steps stops the run (RunError)
+};
+
+// The sample points of a phase (rows of its file); its last step is always one.
+struct Cadence {
+  enum class Kind : std::int32_t { points, every_steps, every_strain };
+  Kind kind = Kind::every_steps;
+  long points = 0;           // points: this many, evenly spread over the phase's planned steps
+  long every_steps = 200;    // every_steps: after every this many steps
+  int strain_component = 2;  // every_strain: whenever this strain-rate controlled normal component's
+  double every_strain = 0;   // strain grows by this much
+};
+
+struct PhaseOutput {
+  std::string file = "series.csv";  // in the run directory
+  // The row's step and time_s: the phase's force evaluation n and n dt, or the run's step count
+  // and time since the sample was generated.
+  enum class Clock : std::int32_t { phase, run } clock = Clock::phase;
+  Cadence cadence;
+};
+
+// The case keys of a phase's settings that messages name (e.g. "compaction.max_steps" or
+// "phase.0.stop.max_steps").
+struct PhaseKeys {
+  std::string max_steps, damping_ratio, ufr_tolerance, strain_rate, sample_points;
+};
+
+using ControllerFactory = std::function<std::unique_ptr<Controller>()>;
+
+struct Phase {
+  std::string name;  // in messages, the progress line, summary.json and a file's phase column
+  ContactSettings contact;  // the contact law and its keys (contact/laws.hpp): the case's [contact]
+  double friction = 0.5;
+  PhaseDamping damping;
+  PhaseControls controls;
+  StopCriteria stop;
+  PhaseOutput output;
+  std::string controller;             // its kind (controller.hpp), "" for none
+  ControllerFactory make_controller;  // a new controller of that kind for the phase
+  PhaseKeys keys;
+};
+
+using Protocol = std::vector<Phase>;
+
+// Whether the phase ends when the strain of component c reaches a value at a step known in
+// advance: a normal strain-rate component, whose strain grows by exactly c_t eps' per step (SPEC 3.4).
+bool planned_strain(const Phase& phase, int c);
+
+// The force evaluation (0, 1, ...) at which a normal strain-rate component, at nominal strain
+// `strain` at force evaluation `from` and at rate eps' from there on, reaches `target`:
+// from + round((target - strain) / (c_t eps')), and at least one step on.
+long planned_step(long from, double strain, double target, double step_ratio, double eps);
+
+// The last force evaluation of a phase whose end is known in advance (by steps or a planned
+// strain), with its initial control values; -1 when it ends on a measured criterion only.
+long planned_end(const Phase& phase, double step_ratio);
+
+}  // namespace qsdem
