@@ -196,3 +196,53 @@ TEST(ReferenceForces, FastStageEqualsThePlainOne) {
   }
   omp_set_num_threads(threads);
 }
+
+// The per-particle contact stiffnesses the `stiffness` damping reads (State::contact_stiffness,
+// contact_rotational_stiffness), summed by the fast stage's driver (i ends in the commit, j ends in
+// the gather) against the plain stage's, on a mixed packing and a sphere packing, two threads:
+// sums of positive terms, to 16 eps of the sums (as the resultants above). The summing driver is
+// another instantiation of the same one: its forces, torques and stress are the same bits as the
+// plain driver's, and without the model nothing is summed.
+TEST(ReferenceForces, PerParticleContactStiffnessEqualsThePlainSums) {
+  const int threads = omp_get_max_threads();
+  omp_set_num_threads(2);
+  for (const std::uint64_t seed : {1, 4}) {
+    const bool spheres_only = seed == 4;
+    const State start = random_packing(seed, spheres_only ? 2400 : 1500, spheres_only);
+    Model model = model_for(start, "hertz_mindlin");
+    State plain = start;
+    Schedule plain_schedule;
+    compute_contact_forces(model, plain, plain_schedule);
+    gather_resultants(plain, plain_schedule);
+    EXPECT_TRUE(plain.contact_stiffness.empty() && plain.pairs.contact_stiffness_j.empty()) << "not summed";
+    model.damping = DampingModel::stiffness;
+    const ReferenceForces ref = reference_contact_forces(model, start);
+    State fast = start;
+    Schedule schedule;
+    compute_contact_forces(model, fast, schedule);
+    gather_resultants(fast, schedule);
+    EXPECT_EQ(fast.particles.force, plain.particles.force) << "seed " << seed;
+    EXPECT_EQ(fast.particles.torque, plain.particles.torque) << "seed " << seed;
+    EXPECT_EQ(fast.stress, plain.stress) << "seed " << seed;
+    ASSERT_EQ(fast.contact_stiffness.size(), start.particles.size());
+    double worst = 0;
+    std::size_t with_contacts = 0;
+    for (std::size_t a = 0; a < start.particles.size(); ++a) {
+      if (ref.contact_stiffness[a] == 0) {
+        EXPECT_EQ(fast.contact_stiffness[a], 0.0) << "particle " << a << " has no contact";
+        EXPECT_EQ(fast.contact_rotational_stiffness[a], 0.0);
+        continue;
+      }
+      ++with_contacts;
+      worst = std::max({worst, std::abs(fast.contact_stiffness[a] - ref.contact_stiffness[a]) /
+                                   (kEps * ref.contact_stiffness[a]),
+                        std::abs(fast.contact_rotational_stiffness[a] - ref.contact_rotational_stiffness[a]) /
+                            (kEps * ref.contact_rotational_stiffness[a])});
+    }
+    EXPECT_GT(with_contacts, start.particles.size() / 2);
+    EXPECT_LE(worst, 16.0) << "seed " << seed;
+    std::printf("[ info ] seed %llu: contact stiffness sums of %zu particles within %.2g eps\n",
+                static_cast<unsigned long long>(seed), with_contacts, worst);
+  }
+  omp_set_num_threads(threads);
+}

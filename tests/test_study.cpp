@@ -277,7 +277,7 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
 
 // The shipped studies are valid: every case and every override of every run is checked.
 TEST(StudyCli, ShippedStudiesAreValid) {
-  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml"}) {
+  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml", "damping-small.toml"}) {
     SCOPED_TRACE(name);
     qsdem::Study s;
     ASSERT_NO_THROW(s = qsdem::load_study(source_dir / "studies" / name));
@@ -856,5 +856,49 @@ TEST(StudyStages, MpiRanksRunTheStagesAlike) {
     EXPECT_EQ(log.find("=== qsdem"), log.rfind("=== qsdem")) << rel << " started more than once";
     EXPECT_NE(log.find("=== qsdem"), std::string::npos) << rel;
   }
+  fs::remove_all(dir);
+}
+
+// studies/damping-small.toml (issue 24): its runs as its header says, and its design runs: the
+// same [design], stages and [analysis] on 120 spheres sheared to 0.2 %, every run to its end with
+// its model's damping, then the analysis with the damping dependence against the undamped runs.
+TEST(Study, DampingSmallStudyRunsOnATinySample) {
+  const fs::path file = source_dir / "studies" / "damping-small.toml";
+  const qsdem::Study shipped = qsdem::load_study(file);
+  EXPECT_EQ(shipped.samples.size(), 2u);
+  EXPECT_EQ(shipped.runs.size(), 36u) << "2 samples x 9 runs x 2 rates";
+  std::string design = slurp(file);
+  design = design.substr(design.find("[design]\n") + 9);
+  const fs::path dir = fresh_dir("damping_small");
+  write(dir / "s.toml", "name = \"damping-tiny\"\n[[sample]]\nname = \"tiny\"\ncase = \"" +
+                            (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\nset = ['sample.particles=[{shape=\"sphere\", diameter=\"2.4 mm\", count=60}, "
+                            "{shape=\"sphere\", diameter=\"2.0 mm\", count=60}]', \"sample.total_particles=0\", "
+                            "\"sample.initial_solid_fraction=0.2\", \"compaction.max_strain_rate=1e-3\"]\n"
+                            "[design]\nset = [\"triaxial.final_axial_strain=0.2 %\", \"triaxial.sample_points=5\"]\n" +
+                            design);
+  const Result r = study(dir / "s.toml", dir / "out", dir / "log");
+  ASSERT_TRUE(completed(r)) << "exit code " << r.code << "\n" << r.err;
+  const auto m = manifest(dir / "out");
+  ASSERT_EQ(m["runs"].size(), 18u);
+  std::set<std::string> models;
+  for (const auto& run : m["runs"]) {
+    const fs::path d = dir / "out" / run["dir"].get<std::string>();
+    SCOPED_TRACE(d.string());
+    const auto s = nlohmann::json::parse(slurp(d / "summary.json"));
+    const auto& cfg = s["config"]["resolved_si"];
+    EXPECT_EQ(cfg["damping"]["model"], run.contains("damping_model") ? run["damping_model"] : run["model"]);
+    EXPECT_EQ(cfg["damping"]["ratio"], run["xi"]);
+    EXPECT_EQ(s["triaxial"]["rows"], 5);
+    if (run["model"] == "nd-translation") {
+      EXPECT_EQ(cfg["damping"]["acts_on"], "translation");
+    } else if (run["model"] == "nd-rotation") {
+      EXPECT_EQ(cfg["damping"]["acts_on"], "rotation");
+    }
+    models.insert(run["model"].get<std::string>());
+  }
+  EXPECT_EQ(models, (std::set<std::string>{"none", "od", "nd", "stiffness", "local", "contact", "nd-translation",
+                                           "nd-rotation"}));
+  EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "per_run.csv"));
   fs::remove_all(dir);
 }

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cctype>
 #include <cerrno>
 #include <cmath>
@@ -13,6 +14,8 @@
 #include <optional>
 #include <set>
 #include <sstream>
+#include <tuple>
+#include <utility>
 
 #define TOML_EXCEPTIONS 1
 #include <toml++/toml.h>
@@ -331,9 +334,32 @@ class Reader {
 const auto positive = [](double v) { return v > 0; };
 const auto non_negative = [](double v) { return v >= 0; };
 
-DampingModel damping_model(Reader& r, const std::string& path, const std::string& def) {
-  const std::string m = r.text(path, def, {"none", "od", "nd"});
-  return m == "none" ? DampingModel::none : m == "od" ? DampingModel::od : DampingModel::nd;
+// A phase's damping model and ratio; for `local` the ratio is Cundall's alpha, in [0, 1); for
+// `stiffness` at most 0.5, so that A_i dt / 2 = xi_0 omega_i dt < 1 wherever the undamped leapfrog
+// is stable (omega_i dt < 2); for `contact` the dashpots' damping ratio, in [0, 1), on the elastic
+// law hertz_mindlin (`contact` makes it hertz_mindlin_dashpot for the phase).
+std::pair<DampingModel, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key,
+                                              const ContactSettings& contact) {
+  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local", "stiffness", "contact"});
+  const DampingModel model = m == "none"        ? DampingModel::none
+                             : m == "od"        ? DampingModel::od
+                             : m == "local"     ? DampingModel::local
+                             : m == "stiffness" ? DampingModel::stiffness
+                             : m == "contact"   ? DampingModel::contact
+                                                : DampingModel::nd;
+  if (model == DampingModel::contact && contact.law != "hertz_mindlin")
+    r.fail(model_key, r.find(model_key),
+           fmt::format("\"contact\" adds the dashpots to contact.law = \"hertz_mindlin\", not to \"{}\": give the "
+                       "dashpots either by this model and its ratio or by the law's keys, not both",
+                       contact.law));
+  const double ratio = r.quantity(ratio_key, Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  if (model == DampingModel::local && ratio >= 1)
+    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"local\" it is Cundall's alpha, in [0, 1)");
+  if (model == DampingModel::stiffness && ratio > 0.5)
+    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"stiffness\" it must be in [0, 50 %]");
+  if (model == DampingModel::contact && ratio >= 1)
+    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"contact\" it is the dashpots' damping ratio, in [0, 1)");
+  return {model, ratio};
 }
 
 DampedMotion damped_motion(Reader& r, const std::string& path) {
@@ -471,14 +497,14 @@ class ControllerTable final : public ControllerKeys {
 constexpr long default_points = 250, default_every_steps = 200, default_max_steps = 2'000'000;
 
 // One [[phase]] entry, `k` = "phase.N" (docs/config.md).
-Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step_ratio) {
+Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step_ratio, const ContactSettings& contact) {
   Phase ph;
   ph.name = r.text(k + ".name", fmt::format("phase-{}", index), {});
   if (ph.name.empty() || ph.name.find_first_of(",\"\n\r") != std::string::npos)
     r.fail(k + ".name", r.find(k + ".name"), "must be a non-empty name without commas, quotes or line breaks (a CSV column)");
   ph.friction = r.number(k + ".friction", std::nullopt, non_negative, "must be >= 0");
-  ph.damping.model = damping_model(r, k + ".damping.model", "nd");
-  ph.damping.ratio = r.quantity(k + ".damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  std::tie(ph.damping.model, ph.damping.ratio) =
+      damping_model(r, k + ".damping.model", k + ".damping.ratio", contact);
   ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
 
   bool any_rate = false;
@@ -497,6 +523,35 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     if (rate) control = {ComponentControl::Kind::strain_rate, *rate};
     if (stress) control = {ComponentControl::Kind::stress, *stress};
     any_rate = any_rate || rate.has_value();
+  }
+  // The normal components whose shared rate keeps the cell's volume (an undrained test, SPEC 3.7).
+  const std::string cv_key = k + ".constant_volume";
+  if (r.get(cv_key, false)) {
+    const std::vector<std::string> normal{"11", "22", "33"};
+    const auto held = r.list<std::string>(cv_key, "normal components (\"11\", \"22\", \"33\")",
+                                          [&](const toml::node& e, std::string& why) -> std::optional<std::string> {
+                                            if (!e.is_string()) return why = "expected a string", std::nullopt;
+                                            const std::string v = *e.value<std::string>();
+                                            if (std::find(normal.begin(), normal.end(), v) == normal.end())
+                                              return why = "must be \"11\", \"22\" or \"33\"", std::nullopt;
+                                            return v;
+                                          });
+    if (held.empty()) r.fail(cv_key, r.find(cv_key), "give at least one normal component");
+    for (const std::string& name : held) {
+      auto& control = ph.controls.component[static_cast<std::size_t>(std::stoi(name) / 11 - 1)];
+      if (control.kind == ComponentControl::Kind::constant_volume)
+        r.fail(cv_key, r.find(cv_key), fmt::format("component {} is listed twice", name));
+      if (control.kind != ComponentControl::Kind::fixed)
+        r.fail(cv_key, r.find(cv_key),
+               fmt::format("component {} has a strain_rate or a stress too: give one control per component", name));
+      control.kind = ComponentControl::Kind::constant_volume;
+    }
+    bool driven = false;
+    for (const auto& c : ph.controls.component)
+      driven = driven || c.kind == ComponentControl::Kind::strain_rate || c.kind == ComponentControl::Kind::stress;
+    if (held.size() == 3 || !driven)
+      r.fail(cv_key, r.find(cv_key),
+             "another component must be driven (a strain_rate or a stress) for the volume to be held against");
   }
   const auto cap = r.optional_number(k + ".servo.max_strain_rate", [](double v) { return v > 0 && v < 0.1; },
                                      "must be in (0, 0.1)");
@@ -707,8 +762,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
 
   p.contact = read_contact(r);
 
-  p.damping.model = damping_model(r, "damping.model", "nd");
-  p.damping.ratio = r.quantity("damping.ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio", p.contact);
   p.damping.acts_on = damped_motion(r, "damping.acts_on");
 
   auto& c = p.compaction;
@@ -717,8 +771,8 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   c.max_strain_rate = r.number("compaction.max_strain_rate", 2e-5, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
   c.stress_tolerance = r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
   c.ufr_tolerance = r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
-  c.damping_model = damping_model(r, "compaction.damping_model", "nd");
-  c.damping_ratio = r.quantity("compaction.damping_ratio", Dimension::ratio, 0.005, non_negative, "must be >= 0");
+  std::tie(c.damping_model, c.damping_ratio) =
+      damping_model(r, "compaction.damping_model", "compaction.damping_ratio", p.contact);
   c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
   c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
   c.zero_shear_stress = r.boolean("compaction.zero_shear_stress", true);
@@ -766,7 +820,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
                                      r.where(n), section, section));
     const auto* phases = r.array_of_tables("phase");
     for (std::size_t k = 0; k < phases->size(); ++k) {
-      p.protocol.push_back(read_phase(r, "phase." + std::to_string(k), k, p.step_ratio));
+      p.protocol.push_back(read_phase(r, "phase." + std::to_string(k), k, p.step_ratio, p.contact));
       p.protocol.back().contact = p.contact;
       for (std::size_t j = 0; j < k; ++j)
         if (p.protocol[j].name == p.protocol[k].name)
@@ -889,6 +943,7 @@ nlohmann::json to_json(const Phase& ph) {
     const char* name = component_names[static_cast<std::size_t>(c)];
     if (cc.kind == ComponentControl::Kind::strain_rate) controls[name] = {{"strain_rate", cc.value}};
     if (cc.kind == ComponentControl::Kind::stress) controls[name] = {{"stress_Pa", cc.value}};
+    if (cc.kind == ComponentControl::Kind::constant_volume) controls[name] = {{"constant_volume", true}};
   }
   nlohmann::json stop = nlohmann::json::object();
   if (ph.stop.steps > 0) stop["steps"] = ph.stop.steps;

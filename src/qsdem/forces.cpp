@@ -3,15 +3,26 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <stdexcept>
 
 #include "qsdem/clones.hpp"
 #include "qsdem/contact/laws.hpp"
+#include "qsdem/damping.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
 namespace {
+
+// A law whose driver also sums each particle's contact stiffnesses (State::contact_stiffness):
+// a separate instantiation, so that a phase that does not read them does not pay for them.
+template <class Law>
+struct SummingStiffness : Law {
+  static constexpr bool sums_stiffness = true;
+};
+template <class Law>
+constexpr bool sums_contact_stiffness = requires { Law::sums_stiffness; };
 
 // Inputs of the force stage's blocks, read-only except the pair history and results.
 template <class Law>
@@ -23,6 +34,8 @@ struct ForceInputs {
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
   Schedule& schedule;            // owners of the update region (group_contacts_by_owner)
+  double* contact_stiffness = nullptr;             // State's, for a SummingStiffness law
+  double* contact_rotational_stiffness = nullptr;
 };
 
 // The pair driver: written once, instantiated per contact law (contact/law.hpp).
@@ -62,6 +75,9 @@ struct ContactLanes {
   // The contact's terms of the viscosity sums (laws with has_dashpots).
   static constexpr int viscous_stride = Law::has_dashpots ? stride : 1;
   double viscosity[3][viscous_stride], shear_viscosity[3][viscous_stride];
+  // k_n, k_t |arm_i|^2 and k_t |arm_j|^2 (a SummingStiffness law).
+  static constexpr int stiffness_stride = sums_contact_stiffness<Law> ? stride : 1;
+  double kn[stiffness_stride], kt_arm_i[stiffness_stride], kt_arm_j[stiffness_stride];
 
   // Appends the contact of pair k (i, j) with branch l; returns its lane.
   [[gnu::always_inline]] int add(const ForceInputs<Law>& in, const Particles& p, const PairList& pairs,
@@ -124,6 +140,11 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
     law.evaluate(in, dt, HistoryView{&c.history[0][a], ContactLanes<Law>::stride}, out);
     const double fx = out.fx, fy = out.fy, fz = out.fz, kn = out.kn, kt = out.kt;
     c.fx[a] = fx, c.fy[a] = fy, c.fz[a] = fz;
+    if constexpr (sums_contact_stiffness<Law>) {
+      c.kn[a] = kn;
+      c.kt_arm_i[a] = kt * ((aix * aix + aiy * aiy) + aiz * aiz);
+      c.kt_arm_j[a] = kt * ((ajx * ajx + ajy * ajy) + ajz * ajz);
+    }
     // Love-Weber f l^T (SPEC 7).
     const double l[3] = {c.lx[a], c.ly[a], c.lz[a]}, f[3] = {fx, fy, fz};
     for (int r = 0; r < 3; ++r)
@@ -162,7 +183,8 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
 // The lanes' contacts, in order: the contact's results for its j end, the pair's history, i's
 // resultant, the block's contact list, stress and stiffness sums.
 template <class Law>
-void commit_contacts(const ContactLanes<Law>& c, Particles& p, PairList& pairs, ForceBlock& acc) {
+void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, Particles& p, PairList& pairs,
+                     ForceBlock& acc) {
   constexpr int width = ContactLanes<Law>::width;
   // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
   // loaded and stored every sum at every contact (a store through a double* may alias them).
@@ -199,6 +221,13 @@ void commit_contacts(const ContactLanes<Law>& c, Particles& p, PairList& pairs, 
     for (int m = 0; m < 9; ++m) stress[m] += c.stress[m][a];
     for (int q = 0; q < 3; ++q) stiffness[q] += c.stiffness[q][a], shear_stiffness[q] += c.shear_stiffness[q][a];
   }
+  if constexpr (sums_contact_stiffness<Law>)
+    for (int a = 0; a < c.size; ++a) {
+      const std::uint32_t i = c.first[a];
+      in.contact_stiffness[i] += c.kn[a];
+      in.contact_rotational_stiffness[i] += c.kt_arm_i[a];
+      pairs.contact_stiffness_j[slot + a] = {c.kn[a], c.kt_arm_j[a]};
+    }
   if constexpr (Law::has_dashpots)
     for (int a = 0; a < c.size; ++a)
       for (int q = 0; q < 3; ++q)
@@ -216,7 +245,7 @@ template <class Law>
 inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
                            ForceBlock& acc) {
   evaluate_contacts(in.law, in.dt, c);
-  commit_contacts(c, p, pairs, acc);
+  commit_contacts(in, c, p, pairs, acc);
   c.size = 0;
 }
 
@@ -241,12 +270,17 @@ inline void mark_apart(PairList& pairs, std::uint32_t k) {
     for (int m = 0; m < width; ++m) h[m] = Law::history.released[m];
 }
 
-// Zeroes the i-side resultants of block b's particles (the pair loop sums into them).
-inline void clear_block_resultants(Particles& p, const PairList& pairs, std::size_t b) {
+// Zeroes the i-side resultants of block b's particles (the pair loop sums into them), and their
+// stiffness sums for a SummingStiffness law.
+template <class Law>
+inline void clear_block_resultants(const ForceInputs<Law>& in, Particles& p, const PairList& pairs, std::size_t b) {
   for (std::uint32_t a = pairs.block_first[b]; a < pairs.block_first[b + 1]; ++a) {
     p.force[a] = Vec3::Zero();
     p.torque[a] = Vec3::Zero();
   }
+  if constexpr (sums_contact_stiffness<Law>)
+    for (std::uint32_t a = pairs.block_first[b]; a < pairs.block_first[b + 1]; ++a)
+      in.contact_stiffness[a] = in.contact_rotational_stiffness[a] = 0;
 }
 
 // Which of n listed pairs to test: keep[m] = 0 while pair m is still provably apart
@@ -267,7 +301,7 @@ template <class Law>
 ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
-  clear_block_resultants(p, pairs, b);
+  clear_block_resultants(in, p, pairs, b);
   constexpr int capacity = EllipsoidContactBatch::capacity;
   EllipsoidContactBatch batch;
   int lane[capacity];  // the pair's lane in the batch, -1 for two spheres
@@ -391,7 +425,7 @@ template <class Law>
 ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
-  clear_block_resultants(p, pairs, b);
+  clear_block_resultants(in, p, pairs, b);
   constexpr std::uint32_t chunk = 128;
   std::uint32_t tested[chunk], touching[chunk];
   alignas(64) double lx[chunk], ly[chunk], lz[chunk], reach[chunk], distance[chunk], touch[chunk], until[chunk];
@@ -480,6 +514,17 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   pairs.contact_j.resize(np);
   pairs.contact_force.resize(np);
   pairs.contact_torque_j.resize(np);
+  // The per-particle contact stiffnesses, only for a damping that reads them.
+  const bool stiffness_sums = needs_contact_stiffness(model);
+  if (stiffness_sums) {
+    pairs.contact_stiffness_j.resize(np);
+    state.contact_stiffness.resize(n);
+    state.contact_rotational_stiffness.resize(n);
+  } else {
+    pairs.contact_stiffness_j.clear();
+    state.contact_stiffness.clear();
+    state.contact_rotational_stiffness.clear();
+  }
   // Shape matrices once per particle (each takes part in several pairs); only when some particle
   // is an ellipsoid, so a sphere run pays nothing.
   const bool all_spheres = !p.has_ellipsoids();
@@ -512,11 +557,19 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   // The law of the phase, chosen here once for the whole stage.
   const ContactLaw contact_law = make_contact_law({model.material.effective_modulus(),
                                                    model.material.effective_shear_modulus(), model.friction,
-                                                   model.contact});
+                                                   contact_settings(model)});
   std::visit(
       [&]<class Law>(const Law& law) {
-        const ForceInputs<Law> in{law, model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule};
-        run_force_blocks(in, state, nblocks, nthreads, all_spheres);
+        if (stiffness_sums) {
+          const SummingStiffness<Law> summing{law};
+          const ForceInputs<SummingStiffness<Law>> in{summing, model.dt, state.cell, state.shapes.data(), ns,
+                                                      skip_apart, schedule, state.contact_stiffness.data(),
+                                                      state.contact_rotational_stiffness.data()};
+          run_force_blocks(in, state, nblocks, nthreads, all_spheres);
+        } else {
+          const ForceInputs<Law> in{law, model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule};
+          run_force_blocks(in, state, nblocks, nthreads, all_spheres);
+        }
       },
       contact_law);
   schedule.timed_build = ns.builds;
@@ -577,6 +630,20 @@ void gather_resultants(const PairList& pairs, const Schedule& schedule, Particle
   }
 }
 
+void gather_contact_stiffness(const PairList& pairs, const Schedule& schedule, State& state, std::size_t t) {
+  const std::size_t owners = schedule.owners();
+  const std::vector<std::uint32_t>& contact_owner_first = schedule.contact_owner_first;
+  const std::uint32_t* const contact_j = pairs.contact_j.data();
+  const std::array<double, 2>* const terms = pairs.contact_stiffness_j.data();
+  double* const kn = state.contact_stiffness.data();
+  double* const krot = state.contact_rotational_stiffness.data();
+  for (std::size_t row = 0; row < contact_owner_first.size(); row += owners + 1)
+    for (std::uint32_t m = contact_owner_first[row + t]; m < contact_owner_first[row + t + 1]; ++m) {
+      kn[contact_j[m]] += terms[m][0];
+      krot[contact_j[m]] += terms[m][1];
+    }
+}
+
 std::vector<Vec3> contact_forces_by_pair(const State& state) {
   const PairList& pairs = state.pairs;
   std::vector<Vec3> by_pair(pairs.size(), Vec3::Zero());
@@ -598,8 +665,11 @@ void gather_resultants(State& state, const Schedule& schedule) {
 #pragma omp parallel num_threads(owners) if (owners > 1)
   {
     const int team = omp_get_num_threads();
-    for (int t = omp_get_thread_num(); t < owners; t += team)
+    for (int t = omp_get_thread_num(); t < owners; t += team) {
       gather_resultants(state.pairs, schedule, state.particles, static_cast<std::size_t>(t));
+      if (!state.contact_stiffness.empty())
+        gather_contact_stiffness(state.pairs, schedule, state, static_cast<std::size_t>(t));
+    }
   }
 }
 

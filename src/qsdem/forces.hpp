@@ -30,4 +30,8 @@ void gather_resultants(State& state, const Schedule& schedule);
 // threads.
 void gather_resultants(const PairList& pairs, const Schedule& schedule, Particles& p, std::size_t t);
 
+// The same for State::contact_stiffness and contact_rotational_stiffness (when they are summed):
+// the j ends' terms of the contacts of owner t's particles.
+void gather_contact_stiffness(const PairList& pairs, const Schedule& schedule, State& state, std::size_t t);
+
 }  // namespace qsdem

@@ -5,10 +5,27 @@
 #include <cstdint>
 
 #include "qsdem/clones.hpp"
+#include "qsdem/damping.hpp"
 
 namespace qsdem {
 
-double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
+namespace {
+
+// Cundall's local damping of one vector (SPEC 6 `local`): each component f_k of a force (or moment)
+// becomes f_k - alpha |f_k| sign(v_k) = f_k (1 - alpha sign(f_k v_k)), as YADE's NewtonIntegrator.
+[[gnu::always_inline]] inline Vec3 cundall_damped(const Vec3& f, const Vec3& v, double alpha) {
+  Vec3 out;
+  for (int k = 0; k < 3; ++k) {
+    const double s = static_cast<double>((f[k] > 0) - (f[k] < 0)) * static_cast<double>((v[k] > 0) - (v[k] < 0));
+    out[k] = f[k] * (1 - alpha * s);
+  }
+  return out;
+}
+
+// The kick of particles [lo, hi); Local: with Cundall's damping (alpha on translation and
+// rotation), else the viscous factors alone (the code of the viscous models, unchanged).
+template <bool Local>
+double kick_particles(const Model& model, Particles& p, std::size_t lo, std::size_t hi, LocalDampingCoefficients alpha) {
   const double dt = model.dt;
   hi = std::min(hi, p.size());
   double v2max = 0;
@@ -30,16 +47,33 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
   for (std::size_t i = lo; i < hi; ++i) {
     if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i (SPEC 6)
     if (damping_rot_of[i] != damping_rot) kick_rot = DampedKick(damping_rot = damping_rot_of[i], dt);  // B_i
-    const Vec3 v = kick(vel[i], force[i] * inv_mass[i]);
+    Vec3 accel = force[i] * inv_mass[i];
+    Vec3 moment = torque[i];
+    if constexpr (Local) {
+      // The sign of the fluctuating velocity at t predicted from t - dt/2 (YADE's cundallDamp2nd);
+      // a sphere's omega has the signs of L; an ellipsoid's moment is damped by omega at q(t) from
+      // L(t - dt/2) (YADE's cundallDamp1st for aspherical bodies).
+      accel = cundall_damped(accel, vel[i] + 0.5 * dt * accel, alpha.translation);
+      moment = cundall_damped(moment, shape[i] == ShapeKind::sphere ? Vec3(angmom[i] + 0.5 * dt * moment) : omega[i],
+                              alpha.rotation);
+    }
+    const Vec3 v = kick(vel[i], accel);
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    angmom[i] = kick_rot(angmom[i], torque[i]);
+    angmom[i] = kick_rot(angmom[i], moment);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
     if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
   }
   return v2max;
+}
+
+}  // namespace
+
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
+  if (model.damping == DampingModel::local) return kick_particles<true>(model, p, lo, hi, local_damping(model));
+  return kick_particles<false>(model, p, lo, hi, {});
 }
 
 // Orientation scheme (SPEC 5; notes-ellipsoid-algorithms 3). The kick above moves L with the

@@ -23,7 +23,7 @@ struct Material {
 
 // How one component of the cell's velocity gradient is driven (SPEC 3, servo.hpp).
 struct AxisControl {
-  enum class Kind { fixed, strain_rate, stress } kind = Kind::fixed;
+  enum class Kind { fixed, strain_rate, stress, constant_volume } kind = Kind::fixed;
   // strain_rate: a normal component's engineering rate de/dt (1/s, compression positive), a shear
   // component's L_ab (1/s); stress: the target (Pa, compression positive).
   double value = 0;

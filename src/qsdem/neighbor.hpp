@@ -4,6 +4,7 @@
 // terms of the unwrapped fractional coordinates, so a physical contact keeps its key for ever
 // and its tangential history survives every rebuild.
 #pragma once
+#include <array>
 #include <concepts>
 #include <cstdint>
 #include <span>
@@ -61,6 +62,8 @@ struct PairList {
   std::vector<std::uint32_t> contact_j;
   std::vector<Vec3> contact_force;     // contact force on j (N); i receives -force
   std::vector<Vec3> contact_torque_j;  // torque of the contact force about j's centre (N m)
+  // k_n and k_t |x_c - x_j|^2 for the j end, only when State::contact_stiffness is summed (else empty).
+  std::vector<std::array<double, 2>> contact_stiffness_j;
   // Layout for the deterministic per-particle sums (build_incidence).
   std::vector<std::uint32_t> first_i;     // size n + 1: pairs [first_i[a], first_i[a+1]) have i = a
   std::vector<std::uint32_t> block_first; // particle ranges of the force stage's blocks (~1024

@@ -23,7 +23,7 @@ struct Column {
   void (*write)(fmt::memory_buffer& out, const SeriesRow& r);
 };
 
-constexpr Column columns[] = {
+constexpr Column base_columns[] = {
     {"step", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{}", r.step); }},
     {"time_s", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.time); }},
     {"e1", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.e1); }},
@@ -52,38 +52,47 @@ constexpr Column columns[] = {
 
 }  // namespace
 
-std::string series_header(bool phase_column, bool rate_column) {
+std::string series_header(const SeriesColumns& columns) {
   std::string h;
-  for (const Column& c : columns) {
+  for (const Column& c : base_columns) {
     if (!h.empty()) h += ',';
     h += c.name;
   }
-  if (rate_column) h += ",strain_rate";
-  return phase_column ? h + ",phase" : h;
+  if (columns.shear) h += ",s12_Pa,s13_Pa,s23_Pa,g12,g13,g23";
+  if (columns.dp) h += ",dp_Pa";
+  if (columns.strain_rate) h += ",strain_rate";
+  return columns.phase ? h + ",phase" : h;
 }
 
-std::string series_row(const SeriesRow& r) {
+std::string series_row(const SeriesRow& r, const SeriesColumns& columns) {
   fmt::memory_buffer out;
-  for (const Column& c : columns) {
+  for (const Column& c : base_columns) {
     if (out.size() > 0) out.push_back(',');
     c.write(out, r);
   }
-  if (r.rate_column) {
+  if (columns.shear) {
+    const Mat3& s = r.m.stress;
+    const auto& g = r.shear_strain;
+    fmt::format_to(std::back_inserter(out), ",{:.10g},{:.10g},{:.10g},{:.10g},{:.10g},{:.10g}", s(0, 1), s(0, 2), s(1, 2),
+                   g[0], g[1], g[2]);
+  }
+  if (columns.dp) fmt::format_to(std::back_inserter(out), ",{:.10g}", r.dp);
+  if (columns.strain_rate) {
     out.push_back(',');
     if (r.strain_rate) fmt::format_to(std::back_inserter(out), "{:.10g}", *r.strain_rate);
   }
-  if (r.phase) fmt::format_to(std::back_inserter(out), ",{}", *r.phase);
+  if (columns.phase) fmt::format_to(std::back_inserter(out), ",{}", r.phase ? *r.phase : std::string());
   return fmt::to_string(out);
 }
 
-SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column, bool rate_column)
+SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const SeriesColumns& columns)
     : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
     file_ = std::fopen(partial_.c_str(), "w");
     if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
-    write(series_header(phase_column, rate_column));
+    write(series_header(columns));
     return;
   }
   std::ifstream in(partial_);

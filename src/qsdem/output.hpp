@@ -1,6 +1,7 @@
 // Result files (SPEC 10). Files appear complete or not at all: each is written to a temporary
 // name and renamed into place.
 #pragma once
+#include <array>
 #include <cstdio>
 #include <filesystem>
 #include <optional>
@@ -17,25 +18,33 @@ struct SeriesRow {
   double time = 0;
   double e1 = 0, ev = 0;
   const Measures& m;
-  const std::string* phase = nullptr;  // the phase's name, when the file has a phase column
-  // The file has a strain_rate column (a phase writing to it has a rate controller); the row's
-  // eps' there, or none (an empty field) for a phase without one.
-  bool rate_column = false;
+  const std::string* phase = nullptr;  // the phase's name (phase)
+  double dp = 0;        // p - p0 of the row's phase (dp_Pa)
+  // The shear strains gamma_12, gamma_13, gamma_23 of the file's reference (g12, g13, g23).
+  std::array<double, 3> shear_strain{};
+  // The eps' of the row's phase, none (an empty field) for a phase without a rate controller.
   std::optional<double> strain_rate;
 };
 
-// The header: SPEC 10's columns, then those added after them, then `strain_rate` and `phase` when
-// asked for.
-std::string series_header(bool phase_column, bool rate_column = false);
-std::string series_row(const SeriesRow& row);
+// The columns a series file has after SPEC 10's and `phi_al_deg,tilt_deg`, in this order; a file
+// has one when a phase writing to it asks for it.
+struct SeriesColumns {
+  bool shear = false;        // s12_Pa,s13_Pa,s23_Pa,g12,g13,g23: a phase with a shear strain rate
+  bool dp = false;           // dp_Pa: a phase that holds the volume
+  bool strain_rate = false;  // strain_rate: a phase with a rate controller
+  bool phase = false;        // phase: several phases write to the file
+};
+
+std::string series_header(const SeriesColumns& columns = {});
+std::string series_row(const SeriesRow& row, const SeriesColumns& columns = {});
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
 // With keep_rows >= 0 it continues an existing `path.partial` after its first keep_rows rows
 // (a resumed run: rows written after the checkpoint are dropped and written again).
 class SeriesWriter {
  public:
-  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false,
-                        bool rate_column = false);
+  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1,
+                        const SeriesColumns& columns = {});
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;

@@ -10,6 +10,16 @@ bool planned_strain(const Phase& phase, int c) {
          phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::strain_rate;
 }
 
+bool holds_volume(const Phase& phase) {
+  return std::any_of(phase.controls.component.begin(), phase.controls.component.end(),
+                     [](const ComponentControl& c) { return c.kind == ComponentControl::Kind::constant_volume; });
+}
+
+bool shears(const Phase& phase) {
+  return std::any_of(phase.controls.component.begin() + 3, phase.controls.component.end(),
+                     [](const ComponentControl& c) { return c.kind == ComponentControl::Kind::strain_rate; });
+}
+
 long planned_step(long from, double strain, double target, double step_ratio, double eps) {
   return std::max(std::max(from, 1L), from + std::lround((target - strain) / (step_ratio * eps)));
 }

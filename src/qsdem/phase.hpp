@@ -26,10 +26,12 @@ inline constexpr std::array<std::array<int, 2>, component_count> component_axes{
 inline constexpr bool is_normal(int component) { return component < 3; }
 
 struct ComponentControl {
-  enum class Kind : std::int32_t { fixed, strain_rate, stress };
+  enum class Kind : std::int32_t { fixed, strain_rate, stress, constant_volume };
   Kind kind = Kind::fixed;
   // strain_rate: eps' = rate t_c (dimensionless, SPEC 8), de/dt of a normal component
-  // (compression positive) or L_ab of a shear one; stress: the target (Pa, compression positive).
+  // (compression positive) or L_ab of a shear one; stress: the target (Pa, compression positive);
+  // constant_volume (normal components only): the rate that keeps the cell's volume, shared by
+  // every such component of the phase (servo.hpp); no value.
   double value = 0;
 };
 
@@ -107,6 +109,12 @@ struct Phase {
 };
 
 using Protocol = std::vector<Phase>;
+
+// Whether a normal component of the phase keeps the cell's volume (ComponentControl::constant_volume).
+bool holds_volume(const Phase& phase);
+
+// Whether a shear component of the phase has a strain rate (simple shear).
+bool shears(const Phase& phase);
 
 // Whether the phase ends when the strain of component c reaches a value at a step known in
 // advance: a normal strain-rate component, whose strain grows by exactly c_t eps' per step (SPEC 3.4).

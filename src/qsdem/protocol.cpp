@@ -230,6 +230,7 @@ Model phase_model(const Params& params, const Phase& phase, const PhaseControls&
         break;
       }
       case Kind::stress: axis = {AxisControl::Kind::stress, cc.value, 0.0}; break;
+      case Kind::constant_volume: axis = {AxisControl::Kind::constant_volume, 0.0, 0.0}; break;
     }
   }
   m.servo.max_strain_rate =
@@ -285,6 +286,9 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   const PhaseRecord& ref = run.phases.at(static_cast<std::size_t>(sink.reference_phase));
   const std::optional<StopCriteria::Equilibrium>& equilibrium = phase.stop.equilibrium;
   const char* name = phase.name.c_str();
+  // p0: the mean stress at the phase's start, the last force evaluation of the phase before (its
+  // last row); 0 before the first phase.
+  const double p0 = run.phase > 0 ? run.phases.at(static_cast<std::size_t>(run.phase - 1)).final.mean_stress : 0.0;
   const double wall_before = rec.wall_s;
   const long steps_at_start = rec.steps;
   long end = planned_end(phase, ps, params.step_ratio);
@@ -336,13 +340,24 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
         phase.rate_component >= 0 ? ps.controls.component[static_cast<std::size_t>(phase.rate_component)].value : 0.0;
     if (row || ended) {
       const double ev = m.volume / ref.v0 - 1;
+      std::array<double, 3> gamma{};
+      if (sink.columns.shear) {
+        const auto e = phase_strain(st.stress_h, ref.h0);
+        gamma = {e[3], e[4], e[5]};
+      }
       const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
       if (sink.writer) {
         ScopedStage ts(st.timers, Stage::output);
-        SeriesRow r{run_clock ? st.step - 1 : n, run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt, e1,
-                    ev, m, sink.phase_column ? &phase.name : nullptr, sink.rate_column,
+        SeriesRow r{run_clock ? st.step - 1 : n,
+                    run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt,
+                    e1,
+                    ev,
+                    m,
+                    &phase.name,
+                    m.mean_stress - p0,
+                    gamma,
                     phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt};
-        sink.writer->write(series_row(r));
+        sink.writer->write(series_row(r, sink.columns));
       }
       ++rec.rows;
       ps.last_row_step = n;

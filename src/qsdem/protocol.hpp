@@ -97,13 +97,12 @@ class BlowUpWatch {
 using StepHook = std::function<void(bool sample_point)>;
 
 // Where a phase's rows go: the writer of its file (none: rows are counted, not written), the
-// phase whose starting cell the file's strains are measured from, and whether the file has a
-// `phase` column (more than one phase writes to it).
+// phase whose starting cell the file's strains are measured from, and the file's optional columns
+// (those asked for by any phase writing to it: holds_volume, shears, a rate controller).
 struct RowSink {
   SeriesWriter* writer = nullptr;
   int reference_phase = 0;
-  bool phase_column = false;
-  bool rate_column = false;  // the file has a strain_rate column
+  SeriesColumns columns;
 };
 
 // The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).

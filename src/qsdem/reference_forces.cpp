@@ -4,6 +4,7 @@
 #include <variant>
 
 #include "qsdem/contact/laws.hpp"
+#include "qsdem/damping.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
@@ -31,6 +32,8 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
   ReferenceForces out;
   out.force.assign(p.size(), Vec3::Zero());
   out.torque.assign(p.size(), Vec3::Zero());
+  out.contact_stiffness.assign(p.size(), 0.0);
+  out.contact_rotational_stiffness.assign(p.size(), 0.0);
   PairList adopted;  // the law's history, as the fast stage adopts it (adopt_history)
   adopted.i = pairs.i;
   adopted.history = pairs.history;
@@ -73,6 +76,10 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
       }
     }
     out.elastic_energy += o.energy;
+    out.contact_stiffness[i] += o.kn;
+    out.contact_stiffness[j] += o.kn;
+    out.contact_rotational_stiffness[i] += o.kt * g.arm_i.squaredNorm();
+    out.contact_rotational_stiffness[j] += o.kt * g.arm_j.squaredNorm();
     out.contacts.push_back({k, g.overlap, f, torque_i, torque_j, o});
   }
   const double volume = cell.volume;
@@ -88,7 +95,7 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
 
 ReferenceForces reference_contact_forces(const Model& model, const State& state) {
   const ContactLaw law = make_contact_law({model.material.effective_modulus(),
-                                           model.material.effective_shear_modulus(), model.friction, model.contact});
+                                           model.material.effective_shear_modulus(), model.friction, contact_settings(model)});
   return std::visit([&](const auto& l) { return run(l, model, state); }, law);
 }
 

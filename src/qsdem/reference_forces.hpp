@@ -30,6 +30,8 @@ struct ReferenceForces {
   Vec3 affine_stiffness = Vec3::Zero(), shear_stiffness = Vec3::Zero();
   Vec3 affine_viscosity = Vec3::Zero(), shear_viscosity = Vec3::Zero();
   double elastic_energy = 0;               // sum of the contacts' elastic energies (J)
+  // Per particle: sum of k_n and of k_t |x_c - x_i|^2 over its contacts (State::contact_stiffness).
+  std::vector<double> contact_stiffness, contact_rotational_stiffness;
 };
 
 // The contact forces of every listed pair of `state` at its current positions, with the law of

@@ -359,12 +359,18 @@ class Execution {
     for (int q : file.phases)
       if (q < p || (q == p && run_.phase_started)) held += run_.phases[static_cast<std::size_t>(q)].rows;
     const bool begun = file.phases.front() < p || run_.phase_started;
-    bool rate_column = false;
-    for (int q : file.phases) rate_column = rate_column || params_.protocol[static_cast<std::size_t>(q)].rate_component >= 0;
-    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, file.phases.size() > 1, rate_column);
+    SeriesColumns columns;
+    columns.phase = file.phases.size() > 1;
+    for (int q : file.phases) {
+      const Phase& writer_phase = params_.protocol[static_cast<std::size_t>(q)];
+      columns.dp = columns.dp || holds_volume(writer_phase);
+      columns.shear = columns.shear || shears(writer_phase);
+      columns.strain_rate = columns.strain_rate || writer_phase.rate_component >= 0;
+    }
+    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, columns);
     rows_ = &writer;
     try {
-      run_phase(params_, st_, run_, {&writer, file.phases.front(), file.phases.size() > 1, rate_column}, progress_,
+      run_phase(params_, st_, run_, {&writer, file.phases.front(), columns}, progress_,
                 [this](bool sample_point) { on_step(sample_point); });
     } catch (const InputError& e) {
       // A phase stopped by what only the run could find (the cell shrank below the size rule of

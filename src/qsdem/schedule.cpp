@@ -87,6 +87,10 @@ void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::u
   move(pairs.contact_j, copy_u32);
   move(pairs.contact_force, copy_vec);
   move(pairs.contact_torque_j, copy_vec);
+  if (!pairs.contact_stiffness_j.empty()) {
+    thread_local std::vector<std::array<double, 2>> copy_stiffness;
+    move(pairs.contact_stiffness_j, copy_stiffness);
+  }
 }
 
 void record_thread_balance(const Schedule& s, StageTimers& timers) {

@@ -1,9 +1,44 @@
 #include "qsdem/servo.hpp"
 
+#include <Eigen/LU>
 #include <algorithm>
+#include <array>
 #include <cmath>
 
 namespace qsdem {
+namespace {
+
+// The constant-volume components' shared rate (servo.hpp): det(I + dt L) = 1.
+void hold_volume(const Model& model, Mat3& L) {
+  std::array<bool, 3> held{};
+  bool any = false;
+  for (int k = 0; k < 3; ++k) {
+    held[static_cast<std::size_t>(k)] = model.control[static_cast<std::size_t>(k)].kind == AxisControl::Kind::constant_volume;
+    any = any || held[static_cast<std::size_t>(k)];
+  }
+  if (!any) return;
+  Mat3 m = Mat3::Identity() + model.dt * L;
+  // d det(m) / d m_kk is the cofactor of (k, k): the 2x2 minor of the two other axes.
+  const auto cofactor = [&m](int k) {
+    const int a = (k + 1) % 3, b = (k + 2) % 3;
+    return m(a, a) * m(b, b) - m(a, b) * m(b, a);
+  };
+  double x = 1;
+  for (int it = 0; it < 8; ++it) {
+    double slope = 0;
+    for (int k = 0; k < 3; ++k)
+      if (held[static_cast<std::size_t>(k)]) m(k, k) = x;
+    for (int k = 0; k < 3; ++k)
+      if (held[static_cast<std::size_t>(k)]) slope += cofactor(k);
+    const double dx = (m.determinant() - 1) / slope;
+    x -= dx;
+    if (std::abs(dx) <= 1e-17) break;
+  }
+  for (int k = 0; k < 3; ++k)
+    if (held[static_cast<std::size_t>(k)]) L(k, k) = (x - 1) / model.dt;
+}
+
+}  // namespace
 
 void servo_update(const Model& model, State& state) {
   const Mat3& last = state.cell.L;  // the rates of the last step
@@ -12,6 +47,7 @@ void servo_update(const Model& model, State& state) {
     const AxisControl& c = model.control[static_cast<std::size_t>(k)];
     switch (c.kind) {
       case AxisControl::Kind::fixed:
+      case AxisControl::Kind::constant_volume:  // set last, by hold_volume
         break;
       case AxisControl::Kind::strain_rate:
         L(k, k) = -c.value * c.reference_length / state.cell.h(k, k);
@@ -50,6 +86,7 @@ void servo_update(const Model& model, State& state) {
     const int a = pair[s][0], b = pair[s][1];
     switch (c.kind) {
       case AxisControl::Kind::fixed:
+      case AxisControl::Kind::constant_volume:  // normal components only
         break;
       case AxisControl::Kind::strain_rate:
         L(a, b) = c.value;  // simple shear: x_a moves in proportion to x_b
@@ -67,6 +104,7 @@ void servo_update(const Model& model, State& state) {
       }
     }
   }
+  hold_volume(model, L);
   state.cell.L = L;
 }
 

@@ -41,6 +41,13 @@ namespace qsdem {
 // It acts only once every stress-controlled normal stress is within 10 % of its target: in the
 // loose, collisional stage the shear stresses are noise, and chasing them would only tilt the
 // cell. The strain it then takes is small, so the cell stays nearly orthorhombic.
+//
+// Constant-volume axes (an undrained test, SPEC 3.7): once every other component of L is set,
+// the constant-volume normal components share one rate r, chosen so that the step's update
+// h <- (I + dt L) h keeps det h: det(I + dt L) = 1 exactly, solved for x = 1 + dt r by Newton's
+// method (a polynomial of degree 1 or 2 in x, from x = 1; converged to round-off in 2 to 3
+// iterations). To first order r = -(sum of the other L_kk) / n (L11 = L22 = -L33/2 for axial
+// loading); the rate form alone loses 3/4 (dt L33)^2 of the volume per step.
 void servo_update(const Model& model, State& state);
 
 }  // namespace qsdem

@@ -53,6 +53,9 @@ struct State {
   std::size_t max_overlap_pair = 0;     // the pair where it is
   long narrow_tests = 0;                // pairs tested by the narrow phase in the last step
   long pw_iterations = 0;               // their Perram-Wertheim iterations
+  // Per particle, only when the phase's damping reads them (`stiffness`, damping.hpp), else empty:
+  // sum over its contacts of k_n and of k_t |x_c - x_i|^2 (N/m, N m).
+  std::vector<double> contact_stiffness, contact_rotational_stiffness;
 
   std::vector<ForceBlock> blocks;       // per force block (PairList::block_first)
   long contacts_build = -1;             // NeighborState::builds of the list the contacts are of

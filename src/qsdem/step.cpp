@@ -62,8 +62,9 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       const std::size_t lo = schedule.owner_first[r], hi = schedule.owner_first[r + 1];
       const double t0 = omp_get_wtime();
       gather_resultants(s.pairs, schedule, p, static_cast<std::size_t>(r));
+      if (!s.contact_stiffness.empty()) gather_contact_stiffness(s.pairs, schedule, s, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
-      update_damping(model, p, lo, hi);  // the damping stage, before the kick (damping.hpp)
+      update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping.hpp)
       m = std::max(m, integrate_velocities(model, p, lo, hi));
       const double t2 = omp_get_wtime();
       advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);
