@@ -360,3 +360,72 @@ TEST(RateControl, BadKeysNameKeyAndWhatIsAllowed) {
   };
   for (const auto& c : cases) EXPECT_NE(error(c.text).find(c.expected), std::string::npos) << error(c.text);
 }
+
+namespace {
+
+// Compaction to 390 kPa, then simple shear at constant normal stress s33 (docs/loading-paths.md)
+// with the shear rate L13 driven by the controller: IMom held at 3 %, from gamma' = 1e-4, to
+// gamma_13 = 2 %, a row every 0.05 % of gamma_13 (40 rows).
+std::string controlled_shear() {
+  std::string text = head;
+  return text.substr(0, text.find("[compaction]")) + R"(
+[[phase]]
+name = "compaction"
+friction = 0.2
+stress = { 11 = "390 kPa", 22 = "390 kPa", 33 = "390 kPa", 12 = "0 Pa", 13 = "0 Pa", 23 = "0 Pa" }
+servo = { max_strain_rate = 1e-4 }
+stop = { equilibrium = { ufr = "1 %" } }
+output = { file = "compaction.csv", clock = "run" }
+
+[[phase]]
+name = "shear"
+friction = 0.5
+strain_rate = { 13 = 1e-4 }
+stress = { 33 = "390 kPa" }
+stop = { strain = { 13 = "2 %" } }
+output = { every_strain = { 13 = "0.05 %" } }
+controller = { kind = "rate", component = "13", target = "3 %", min_rate = 1e-6, max_rate = 1e-3 }
+)";
+}
+
+}  // namespace
+
+// The controller drives a shear component as it drives a normal one. A shear strain is measured
+// (the normal strain 33 moves under the servo), so a row is the first force evaluation at which
+// gamma_13 has passed the next multiple of 0.05 %: it lies within one step's increment of it,
+// c_t gamma' (1 + |e33|) at most. The rates keep their bounds and their factor per row, the
+// controller acts (the rate leaves its start), and a stopped and resumed run gives the same bits.
+TEST(RateControl, DrivesAShearStrainRate) {
+  const fs::path case_path = case_file("shear", controlled_shear());
+  const fs::path ref = scratch("shear"), stopped = scratch("shear-stopped");
+  run(case_path, ref);
+  run(case_path, stopped, 15);
+  for (const char* f : {"series.csv", "final.packing"})
+    EXPECT_EQ(slurp(ref / f), slurp(stopped / f)) << f << " differs after a stop and resume";
+
+  const Csv s = read_csv(ref / "series.csv");
+  ASSERT_EQ(s.header.back(), "strain_rate");
+  const std::vector<double> g13 = s.column("g13"), rate = s.column("strain_rate"), s33 = s.column("s33_Pa");
+  ASSERT_EQ(g13.size(), 40u);
+  double lowest = rate.front(), highest = rate.front();
+  for (std::size_t k = 0; k < rate.size(); ++k) {
+    EXPECT_GE(rate[k], 1e-6) << "row " << k + 1;
+    EXPECT_LE(rate[k], 1e-3) << "row " << k + 1;
+    if (k > 0) EXPECT_LE(std::abs(std::log(rate[k] / rate[k - 1])), std::log(2.0) + 1e-9) << "row " << k + 1;
+    const double mark = 0.0005 * static_cast<double>(k + 1);
+    if (k + 1 < g13.size()) {  // the last row is the phase's end, at or past 2 %
+      EXPECT_GE(g13[k], mark) << "row " << k + 1;
+      EXPECT_LE(g13[k], mark + 0.32 * rate[k] * 1.05) << "row " << k + 1;
+    }
+    EXPECT_NEAR(s33[k], 390e3, 0.05 * 390e3) << "row " << k + 1 << ": the servo holds s33";
+    lowest = std::min(lowest, rate[k]);
+    highest = std::max(highest, rate[k]);
+  }
+  EXPECT_GE(g13.back(), 0.02);
+  EXPECT_DOUBLE_EQ(rate.front(), 1e-4);
+  EXPECT_GT(highest / lowest, 2.0) << "the controller never moved the shear rate";
+  const nlohmann::json c = summary(ref)["phases"].back()["controller"];
+  EXPECT_NEAR(c["final_strain_rate"].get<double>(), rate.back(), 1e-9 * rate.back());
+  std::cout << "[ measured ] controlled shear: eps' " << lowest << " to " << highest << ", final " << rate.back()
+            << "\n";
+}

@@ -607,7 +607,7 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   const auto points = r.optional_integer(k + ".output.points", 1, 1'000'000);
   const auto every = r.optional_integer(k + ".output.every_steps", 1, std::numeric_limits<long>::max());
   std::optional<double> strain_step;
-  for (int c = 0; c < 3; ++c) {
+  for (int c = 0; c < component_count; ++c) {
     const std::string key = k + ".output.every_strain." + component_names[static_cast<std::size_t>(c)];
     const auto d = r.optional_quantity(key, Dimension::ratio, positive, "must be > 0");
     if (!d) continue;
@@ -645,8 +645,9 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     for (const ControllerKind& kind : controller_kinds())
       if (kind.name == ph.controller) ph.make_controller = kind.read(table, ph, step_ratio);
     if (ph.controller == "rate") {
-      const std::string name = r.text(k + ".controller.component", std::nullopt, {"11", "22", "33"});
-      ph.rate_component = name[0] - '1';
+      const std::vector<std::string> components(component_names.begin(), component_names.end());
+      const std::string name = r.text(k + ".controller.component", std::nullopt, components);
+      ph.rate_component = static_cast<int>(std::find(components.begin(), components.end(), name) - components.begin());
     }
   }
   int planned = 2;

@@ -108,6 +108,7 @@ long next_sample(const Phase& phase, const PhaseState& s, long rows, long end, d
     case Cadence::Kind::every_steps:
       return (rows + 1) * c.every_steps - 1;  // after every every_steps steps of the phase
     case Cadence::Kind::every_strain: {
+      if (!is_normal(c.strain_component)) return -1;  // a shear strain is measured: measured_row
       const auto k = static_cast<std::size_t>(c.strain_component);
       const double eps = s.controls.component[k].value;
       const double target = static_cast<double>(rows + 1) * c.every_strain * (eps > 0 ? 1 : -1);
@@ -115,6 +116,17 @@ long next_sample(const Phase& phase, const PhaseState& s, long rows, long end, d
     }
   }
   return end;
+}
+
+// Whether the next row of a cadence by the strain of a shear component (not planned: the cell's
+// normal components may move under it) is due at the state's last force evaluation: its strain
+// gamma_ab (phase_strain) has passed the next multiple of the interval, in the rate's direction.
+bool measured_row(const Phase& phase, const PhaseState& s, long rows, const State& st, const Mat3& h0) {
+  const Cadence& c = phase.output.cadence;
+  if (c.kind != Cadence::Kind::every_strain || is_normal(c.strain_component)) return false;
+  const auto k = static_cast<std::size_t>(c.strain_component);
+  const double direction = s.controls.component[k].value > 0 ? 1.0 : -1.0;
+  return direction * phase_strain(st.stress_h, h0)[k] >= static_cast<double>(rows + 1) * c.every_strain;
 }
 
 // Whether a measured end (phase.hpp: stop.stress, stop.strain of a component whose strain is not
@@ -318,7 +330,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       }
       keep_controller();
     }
-    const bool row = ended || (sample >= 0 && n >= sample);
+    const bool row = ended || (sample >= 0 && n >= sample) || measured_row(phase, ps, rec.rows, st, rec.h0);
     const bool check = equilibrium && rec.steps % equilibrium->every == 0;
     if (!row && !check) {
       if (hook) hook(false);

@@ -108,9 +108,9 @@ RateControlSettings read_rate_control_settings(ControllerKeys& keys, const Phase
   RateControlSettings s;
   s.step_ratio = step_ratio;
   if (component < 0) {
-    const std::vector<std::string> normal{"11", "22", "33"};
-    const std::string name = keys.text("component", normal);
-    component = static_cast<int>(std::find(normal.begin(), normal.end(), name) - normal.begin());
+    const std::vector<std::string> names(component_names.begin(), component_names.end());
+    const std::string name = keys.text("component", names);
+    component = static_cast<int>(std::find(names.begin(), names.end(), name) - names.begin());
   }
   s.component = component;
   const ComponentControl& control = phase.controls.component[static_cast<std::size_t>(component)];
