@@ -344,12 +344,17 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
         gamma = {e[3], e[4], e[5]};
       }
       const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
+      const long row_step = run_clock ? st.step - 1 : n;
+      const double row_time = run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt;
       if (sink.writer) {
         ScopedStage ts(st.timers, Stage::output);
-        sink.writer->write(series_row({run_clock ? st.step - 1 : n,
-                                       run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt, e1, ev, m,
-                                       sink.phase_column ? &phase.name : nullptr, sink.dp_column ? &dp : nullptr,
-                                       sink.shear_columns ? &gamma : nullptr}));
+        sink.writer->write(series_row({row_step, row_time, e1, ev, m, sink.phase_column ? &phase.name : nullptr,
+                                       sink.dp_column ? &dp : nullptr, sink.shear_columns ? &gamma : nullptr}));
+      }
+      if (sink.classes) {
+        ScopedStage ts(st.timers, Stage::output);
+        sink.classes->write(
+            classes_rows({row_step, row_time, e1, ev, m, &phase.name}, class_measures(st, *sink.size_classes)));
       }
       ++rec.rows;
       ps.last_row_step = n;
