@@ -9,6 +9,7 @@
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/state.hpp"
+#include "qsdem/step.hpp"
 
 using namespace qsdem;
 
@@ -104,7 +105,16 @@ TEST(ClassMeasures, SizeClassesMergeRoundedRadii) {
     p.add(0, ShapeKind::sphere, Vec3::Constant(rad), 2650.0, Vec3::Zero(), Quat::Identity());
   const std::vector<double> classes = size_classes(p);
   ASSERT_EQ(classes.size(), 3u);
-  EXPECT_NEAR(classes[0], 1e-3, 1e-15);
-  EXPECT_NEAR(classes[1], 2e-3, 1e-15);
-  EXPECT_NEAR(classes[2], 3e-3, 1e-15);
+  // A class is named by its smallest radius: 3e-3 (1 - 1e-12) for the third.
+  EXPECT_DOUBLE_EQ(classes[0], 1e-3);
+  EXPECT_DOUBLE_EQ(classes[1], 2e-3);
+  EXPECT_NEAR(classes[2], 3e-3 * (1 - 1e-12), 1e-18);
+  State st;  // no pairs: only the counts
+  st.particles = p;
+  const std::vector<ClassMeasures> c = class_measures(st, classes);
+  ASSERT_EQ(c.size(), 3u);
+  EXPECT_EQ(c[0].count, 2);
+  EXPECT_EQ(c[1].count, 1);
+  EXPECT_EQ(c[2].count, 2);
+  EXPECT_EQ(c[0].in_contact, 0.0);
 }
