@@ -152,12 +152,12 @@ def table(runs):
 
 
 def plot(name, title, ylabel, curves, xrange="[0:10]"):
-    """curves: (title, [(x, y)], dash) each; writes figures/NAME.png and its .dat and .gp."""
+    """curves: (title, [(x, y)], dash[, colour]) each; writes figures/NAME.png and its .dat and .gp."""
     fig = os.path.join(HERE, "figures")
     os.makedirs(fig, exist_ok=True)
     dat = os.path.join(fig, name + ".dat")
     with open(dat, "w") as f:
-        for t, pts, _ in curves:
+        for t, pts, *_ in curves:
             f.write("# %s\n" % t)
             for x, y in pts:
                 f.write("%.6g %.6g\n" % (x, y))
@@ -165,9 +165,9 @@ def plot(name, title, ylabel, curves, xrange="[0:10]"):
     colours = ["#000000", "#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
                "#7f7f7f", "#bcbd22"]
     lines = []
-    for k, (t, _, dash) in enumerate(curves):
+    for k, (t, _, dash, *colour) in enumerate(curves):
         lines.append("'%s.dat' index %d using 1:2 with lines lw 2 dt %d lc rgb '%s' title \"%s\"" % (
-            name, k, dash, colours[k % len(colours)], t))
+            name, k, dash, colour[0] if colour else colours[k % len(colours)], t))
     gp = os.path.join(fig, name + ".gp")
     with open(gp, "w") as f:
         f.write("set terminal pngcairo size 800,520 font ',10'\nset output '%s.png'\n" % name)
@@ -218,8 +218,9 @@ def figures(runs):
             for key, name, yl, sc, rows in (("phi_al_deg", "phi", "phi (deg)", 1, "series"),
                                              ("ev", "ev", "ev (%, dilation +)", 100, "series"),
                                              ("in_contact", "fines", "fraction of the smallest class in contact", 1, "fines")):
-                plot("rate_%s_%s" % (name, sample), "%s, none (black) and nd (red) at each rate" % sample, yl,
-                     [("%s, %.0e" % (label(r), r["rate"]), curve(r, key, sc, rows), dash.get(r["rate"], 1)) for r in pair])
+                plot("rate_%s_%s" % (name, sample), "%s, none (black) and nd (red); solid 1e-7, dashed 1e-6, dotted 1e-5" % sample, yl,
+                     [("%s, %.0e" % (label(r), r["rate"]), curve(r, key, sc, rows), dash.get(r["rate"], 1),
+                       "#000000" if r["model"] == "none" else "#d62728") for r in pair])
     # The seeds: none and nd of each seed.
     seeds = sorted((r for r in done if r["study"] == "damping-seeds"), key=lambda r: (r["model"], r["seed"]))
     if seeds:
