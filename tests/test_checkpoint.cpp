@@ -148,6 +148,8 @@ void kill_and_resume(int sig) {
       << read(d.string() + "-resume.err");
   EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv")) << "resumed series.csv equals the uninterrupted one";
   EXPECT_EQ(read(d / "compaction.csv"), read(ref / "compaction.csv"));
+  ASSERT_TRUE(fs::exists(ref / "classes.csv"));
+  EXPECT_EQ(read(d / "classes.csv"), read(ref / "classes.csv")) << "resumed classes.csv equals the uninterrupted one";
   EXPECT_FALSE(fs::exists(d / checkpoint_file)) << "a finished run drops its checkpoint";
 }
 
@@ -172,6 +174,7 @@ TEST(CheckpointProcess, SigintDuringCompactionResumes) {
   ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0);
   EXPECT_EQ(read(d / "compaction.csv"), read(ref / "compaction.csv"));
   EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
+  EXPECT_EQ(read(d / "classes.csv"), read(ref / "classes.csv"));
 }
 
 // A flipped byte is detected by the checksum and the previous checkpoint is used; a truncated

@@ -186,6 +186,7 @@ const fs::path& reference() {
 // copy is what a SIGKILL at that instant leaves (every write before it is synchronous and flushed).
 TEST(RunSafety, EveryInstantOfTheEndOfARunResumes) {
   const fs::path ref = reference();
+  ASSERT_TRUE(fs::exists(ref / "classes.csv"));
   const fs::path live = fresh("end-live");
   std::vector<std::pair<std::string, fs::path>> copies;
   RunOptions o = to(live);
@@ -202,13 +203,14 @@ TEST(RunSafety, EveryInstantOfTheEndOfARunResumes) {
     if (!finished) {
       EXPECT_NO_THROW(resume_run(dir, to(dir)));
     }
-    for (const char* f : {"series.csv", "compaction.csv", "compacted.packing", "final.packing"})
+    for (const char* f : {"series.csv", "compaction.csv", "classes.csv", "compacted.packing", "final.packing"})
       EXPECT_EQ(slurp(dir / f), slurp(ref / f)) << f;
     EXPECT_TRUE(fs::exists(dir / "summary.json"));
     EXPECT_TRUE(fs::exists(dir / prepared_sample_file)) << "a run that compacted leaves its prepared sample";
     EXPECT_FALSE(fs::exists(dir / checkpoint_file));
     EXPECT_FALSE(fs::exists(dir / "checkpoint.qsck.prev"));
     EXPECT_FALSE(fs::exists(dir / "series.csv.partial"));
+    EXPECT_FALSE(fs::exists(dir / "classes.csv.partial"));
     EXPECT_THROW(resume_run(dir, to(dir)), InputError) << "finished: nothing to resume";
   }
 }

@@ -277,7 +277,8 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
 
 // The shipped studies are valid: every case and every override of every run is checked.
 TEST(StudyCli, ShippedStudiesAreValid) {
-  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml", "damping-small.toml"}) {
+  for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml", "damping-small.toml",
+                           "damping-small-B.toml", "damping-seeds.toml"}) {
     SCOPED_TRACE(name);
     qsdem::Study s;
     ASSERT_NO_THROW(s = qsdem::load_study(source_dir / "studies" / name));

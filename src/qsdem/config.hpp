@@ -92,6 +92,7 @@ struct Params {
 
   struct Output {
     int vtk_every = 0;  // a VTK snapshot every N sample points (0: never), docs/visualisation.md
+    bool classes = true;  // classes.csv, the measures per size class (docs/physics.md 10.3)
   } output;
 
   struct Limits {

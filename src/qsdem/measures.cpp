@@ -3,6 +3,7 @@
 #include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
+#include <stdexcept>
 
 #include "qsdem/forces.hpp"
 
@@ -60,6 +61,64 @@ Measures measure(const State& state) {
   m.solid_volume = s[5];
   m.void_ratio = (m.volume - m.solid_volume) / m.solid_volume;
   return m;
+}
+
+std::vector<double> size_classes(const Particles& particles) {
+  std::vector<double> r(particles.equiv_radius);
+  std::sort(r.begin(), r.end());
+  std::vector<double> classes;
+  for (double x : r)
+    if (classes.empty() || x > classes.back() * (1 + 1e-9)) classes.push_back(x);
+  return classes;
+}
+
+std::vector<ClassMeasures> class_measures(const State& state, const std::vector<double>& classes) {
+  const Particles& p = state.particles;
+  const PairList& pairs = state.pairs;
+  const std::size_t n = p.size();
+  std::vector<std::uint32_t> of(n);  // the class of each particle
+  for (std::size_t i = 0; i < n; ++i) {
+    // The last class whose first radius is <= R_i (size_classes: the class of R_i).
+    const auto c = std::upper_bound(classes.begin(), classes.end(), p.equiv_radius[i]);
+    if (c == classes.begin()) throw std::logic_error("class_measures: a particle outside the size classes");
+    of[i] = static_cast<std::uint32_t>(c - classes.begin() - 1);
+  }
+  std::vector<ClassMeasures> out(classes.size());
+  for (std::size_t c = 0; c < classes.size(); ++c) out[c].radius = classes[c];
+  // Per contact: its ends' contact counts, and f_c . l_c (3 V its share of p, SPEC 7's
+  // Love-Weber sum), half to each end's class.
+  std::vector<std::uint32_t> contacts(n, 0);
+  const std::vector<Vec3> force = contact_forces_by_pair(state);
+  double total = 0;
+  for (std::size_t k = 0; k < pairs.size(); ++k) {
+    if (pairs.overlap[k] <= 0) continue;
+    const std::uint32_t i = pairs.i[k], j = pairs.j[k];
+    ++contacts[i];
+    ++contacts[j];
+    const double w = force[k].dot(branch_vector(state.cell, p.s[i], p.s[j], pairs.image[k]));
+    out[of[i]].stress_share += 0.5 * w;
+    out[of[j]].stress_share += 0.5 * w;
+    total += w;
+  }
+  for (std::size_t i = 0; i < n; ++i) {
+    ClassMeasures& c = out[of[i]];
+    ++c.count;
+    c.contacts += contacts[i];
+    c.in_contact += contacts[i] >= 1 ? 1 : 0;
+    c.in_contact_2 += contacts[i] >= 2 ? 1 : 0;
+    c.speed += p.v[i].norm();
+    c.spin += p.omega[i].norm();
+  }
+  for (ClassMeasures& c : out) {
+    const double count = static_cast<double>(std::max(1L, c.count));
+    c.contacts /= count;
+    c.in_contact /= count;
+    c.in_contact_2 /= count;
+    c.speed /= count;
+    c.spin /= count;
+    c.stress_share = total != 0 ? c.stress_share / total : 0;
+  }
+  return out;
 }
 
 }  // namespace qsdem

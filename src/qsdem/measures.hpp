@@ -27,6 +27,26 @@ struct Measures {
 
 Measures measure(const State& state);
 
+// The size classes of a sample: its distinct equal-volume radii R_i (SPEC 2), ascending; radii
+// within a relative 1e-9 of a class's smallest are in that class (the rows of a size table give equal radii
+// bit for bit; a packing read from a file may round them).
+std::vector<double> size_classes(const Particles& particles);
+
+// The measures of one size class at a sample point (docs/physics.md 10.3), from the last force evaluation.
+struct ClassMeasures {
+  double radius = 0;             // the class's equal-volume radius (m)
+  long count = 0;                // its particles
+  double contacts = 0;           // mean contacts per particle (pairs with delta > 0 it is in)
+  double in_contact = 0;         // fraction of its particles with >= 1 contact
+  double in_contact_2 = 0;       // with >= 2
+  double stress_share = 0;       // share of p carried by its contacts (a mixed contact: half each)
+  double speed = 0;              // mean |v_i|, the fluctuation velocity (m/s)
+  double spin = 0;               // mean |omega_i| (1/s)
+};
+
+// One entry per class of `classes` (size_classes): O(N + pairs), serial, in particle and pair order.
+std::vector<ClassMeasures> class_measures(const State& state, const std::vector<double>& classes);
+
 // Sum of a per-index term in fixed blocks, so the result does not depend on the thread count.
 template <class T, class Term>
 T blocked_sum(std::size_t n, const T& zero, Term term) {

@@ -85,14 +85,33 @@ std::string series_row(const SeriesRow& r, const SeriesColumns& columns) {
   return fmt::to_string(out);
 }
 
+std::string classes_header() {
+  return "step,time_s,e1,ev,phase,radius_mm,count,contacts_per_particle,in_contact,in_contact_2,p_share,speed_m_s,"
+         "spin_1_s";
+}
+
+std::string classes_rows(const SeriesRow& r, const std::vector<ClassMeasures>& classes) {
+  fmt::memory_buffer out;
+  for (const ClassMeasures& c : classes) {
+    if (out.size() > 0) out.push_back('\n');
+    fmt::format_to(std::back_inserter(out), "{},{:.10g},{:.10g},{:.10g},{},{:.8g},{},{:.8g},{:.8g},{:.8g},{:.8g},{:.8g},{:.8g}",
+                   r.step, r.time, r.e1, r.ev, r.phase ? *r.phase : std::string(), 1e3 * c.radius, c.count,
+                   c.contacts, c.in_contact, c.in_contact_2, c.stress_share, c.speed, c.spin);
+  }
+  return fmt::to_string(out);
+}
+
 SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const SeriesColumns& columns)
+    : SeriesWriter(std::move(path), keep_rows, CsvHeader{series_header(columns)}) {}
+
+SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const CsvHeader& header)
     : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
     file_ = std::fopen(partial_.c_str(), "w");
     if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
-    write(series_header(columns));
+    write(header.text);
     return;
   }
   std::ifstream in(partial_);

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "qsdem/measures.hpp"
 
@@ -38,13 +39,23 @@ struct SeriesColumns {
 std::string series_header(const SeriesColumns& columns = {});
 std::string series_row(const SeriesRow& row, const SeriesColumns& columns = {});
 
+// classes.csv (docs/physics.md 10.3): one row per size class at each sample point of every phase; the step,
+// time and strains as in the row of the phase's own file.
+std::string classes_header();
+std::string classes_rows(const SeriesRow& row, const std::vector<ClassMeasures>& classes);
+
+// The header line of a file that is not series.csv's (SeriesWriter's second constructor).
+struct CsvHeader {
+  std::string text;
+};
+
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
 // With keep_rows >= 0 it continues an existing `path.partial` after its first keep_rows rows
 // (a resumed run: rows written after the checkpoint are dropped and written again).
 class SeriesWriter {
  public:
-  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1,
-                        const SeriesColumns& columns = {});
+  explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, const SeriesColumns& columns = {});
+  SeriesWriter(std::filesystem::path path, long keep_rows, const CsvHeader& header);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;

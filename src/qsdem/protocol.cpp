@@ -358,18 +358,17 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
         gamma = {e[3], e[4], e[5]};
       }
       const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
+      const long row_step = run_clock ? st.step - 1 : n;
+      const double row_time = run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt;
+      const SeriesRow r{row_step, row_time, e1, ev, m, &phase.name, m.mean_stress - p0, gamma,
+                        phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt};
       if (sink.writer) {
         ScopedStage ts(st.timers, Stage::output);
-        SeriesRow r{run_clock ? st.step - 1 : n,
-                    run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt,
-                    e1,
-                    ev,
-                    m,
-                    &phase.name,
-                    m.mean_stress - p0,
-                    gamma,
-                    phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt};
         sink.writer->write(series_row(r, sink.columns));
+      }
+      if (sink.classes) {
+        ScopedStage ts(st.timers, Stage::output);
+        sink.classes->write(classes_rows(r, class_measures(st, *sink.size_classes)));
       }
       ++rec.rows;
       ps.last_row_step = n;

@@ -103,6 +103,9 @@ struct RowSink {
   SeriesWriter* writer = nullptr;
   int reference_phase = 0;
   SeriesColumns columns;
+  // classes.csv (docs/physics.md 10.3) and the sample's size classes (size_classes), when it is written.
+  SeriesWriter* classes = nullptr;
+  const std::vector<double>* size_classes = nullptr;
 };
 
 // The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).

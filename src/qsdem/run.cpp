@@ -13,6 +13,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstring>
+#include <optional>
 #include <sstream>
 
 #include "qsdem/checkpoint.hpp"
@@ -78,6 +79,7 @@ namespace fs = std::filesystem;
 
 // The files a run writes into its directory (besides vtk/ and its phases' files): what --force removes.
 constexpr const char* run_files[] = {"summary.json",      "series.csv",      "series.csv.partial",
+                                     classes_file,        "classes.csv.partial",
                                      "compaction.csv",    "compaction.csv.partial", "compacted.packing",
                                      "final.packing",     checkpoint_file,   "checkpoint.qsck.prev",
                                      prepared_sample_file, "case.toml"};
@@ -169,7 +171,7 @@ void check_out(const fs::path& dir, bool force, bool locked_here) {
         throw InputError(fmt::format(
             "'{}' is not empty and holds no qsdem run (no case.toml): choose a new or empty --out, or add --force "
             "(which removes only the files a run writes: {})",
-            dir.string(), "summary.json, series.csv, compaction.csv, *.packing, *.qsck, case.toml, vtk/"));
+            dir.string(), "summary.json, series.csv, compaction.csv, classes.csv, *.packing, *.qsck, case.toml, vtk/"));
       break;
     default: break;
   }
@@ -295,11 +297,11 @@ class Execution {
     const int last = run_.prepare_only ? std::min(1, count) : count;  // prepare: the first phase only
     bool just_ended = false;  // the previous phase ended in this process (else its end is redone)
     while (run_.phase < last) {
-      if (run_.phase > 0 && !run_.phase_started && !just_ended) finish_phase(run_.phase - 1, nullptr);
+      if (run_.phase > 0 && !run_.phase_started && !just_ended) finish_phase(run_.phase - 1, nullptr, nullptr);
       run_current_phase();
       just_ended = true;
     }
-    if (!just_ended && run_.phase > 0) finish_phase(run_.phase - 1, nullptr);  // stopped while writing them
+    if (!just_ended && run_.phase > 0) finish_phase(run_.phase - 1, nullptr, nullptr);  // stopped while writing them
     const nlohmann::json s = summary(note);
     write_file_atomic(dir_ / "summary.json", s.dump(2) + "\n");
     done("summary.json written");
@@ -323,6 +325,7 @@ class Execution {
     run_.wall_s = wall_before_ + process_s();
     ScopedStage t(st_.timers, Stage::output);
     if (rows_) rows_->sync();
+    if (classes_rows_) classes_rows_->sync();
     save_checkpoint(file, params_.case_text, params_.source, st_, run_);
     last_save_ = std::chrono::steady_clock::now();
   }
@@ -369,8 +372,11 @@ class Execution {
     }
     SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, columns);
     rows_ = &writer;
+    std::optional<SeriesWriter> classes;
+    if (params_.output.classes) open_classes(classes);
+    classes_rows_ = classes ? &*classes : nullptr;
     try {
-      run_phase(params_, st_, run_, {&writer, file.phases.front(), columns}, progress_,
+      run_phase(params_, st_, run_, {&writer, file.phases.front(), columns, classes_rows_, &size_classes_}, progress_,
                 [this](bool sample_point) { on_step(sample_point); });
     } catch (const InputError& e) {
       // A phase stopped by what only the run could find (the cell shrank below the size rule of
@@ -383,21 +389,45 @@ class Execution {
     run_.state = {};
     writer.sync();
     done(phase.output.file + ".partial synced");
+    if (classes) classes->sync();
     save(dir_ / checkpoint_file);
     done("checkpoint at the end of " + phase.name + " written");
     rows_ = nullptr;
-    finish_phase(p, &writer);
+    classes_rows_ = nullptr;
+    finish_phase(p, &writer, classes ? &*classes : nullptr);
+  }
+
+  // classes.csv, one file over the phases this directory runs (a run of a prepared sample starts
+  // after the first): continued after the rows of the phases before and this one's so far.
+  void open_classes(std::optional<SeriesWriter>& classes) const {
+    const int first = run_.first_step == 0 ? 0 : 1;
+    const int p = run_.phase;
+    long held = run_.phase_started ? run_.phases[static_cast<std::size_t>(p)].rows : 0;
+    for (int q = first; q < p; ++q) held += run_.phases[static_cast<std::size_t>(q)].rows;
+    const bool begun = p > first || run_.phase_started;
+    const long lines = held * static_cast<long>(size_classes_.size());
+    classes.emplace(dir_ / classes_file, begun ? lines : -1, CsvHeader{classes_header()});
+  }
+
+  int last_phase() const {
+    const int count = static_cast<int>(params_.protocol.size());
+    return (run_.prepare_only ? std::min(1, count) : count) - 1;
   }
 
   // What follows the end of phase p: its file renamed when no later phase writes to it; after the
   // first phase the prepared sample (compacted.packing, sample.qsck, snapshot 0), after the last
   // the final packing. `writer`: its open file, or none when a resume redoes an end a crash cut short.
-  void finish_phase(int p, SeriesWriter* writer) {
+  void finish_phase(int p, SeriesWriter* writer, SeriesWriter* classes) {
     const PhaseFile& file = file_of(files_, params_.protocol, p);
     if (file.phases.back() == p) {
       if (writer) writer->commit();
       else if (fs::exists(dir_ / (file.name + ".partial"))) commit_partial(dir_ / file.name);
       done(file.name + " renamed");
+    }
+    if (p == last_phase() && params_.output.classes) {
+      if (classes) classes->commit();
+      else if (fs::exists(dir_ / "classes.csv.partial")) commit_partial(dir_ / classes_file);
+      done("classes.csv renamed");
     }
     if (p == 0 && run_.first_step == 0) {  // a run of a prepared sample did not run its first phase
       write_packing(dir_ / "compacted.packing", st_.particles, st_.cell);
@@ -498,6 +528,8 @@ class Execution {
   const std::chrono::steady_clock::time_point t0_ = std::chrono::steady_clock::now();
   std::chrono::steady_clock::time_point last_save_ = std::chrono::steady_clock::now();
   SeriesWriter* rows_ = nullptr;  // the phase's file: on disk before each checkpoint counts its rows
+  SeriesWriter* classes_rows_ = nullptr;  // classes.csv, the same
+  const std::vector<double> size_classes_ = size_classes(st_.particles);
 };
 
 nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
