@@ -261,6 +261,35 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
       {"a reference rule misspelt", sample + design + "[analysis]\nreference = \"least damped\"\n",
        {"analysis.reference", "\"least-damped\""}},
       {"a tolerance of zero", sample + design + "[analysis]\nphi_tolerance_deg = 0\n", {"analysis.phi_tolerance_deg", "> 0"}},
+      // rate_control: the keys of [triaxial.rate_control], checked by the case parser at this key.
+      {"rate_control not a table", sample + design + "rate_control = \"imom\"\n",
+       {"design.rate_control", "\"imom\"", "expected a table", "target"}},
+      {"rate_control with an unknown index",
+       sample + design + "rate_control = { index = \"xyz\", target = \"1 %\", min_rate = 1e-7, max_rate = 1e-4 }\n",
+       {"design.rate_control", "refuses it", "\"xyz\"", "\"imom\""}},
+      {"rate_control without a target", sample + design + "rate_control = { min_rate = 1e-7, max_rate = 1e-4 }\n",
+       {"design.rate_control", "refuses it", "target"}},
+      {"rate_control whose bounds exclude the start rate",
+       sample + design + "rate_control = { target = \"1 %\", min_rate = 1e-7, max_rate = 5e-6 }\n",
+       {"design.rate_control", "start rate 1e-05", "[min_rate, max_rate]"}},
+      {"rate_control with an array value", sample + design + "rate_control = { target = [\"1 %\"] }\n",
+       {"design.rate_control.target", "expected a string or a number"}},
+      {"rate_control in [design] with stages",
+       sample + stage_design + "rate_control = { target = \"1 %\", min_rate = 1e-7, max_rate = 1e-4 }\n" + sweep,
+       {"design.rate_control", "each stage gives its own"}},
+      {"rate_control in design.set", sample + design + "set = [\"triaxial.rate_control={target=\\\"1 %\\\"}\"]\n",
+       {"design.set.0", "triaxial.rate_control", "set by the study"}},
+      {"a stage's rate_control refused by the case",
+       sample + stage_design + sweep + "[[stage]]\nname = \"c\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+                                       "rate_control = { target = \"150 %\", min_rate = 1e-7, max_rate = 1e-4 }\n",
+       {"stage.1.rate_control", "refuses it", "target", "(0, 100 %)"}},
+      {"two controllers of one index and target at one start rate",
+       sample + stage_design +
+           "[[stage]]\nname = \"c1\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+           "rate_control = { target = \"1 %\", min_rate = 1e-7, max_rate = 1e-4 }\n"
+           "[[stage]]\nname = \"c2\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+           "rate_control = { target = \"1 %\", min_rate = 1e-8, max_rate = 1e-4 }\n",
+       {"stage 'c2'", "another rate_control", "rate-1e-05-control-imom-1%"}},
   };
   for (const auto& c : cases) {
     SCOPED_TRACE(c.what);
@@ -278,7 +307,7 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
 // The shipped studies are valid: every case and every override of every run is checked.
 TEST(StudyCli, ShippedStudiesAreValid) {
   for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml", "damping-small.toml",
-                           "damping-small-B.toml", "damping-seeds.toml"}) {
+                           "damping-small-B.toml", "damping-seeds.toml", "adaptive-small.toml"}) {
     SCOPED_TRACE(name);
     qsdem::Study s;
     ASSERT_NO_THROW(s = qsdem::load_study(source_dir / "studies" / name));
@@ -901,5 +930,109 @@ TEST(Study, DampingSmallStudyRunsOnATinySample) {
   EXPECT_EQ(models, (std::set<std::string>{"none", "od", "nd", "stiffness", "local", "contact", "nd-translation",
                                            "nd-rotation"}));
   EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "per_run.csv"));
+  fs::remove_all(dir);
+}
+
+// rate_control in a stage: one controlled run per (sample, model, ratio, start rate), its own id,
+// the override after the study's keys, and the controller in study.json.
+TEST(StudyCli, RateControlStageRunsAndManifest) {
+  const fs::path dir = fresh_dir("control_parse");
+  write(dir / "s.toml", "[[sample]]\nname = \"A\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\n[design]\nmodels = [\"nd\"]\n"
+                            "[[stage]]\nname = \"sweep\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5, 3e-6]\n"
+                            "[[stage]]\nname = \"control\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+                            "rate_control = { index = \"imom\", target = \"0.1 %\", min_rate = 1e-8, max_rate = 2e-5, "
+                            "gain = 0.3, filter_points = 3 }\n");
+  const qsdem::Study s = qsdem::load_study(dir / "s.toml");
+  ASSERT_EQ(s.runs.size(), 3u);
+  const qsdem::StudyRun& c = s.runs[2];
+  EXPECT_EQ(c.id, "A-seed1/nd/xi-0.5%/rate-1e-05-control-imom-0.1%") << "not the directory of the constant 1e-5 run";
+  EXPECT_EQ(s.runs[0].id, "A-seed1/nd/xi-0.5%/rate-1e-05");
+  EXPECT_FALSE(s.runs[0].control.on());
+  EXPECT_EQ(c.dir, "runs/" + c.id);
+  EXPECT_DOUBLE_EQ(c.rate, 1e-5);
+  EXPECT_EQ(c.control.index, "imom");
+  EXPECT_DOUBLE_EQ(c.control.target, 0.001);
+  const std::string table = "{ filter_points = 3, gain = 0.3, index = \"imom\", max_rate = 2e-05, min_rate = 1e-08, "
+                            "target = \"0.1 %\" }";
+  EXPECT_EQ(c.sets, (std::vector<std::string>{"damping.model=nd", "damping.ratio=0.005", "triaxial.strain_rate=1e-05",
+                                              "triaxial.rate_control=" + table}));
+  // The ETA's guess: the steps at the geometric mean of the start rate and min_rate (10 % / (0.32 x 3.16e-7)).
+  EXPECT_NEAR(c.expected_steps, std::round(0.1 / (0.32 * std::sqrt(1e-5 * 1e-8))), 0.5);
+  const auto m = qsdem::study_manifest(s);
+  EXPECT_EQ(m["stages"][1]["rate_control"]["index"], "imom");
+  EXPECT_FALSE(m["stages"][0].contains("rate_control"));
+  const auto& run = m["runs"][2];
+  EXPECT_EQ(run["stage"], "control");
+  EXPECT_EQ(run["rate"], 1e-5);
+  EXPECT_EQ(run["rate_control"]["index"], "imom");
+  EXPECT_EQ(run["rate_control"]["target"], 0.001);
+  EXPECT_EQ(run["rate_control"]["set"], "triaxial.rate_control=" + table);
+  EXPECT_FALSE(m["runs"][0].contains("rate_control"));
+
+  // The one-stage [design]: every run controlled.
+  write(dir / "d.toml", "[[sample]]\nname = \"A\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\n[design]\nmodels = [\"od\", \"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+                            "rate_control = { index = \"ufr\", target = \"2 %\", min_rate = 1e-7, max_rate = 1e-5 }\n");
+  const qsdem::Study d = qsdem::load_study(dir / "d.toml");
+  ASSERT_EQ(d.runs.size(), 2u);
+  EXPECT_EQ(d.runs[1].id, "A-seed1/nd/xi-0.5%/rate-1e-05-control-ufr-2%");
+  EXPECT_EQ(qsdem::study_manifest(d)["runs"][0]["rate_control"]["index"], "ufr");
+  fs::remove_all(dir);
+}
+
+// A tiny study with a constant-rate stage and a controlled stage (200 spheres, 3 % strain): the
+// controlled run lands in its own directory, runs under the controller (its strain_rate column and
+// summary record), is kept out of the power law of the constant-rate runs, and the analysis holds
+// the controller's record beside the constant-rate fit's rate at the same target.
+TEST(Study, ControlledStageRunsBesideTheSweep) {
+  const fs::path dir = fresh_dir("control_run");
+  write(dir / "s.toml", "name = \"control-tiny\"\n[[sample]]\nname = \"tiny\"\ncase = \"" +
+                            (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\nset = ['sample.particles=[{shape=\"sphere\", diameter=\"2 mm\", count=150}, "
+                            "{shape=\"sphere\", diameter=\"2.4 mm\", count=50}]', \"sample.total_particles=0\", "
+                            "\"sample.seed=3\", \"compaction.max_strain_rate=1e-4\"]\n"
+                            "[design]\nmodels = [\"nd\"]\n"
+                            "set = [\"triaxial.final_axial_strain=3 %\", \"triaxial.sample_points=60\"]\n"
+                            "[[stage]]\nname = \"sweep\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-4, 3e-5]\n"
+                            "[[stage]]\nname = \"control\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-4]\n"
+                            "rate_control = { target = \"3 %\", min_rate = 1e-6, max_rate = 1e-3 }\n"
+                            "[execution]\nparallel_runs = 2\n");
+  const Result r = study(dir / "s.toml", dir / "out", dir / "log");
+  ASSERT_TRUE(completed(r)) << "exit code " << r.code << "\n" << r.err;
+  const fs::path out = dir / "out";
+  const std::string cid = "tiny-seed3/nd/xi-0.5%/rate-0.0001-control-imom-3%";
+  const fs::path cdir = out / "runs" / cid;
+  ASSERT_TRUE(fs::exists(cdir / "summary.json"));
+  ASSERT_TRUE(fs::exists(out / "runs/tiny-seed3/nd/xi-0.5%/rate-0.0001/summary.json")) << "the constant run, apart";
+  const auto summary = nlohmann::json::parse(slurp(cdir / "summary.json"));
+  ASSERT_TRUE(summary["triaxial"].contains("controller"));
+  const auto& ctl = summary["triaxial"]["controller"];
+  const std::vector<double> rate = column(cdir / "series.csv", "strain_rate");
+  ASSERT_EQ(rate.size(), 60u);
+  EXPECT_LT(*std::min_element(rate.begin(), rate.end()), 1e-4) << "the controller lowered the rate";
+
+  const auto a = nlohmann::json::parse(slurp(out / "analysis/analysis.json"));
+  ASSERT_EQ(a["power_laws"].size(), 1u);
+  EXPECT_EQ(a["power_laws"][0]["n_rates"], 2) << "the fit holds the two constant-rate runs only";
+  ASSERT_EQ(a["controlled_runs"].size(), 1u);
+  const auto& c = a["controlled_runs"][0];
+  EXPECT_EQ(c["id"], cid);
+  EXPECT_EQ(c["finished"], true);
+  EXPECT_EQ(c["index"], "imom");
+  EXPECT_DOUBLE_EQ(c["target"].get<double>(), 0.03);
+  for (const char* k : {"mean_strain_rate", "final_strain_rate", "min_strain_rate", "max_strain_rate", "share_within_band",
+                        "band_factor", "constant_rate_steps_at_final", "constant_rate_steps_at_mean", "rows"})
+    EXPECT_EQ(c[k], ctl[k]) << k;
+  EXPECT_EQ(c["mean_index"], summary["mean_imom"]);
+  EXPECT_EQ(c["steps"], summary["steps"]);
+  EXPECT_EQ(c["wall_s"], summary["wall_s"]);
+  EXPECT_EQ(c["constant_rate_fit"]["n"], 2);
+  const auto& law = a["power_laws"][0];
+  const double eps_qs = std::pow(0.03 / law["a"].get<double>(), 1 / law["b"].get<double>());
+  EXPECT_NEAR(c["constant_rate_fit"]["eps_qs_at_target"].get<double>(), eps_qs, 1e-9 * eps_qs)
+      << "one ratio: the law at the optimum is the fit of the same runs";
+  EXPECT_NEAR(c["mean_over_eps_qs"].get<double>(), ctl["mean_strain_rate"].get<double>() / eps_qs, 1e-9);
+  EXPECT_NE(slurp(out / "report.html").find("Controlled runs"), std::string::npos);
   fs::remove_all(dir);
 }

@@ -698,3 +698,84 @@ TEST(StudyAnalysisResults, CommittedSmallStudyReanalysesToTheSameFits) {
     EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
   fs::remove_all(dir);
 }
+
+// --- controlled runs (rate_control stages) against the constant-rate power law ---------------
+
+// Sample S, nd 0.5 %: constant-rate runs at 1e-6, 1e-5 and 1e-4 whose mean IMom is exactly
+// 300 eps'^0.8, and one controlled run started at 1e-5 (target 1 %) whose own mean IMom (5 %) would
+// move the law if it entered the fit. The law of the constant-rate runs and the rate it gives at
+// the target are closed forms: eps'_QS = (0.01 / 300)^(1 / 0.8).
+TEST(StudyAnalysisControl, ControlledRunIsComparedNotFitted) {
+  const fs::path dir = fresh_temp_dir("analysis-control");
+  const double a = 300, b = 0.8, target = 0.01;
+  json m = {{"name", "control-test"}, {"study_file", "study.toml"}, {"analysis", {{"imom_target", target}}}};
+  m["samples"] = json::array({{{"name", "S"}, {"seed", 1}, {"dir", "samples/S-seed1"}}});
+  m["runs"] = json::array();
+  const auto add = [&](const std::string& id, double rate, double imom, const json& extra) {
+    json run = {{"id", id}, {"sample", "S"}, {"seed", 1}, {"model", "nd"}, {"xi", 0.005}, {"rate", rate},
+                {"dir", "runs/" + id}};
+    if (!extra.is_null()) run["rate_control"] = extra;
+    m["runs"].push_back(run);
+    std::string csv = "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
+                      "ekin_trans_J,ekin_rot_J\n";
+    for (int i = 1; i <= 10; ++i)
+      csv += fmt::format("{},0,{},0,1,1,1,1,1,30,0.6,4,{},{},{},1e-6,5e-7,5e-7\n", i, 0.01 * i, 2 * imom, 2 * imom, imom);
+    spit(dir / "runs" / id / "series.csv", csv);
+    json summary = {{"mean_imom", imom}, {"mean_ufr", 2 * imom}, {"mean_iuf", 2 * imom}, {"steps", 1000}, {"wall_s", 7.0}};
+    if (!extra.is_null())
+      summary["triaxial"]["controller"] = {{"index", "imom"},
+                                           {"target", target},
+                                           {"band_factor", 1.5},
+                                           {"mean_strain_rate", 2.5e-6},
+                                           {"final_strain_rate", 2e-6},
+                                           {"min_strain_rate", 1.5e-6},
+                                           {"max_strain_rate", 1e-5},
+                                           {"share_within_band", 0.75},
+                                           {"rows", 10},
+                                           {"constant_rate_steps_at_final", 156250},
+                                           {"constant_rate_steps_at_mean", 125000}};
+    spit(dir / "runs" / id / "summary.json", summary.dump());
+  };
+  for (double rate : {1e-6, 1e-5, 1e-4})
+    add(fmt::format("S-seed1/nd/xi-0.5%/rate-{:g}", rate), rate, a * std::pow(rate, b), nullptr);
+  const std::string cid = "S-seed1/nd/xi-0.5%/rate-1e-05-control-imom-1%";
+  add(cid, 1e-5, 0.05, json{{"index", "imom"}, {"target", target}, {"set", "triaxial.rate_control={ target = \"1 %\" }"}});
+  spit(dir / "study.json", m.dump(2));
+  spit(dir / "study.toml", "name = \"control-test\"\n");
+
+  const json r = qsdem::analyze_study(dir);
+  ASSERT_EQ(r["power_laws"].size(), 1u);
+  const json& law = r["power_laws"][0];
+  EXPECT_EQ(law["n_rates"], 3) << "the controlled run is in no fit";
+  EXPECT_NEAR(law["a"].get<double>(), a, 1e-9 * a);
+  EXPECT_NEAR(law["b"].get<double>(), b, 1e-12);
+  EXPECT_EQ(r["groups"].size(), 3u) << "no group at the controlled run's start rate beyond the constant one";
+  for (const json& g : r["groups"])
+    for (const json& p : g["points"]) EXPECT_EQ(p["n_runs"], 1);
+
+  ASSERT_EQ(r["controlled_runs"].size(), 1u);
+  const json& c = r["controlled_runs"][0];
+  const double eps_qs = std::pow(target / a, 1 / b);
+  EXPECT_EQ(c["id"], cid);
+  EXPECT_EQ(c["index"], "imom");
+  EXPECT_DOUBLE_EQ(c["target"].get<double>(), target);
+  EXPECT_DOUBLE_EQ(c["start_rate"].get<double>(), 1e-5);
+  EXPECT_DOUBLE_EQ(c["mean_strain_rate"].get<double>(), 2.5e-6);
+  EXPECT_DOUBLE_EQ(c["final_strain_rate"].get<double>(), 2e-6);
+  EXPECT_DOUBLE_EQ(c["share_within_band"].get<double>(), 0.75);
+  EXPECT_DOUBLE_EQ(c["mean_index"].get<double>(), 0.05);
+  EXPECT_DOUBLE_EQ(c["wall_s"].get<double>(), 7.0);
+  EXPECT_DOUBLE_EQ(c["steps"].get<double>(), 1000);
+  EXPECT_EQ(c["constant_rate_fit"]["n"], 3);
+  EXPECT_EQ(c["constant_rate_fit"]["runs"].size(), 3u);
+  EXPECT_NEAR(c["constant_rate_fit"]["eps_qs_at_target"].get<double>(), eps_qs, 1e-9 * eps_qs);
+  EXPECT_NEAR(c["mean_over_eps_qs"].get<double>(), 2.5e-6 / eps_qs, 1e-9 * 2.5e-6 / eps_qs);
+  EXPECT_NEAR(c["final_over_eps_qs"].get<double>(), 2e-6 / eps_qs, 1e-9 * 2e-6 / eps_qs);
+
+  const std::string csv = slurp(dir / "analysis" / "controlled_runs.csv");
+  EXPECT_NE(csv.find(cid), std::string::npos);
+  const std::string html = slurp(dir / "report.html");
+  EXPECT_NE(html.find("Controlled runs"), std::string::npos);
+  EXPECT_NE(html.find(cid), std::string::npos);
+  fs::remove_all(dir);
+}

@@ -34,13 +34,26 @@ struct StudyModel {
   bool named = true;              // given as a bare model name
 };
 
+// The rate controller of a stage's runs ([triaxial.rate_control] of docs/config.md): each run
+// starts at its strain rate and the controller drives eps' to hold the index at the target.
+struct StudyControl {
+  std::string table;   // the override's value, an inline TOML table; empty: constant rate
+  std::string index;   // "imom", "ufr" or "iuf"
+  double target = std::numeric_limits<double>::quiet_NaN();    // fraction
+  double min_rate = std::numeric_limits<double>::quiet_NaN();  // the controller's lower bound
+  bool on() const { return !table.empty(); }
+};
+
 // One triaxial test of a prepared sample.
 struct StudyRun {
-  std::string id;  // <sample>-seed<S>/<model>/xi-<xi %>/rate-<rate>, also its directory under runs/
+  // <sample>-seed<S>/<model>/xi-<xi %>/rate-<rate>[-control-<index>-<target %>%], also its directory
+  // under runs/
+  std::string id;
   std::size_t sample = 0;  // index into Study::samples
   std::size_t model = 0;   // index into Study::models
   double xi = 0;           // damping ratio, as a fraction
-  double rate = 0;         // dimensionless strain rate eps'
+  double rate = 0;         // dimensionless strain rate eps' (a controlled run's start rate)
+  StudyControl control;    // the stage's rate controller
   std::size_t stage = 0;   // index into Study::stages: the first stage that lists it
   std::string dir;         // relative to the study directory: runs/<id>
   std::vector<std::string> sets;  // --set overrides of `qsdem run`, except sample.from
@@ -64,7 +77,8 @@ struct StudyStage {
   std::string name;
   std::vector<std::size_t> samples;  // indices of the [[sample]] tables (names)
   std::vector<std::size_t> models;   // indices into Study::models
-  std::vector<double> rates;
+  std::vector<double> rates;         // with `control`: the start rates
+  StudyControl control;              // rate_control = { ... }: one controlled run per combination
   std::vector<double> ratios;        // fixed ratios (empty when picked or listed)
   struct Listed {
     std::size_t model;

@@ -348,6 +348,11 @@ Run load_run(const fs::path& dir, const json& m) {
   r.seed = m.value("seed", 0L);
   r.xi = num(m, "xi");
   r.rate = num(m, "rate");
+  if (m.contains("rate_control") && m["rate_control"].is_object()) {
+    r.controlled = true;
+    r.control.index = m["rate_control"].value("index", std::string("imom"));
+    r.control.target = num(m["rate_control"], "target");
+  }
   const fs::path rd = dir / r.dir;
   if (!std::isfinite(r.xi) || !std::isfinite(r.rate) || r.xi < 0 || r.rate <= 0) {
     r.problem = "manifest entry without a valid xi and rate";
@@ -368,6 +373,16 @@ Run load_run(const fs::path& dir, const json& m) {
     r.wall_s = num(s, "wall_s");
     r.psps = num(s, "particle_steps_per_s");
     if (s.contains("derived")) r.particles = num(s["derived"], "particles");
+    if (r.controlled && s.contains("triaxial") && s["triaxial"].contains("controller")) {
+      const json& c = s["triaxial"]["controller"];
+      Control& k = r.control;
+      k.mean_rate = num(c, "mean_strain_rate"), k.final_rate = num(c, "final_strain_rate");
+      k.min_rate = num(c, "min_strain_rate"), k.max_rate = num(c, "max_strain_rate");
+      k.share_in_band = num(c, "share_within_band"), k.band_factor = num(c, "band_factor"), k.rows = num(c, "rows");
+      k.steps_at_final = num(c, "constant_rate_steps_at_final");
+      k.steps_at_mean = num(c, "constant_rate_steps_at_mean");
+      k.mean_index = num(s, ("mean_" + k.index).c_str());
+    }
     if (fs::exists(rd / "series.csv")) {
       r.s = read_series(rd / "series.csv");
       r.mean_ekin = mean_finite(r.s.ekin);
@@ -430,6 +445,7 @@ std::vector<Group> make_groups(const std::vector<Run>& runs) {
   std::map<std::tuple<std::string, std::string, double>, std::map<double, std::vector<const Run*>>> g;
   for (const Run& r : runs) {
     if (!std::isfinite(r.xi) || !std::isfinite(r.rate)) continue;  // listed as missing (load_run)
+    if (r.controlled) continue;  // its rate is not constant: no point of an index against eps'
     if (std::find(sm.begin(), sm.end(), std::make_pair(r.sample, r.model)) == sm.end())
       sm.emplace_back(r.sample, r.model);
     g[{r.sample, r.model, r.rate}][r.xi].push_back(&r);
@@ -532,7 +548,7 @@ const OptimumFit* find_opt(const std::vector<Group>& groups, const Run& r) {
 std::vector<EqualSet> make_equal_sets(const std::vector<Run>& runs) {
   std::vector<EqualSet> out;
   for (const Run& r : runs) {
-    if (!r.finished || !(r.xi > 0)) continue;
+    if (!r.finished || !(r.xi > 0) || r.controlled) continue;
     const std::string key = fmt::format("{:.3g}", r.xi * r.rate);
     auto it = std::find_if(out.begin(), out.end(), [&](const EqualSet& e) {
       return e.sample == r.sample && e.model == r.model && e.product == key;
@@ -547,6 +563,33 @@ std::vector<EqualSet> make_equal_sets(const std::vector<Run>& runs) {
   });
   for (EqualSet& e : out)
     std::sort(e.runs.begin(), e.runs.end(), [](const Run* a, const Run* b) { return a->rate > b->rate; });
+  return out;
+}
+
+// Each controlled run against the power law of the same index over the constant-rate runs of its
+// sample, seed, model and damping ratio (docs/analysis.md, controlled runs).
+std::vector<ControlComparison> make_controls(const std::vector<Run>& runs) {
+  std::vector<ControlComparison> out;
+  for (const Run& c : runs) {
+    if (!c.controlled) continue;
+    ControlComparison k;
+    k.run = &c;
+    std::vector<double> x, y;
+    for (const Run& r : runs) {
+      if (r.controlled || !r.finished || r.sample != c.sample || r.seed != c.seed || r.model != c.model ||
+          !same_value(r.xi, c.xi))
+        continue;
+      const double index = c.control.index == "ufr" ? r.mean_ufr : c.control.index == "iuf" ? r.mean_iuf : r.mean_imom;
+      if (!(index > 0) || !std::isfinite(index)) continue;
+      k.fit_runs.push_back(&r);
+      x.push_back(r.rate), y.push_back(index);
+    }
+    k.fit = fit_power_law(x, y);
+    k.eps_qs = quasi_static_rate(k.fit, c.control.target);
+    k.mean_over_qs = c.control.mean_rate / k.eps_qs;
+    k.final_over_qs = c.control.final_rate / k.eps_qs;
+    out.push_back(std::move(k));
+  }
   return out;
 }
 
@@ -587,6 +630,7 @@ std::vector<DesignStage> read_stages(const json& manifest) {
     s.pick = j.value("pick", std::string());
     s.at_rate = num(j, "at_rate");
     s.digits = j.value("digits", 2);
+    s.controlled = j.contains("rate_control");
     if (j.contains("picks") && j["picks"].is_array())
       for (const json& p : j["picks"])
         s.picks.push_back({p.value("sample", std::string()), p.value("model", std::string()), num(p, "xi_opt"),
@@ -640,7 +684,7 @@ std::vector<PickCheck> check_picks(const std::vector<DesignStage>& stages, const
     if (src == stages.end()) continue;
     std::vector<Run> members;
     for (const Run& r : runs)
-      if (src->lists(r.sample, r.model, r.xi, r.rate)) members.push_back(r);
+      if (src->lists(r)) members.push_back(r);
     for (const StageOptimum& o : optima_of(members, st.at_rate)) {
       if (!has_name(st.samples, o.sample) || !has_name(st.models, o.model)) continue;
       PickCheck c{&st, st.pick_of(o.sample, o.model), o, pick_ratios(o, st.pick, st.digits)};
@@ -667,7 +711,7 @@ std::map<std::pair<std::string, long>, const Run*> find_references(const std::ve
   if (!st.has_reference) return out;
   std::map<std::pair<std::string, long>, std::vector<const Run*>> candidates;
   for (const Run& r : runs) {
-    if (!std::isfinite(r.xi) || !std::isfinite(r.rate)) continue;
+    if (!std::isfinite(r.xi) || !std::isfinite(r.rate) || r.controlled) continue;
     if (!st.reference_model.empty() && r.model != st.reference_model) continue;
     if (std::isfinite(st.reference_ratio) && !same_value(r.xi, st.reference_ratio)) continue;
     if (std::isfinite(st.reference_rate) && !same_value(r.rate, st.reference_rate)) continue;
@@ -785,7 +829,70 @@ json run_json(const Run& r) {
           {"wall_s", r.wall_s},
           {"particle_steps_per_s", r.psps},
           {"particles", r.particles},
-          {"series_rows", r.s.e1.size()}};
+          {"series_rows", r.s.e1.size()},
+          {"rate_control", r.controlled ? json{{"index", r.control.index}, {"target", r.control.target}} : json(nullptr)}};
+}
+
+json controls_json(const std::vector<ControlComparison>& controls) {
+  json out = json::array();
+  for (const ControlComparison& k : controls) {
+    const Run& r = *k.run;
+    const Control& c = r.control;
+    json ids = json::array();
+    for (const Run* f : k.fit_runs) ids.push_back(f->id);
+    out.push_back({{"id", r.id},
+                   {"sample", r.sample},
+                   {"seed", r.seed},
+                   {"model", r.model},
+                   {"xi", r.xi},
+                   {"start_rate", r.rate},
+                   {"finished", r.finished},
+                   {"index", c.index},
+                   {"target", c.target},
+                   {"band_factor", c.band_factor},
+                   {"mean_strain_rate", c.mean_rate},
+                   {"final_strain_rate", c.final_rate},
+                   {"min_strain_rate", c.min_rate},
+                   {"max_strain_rate", c.max_rate},
+                   {"share_within_band", c.share_in_band},
+                   {"mean_index", c.mean_index},
+                   {"rows", c.rows},
+                   {"wall_s", r.wall_s},
+                   {"steps", r.steps},
+                   {"constant_rate_steps_at_final", c.steps_at_final},
+                   {"constant_rate_steps_at_mean", c.steps_at_mean},
+                   {"constant_rate_fit",
+                    {{"runs", ids},
+                     {"n", k.fit.n},
+                     {"ok", k.fit.ok},
+                     {"a", k.fit.a},
+                     {"b", k.fit.b},
+                     {"r2", k.fit.r2},
+                     {"note", k.fit.note},
+                     {"eps_qs_at_target", k.eps_qs}}},
+                   {"mean_over_eps_qs", k.mean_over_qs},
+                   {"final_over_eps_qs", k.final_over_qs}});
+  }
+  return out;
+}
+
+std::string controls_csv(const std::vector<ControlComparison>& controls) {
+  std::string s = "id,sample,seed,model,xi,start_rate,index,target,mean_strain_rate,final_strain_rate,"
+                  "min_strain_rate,max_strain_rate,share_within_band,band_factor,mean_index,wall_s,steps,"
+                  "constant_rate_steps_at_final,fit_runs,fit_a,fit_b,fit_r2,fit_eps_qs_at_target,mean_over_eps_qs,"
+                  "final_over_eps_qs\n";
+  for (const ControlComparison& k : controls) {
+    const Run& r = *k.run;
+    const Control& c = r.control;
+    s += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n", csvstr(r.id),
+                     csvstr(r.sample), r.seed, csvstr(r.model), csvnum(r.xi), csvnum(r.rate), csvstr(c.index),
+                     csvnum(c.target), csvnum(c.mean_rate), csvnum(c.final_rate), csvnum(c.min_rate),
+                     csvnum(c.max_rate), csvnum(c.share_in_band), csvnum(c.band_factor), csvnum(c.mean_index),
+                     csvnum(r.wall_s), csvnum(r.steps), csvnum(c.steps_at_final), k.fit.n, csvnum(k.fit.a),
+                     csvnum(k.fit.b), csvnum(k.fit.r2), csvnum(k.eps_qs), csvnum(k.mean_over_qs),
+                     csvnum(k.final_over_qs));
+  }
+  return s;
 }
 
 std::string per_run_csv(const std::vector<Run>& runs) {
@@ -908,7 +1015,7 @@ json stages_json(const Analysis& a) {
   for (const DesignStage& st : a.stages) {
     json ids = json::array(), picks = json::array();
     for (const Run& r : a.runs)
-      if (st.lists(r.sample, r.model, r.xi, r.rate)) ids.push_back(r.id);
+      if (st.lists(r)) ids.push_back(r.id);
     for (const PickCheck& c : a.picks)
       if (c.stage == &st)
         picks.push_back({{"sample", c.now.sample},
@@ -990,6 +1097,7 @@ void build_analysis(Analysis& a, const fs::path& dir, const json& manifest) {
   a.refs = find_references(a.runs, a.settings);
   a.devs = make_deviations(a.runs, a.refs, a.settings);
   a.scatter = make_seed_scatter(a.refs);
+  a.controls = make_controls(a.runs);
 }
 
 }  // namespace
@@ -1003,7 +1111,7 @@ std::vector<StageOptimum> stage_optima(const fs::path& dir, const json& manifest
   if (manifest.contains("runs") && manifest["runs"].is_array())
     for (const json& m : manifest["runs"]) {
       Run r = load_run(dir, m);
-      if (st->lists(r.sample, r.model, r.xi, r.rate)) runs.push_back(std::move(r));
+      if (st->lists(r)) runs.push_back(std::move(r));
     }
   return optima_of(runs, at_rate);
 }
@@ -1080,6 +1188,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
     a["equal_xi_rate"].push_back({{"sample", e.sample}, {"model", e.model}, {"xi_times_rate", e.product}, {"runs", ids}});
   }
   a["stages"] = stages_json(an);
+  a["controlled_runs"] = controls_json(an.controls);
   a["damping_dependence"] = damping_json(an);
   a["paper_reference"] = paper_reference_json();
 
@@ -1098,6 +1207,12 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
                 {"power_law_csv", "analysis/power_law.csv"},
                 {"analysis_json", "analysis/analysis.json"},
                 {"report_html", "report.html"}};
+  if (!an.controls.empty()) {
+    write_file_atomic(adir / "controlled_runs.csv", controls_csv(an.controls));
+    a["files"]["controlled_runs_csv"] = "analysis/controlled_runs.csv";
+  } else {
+    fs::remove(adir / "controlled_runs.csv");
+  }
   if (an.settings.has_reference) {
     write_file_atomic(adir / "deviation.csv", deviation_csv(an.devs));
     a["files"]["deviation_csv"] = "analysis/deviation.csv";

@@ -35,13 +35,26 @@ struct Series {
   std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
 };
 
+// A controlled run's controller: study.json "rate_control", summary.json triaxial.controller
+// (docs/physics.md 8.5).
+struct Control {
+  std::string index;   // "imom", "ufr" or "iuf"
+  double target = nan;
+  double mean_rate = nan, final_rate = nan, min_rate = nan, max_rate = nan;  // |eps'|, mean strain-weighted
+  double share_in_band = nan, band_factor = nan, rows = nan;
+  double steps_at_final = nan, steps_at_mean = nan;  // a constant-rate run over the same strain
+  double mean_index = nan;                           // the mean over the rows of the controlled index
+};
+
 // A run of the manifest: its entry, the means of its summary.json, its curves.
 struct Run {
   std::string id, sample, model, dir;
   std::string damping_model;  // the case's damping.model (the label's own name for a bare model)
   std::string stage;          // the first stage that lists it ("" without stages)
   long seed = 0;
-  double xi = nan, rate = nan;
+  double xi = nan, rate = nan;  // a controlled run: the start rate
+  bool controlled = false;      // its rate followed an index: kept out of the groups and fits
+  Control control;
   bool finished = false;
   std::string problem;  // why a run counts as missing
   double mean_imom = nan, mean_ufr = nan, mean_iuf = nan, peak_phi = nan, final_ev = nan;
@@ -123,6 +136,8 @@ struct DesignStage {
       if (p.sample == sample && p.model == model) return &p;
     return nullptr;
   }
+  bool controlled = false;     // rate_control: its runs are controlled ones
+  bool lists(const Run& r) const { return r.controlled == controlled && lists(r.sample, r.model, r.xi, r.rate); }
   bool lists(const std::string& sample, const std::string& model, double xi, double rate) const {
     if (!has_name(samples, sample)) return false;
     if (!listed.empty())
@@ -156,6 +171,16 @@ struct Deviation {
   std::string verdict;
 };
 
+// A controlled run against the power law of the constant-rate runs of its sample, seed, model and
+// damping ratio (the same index against eps'): the rate that law gives at the controller's target.
+struct ControlComparison {
+  const Run* run = nullptr;
+  std::vector<const Run*> fit_runs;  // the finished constant-rate runs of the fit
+  PowerLawFit fit;
+  double eps_qs = nan;               // (target / a)^(1/b)
+  double mean_over_qs = nan, final_over_qs = nan;
+};
+
 // The scatter between seeds: for each sample with two or more finished reference runs, the
 // largest RMS deviation between two of them.
 struct SeedScatter {
@@ -182,6 +207,7 @@ struct Analysis {
   std::map<std::pair<std::string, long>, const Run*> refs;
   std::vector<Deviation> devs;
   std::vector<SeedScatter> scatter;
+  std::vector<ControlComparison> controls;
 
   const Run* reference_of(const std::string& sample) const {  // the first seed's (for figures)
     for (const auto& [key, r] : refs)

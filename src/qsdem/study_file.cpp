@@ -157,6 +157,12 @@ bool valid_name(const std::string& s) {
 // Directory-name forms of a damping ratio (in %) and a strain rate: "{:g}" is deterministic.
 std::string xi_label(double xi) { return fmt::format("xi-{:g}%", xi * 100); }
 std::string rate_label(double rate) { return fmt::format("rate-{:g}", rate); }
+// A controlled run's rate label: its start rate, the index and the target, so that it never names
+// the directory of a constant-rate run.
+std::string run_rate_label(double rate, const StudyControl& c) {
+  if (!c.on()) return rate_label(rate);
+  return fmt::format("{}-control-{}-{:g}%", rate_label(rate), c.index, c.target * 100);
+}
 
 // A value for --set that reads back as exactly this double (shortest round trip).
 std::string exact(double v) { return fmt::format("{}", v); }
@@ -224,7 +230,8 @@ void check_name(const StudyReader& r, const std::string& key, const toml::node* 
 }
 
 // The keys `qsdem study` sets on every run itself.
-const std::set<std::string> run_keys{"sample.from", "damping.model", "damping.ratio", "triaxial.strain_rate"};
+const std::set<std::string> run_keys{"sample.from", "damping.model", "damping.ratio", "triaxial.strain_rate",
+                                     "triaxial.rate_control"};
 
 // design.models: a model name, or { label = "...", set = [...] } (docs/study.md).
 std::vector<StudyModel> read_models(const StudyReader& r, const toml::table& design) {
@@ -242,7 +249,7 @@ std::vector<StudyModel> read_models(const StudyReader& r, const toml::table& des
       r.only(*t, key + ".", {"label", "set"});
       m.label = r.text(*t, "label", key + ".label", std::nullopt);
       check_name(r, key + ".label", t->get("label"), m.label);
-      m.sets = r.sets(*t, key + ".set", {"sample.from", "damping.ratio", "triaxial.strain_rate"});
+      m.sets = r.sets(*t, key + ".set", {"sample.from", "damping.ratio", "triaxial.strain_rate", "triaxial.rate_control"});
       m.named = false;
     } else {
       r.fail(key, e,
@@ -459,6 +466,70 @@ void read_listed(const StudyReader& r, const toml::array& a, const std::string& 
   }
 }
 
+// A TOML value written back as TOML, for an inline table on the command line; "" for a value that
+// is not a string, number or boolean.
+std::string toml_text(const toml::node& n) {
+  if (n.is_string()) {
+    std::string out = "\"";
+    for (const char c : *n.value<std::string>()) {
+      if (c == '"' || c == '\\') out += '\\';
+      out += c;
+    }
+    return out + '"';
+  }
+  if (n.is_integer()) return fmt::format("{}", *n.value<std::int64_t>());
+  if (n.is_floating_point()) {
+    const double v = *n.value<double>();
+    if (!std::isfinite(v)) return "";
+    std::string out = fmt::format("{}", v);  // shortest round trip
+    if (out.find_first_of(".e") == std::string::npos) out += ".0";
+    return out;
+  }
+  if (n.is_boolean()) return *n.value<bool>() ? "true" : "false";
+  return "";
+}
+
+// rate_control = { index = "imom", target = "0.1 %", min_rate = 1e-8, max_rate = 1e-5, ... }: the keys of
+// [triaxial.rate_control] (docs/config.md), checked by the case parser with every sample's case
+// and every start rate of the stage, and reported at this key.
+StudyControl read_control(const StudyReader& r, const toml::node* n, const std::string& path, const Study& s,
+                          const std::vector<std::size_t>& samples, const std::vector<double>& rates) {
+  StudyControl c;
+  if (!n) return c;
+  const toml::table* t = n->as_table();
+  if (!t)
+    r.fail(path, n, "expected a table of [triaxial.rate_control] keys, e.g. { index = \"imom\", target = \"0.1 %\", "
+                    "min_rate = 1e-8, max_rate = 1e-5 } (docs/config.md)");
+  for (const auto& [k, v] : *t) {
+    const std::string text = toml_text(v);
+    if (text.empty())
+      r.fail(path + "." + std::string(k.str()), &v, "expected a string or a number (a key of [triaxial.rate_control])");
+    c.table += (c.table.empty() ? "{ " : ", ") + std::string(k.str()) + " = " + text;
+  }
+  c.table += c.table.empty() ? "{}" : " }";
+  for (const StudySample& smp : s.samples)
+    for (const double rate : rates) {
+      if (std::find(samples.begin(), samples.end(), index_of(s.sample_names, smp.name)) == samples.end()) continue;
+      std::vector<std::string> sets = smp.run_sets;
+      sets.insert(sets.end(), s.design_sets.begin(), s.design_sets.end());
+      sets.push_back("triaxial.strain_rate=" + exact(rate));
+      sets.push_back("triaxial.rate_control=" + c.table);
+      try {
+        load_case(smp.case_file.string(), sets);
+      } catch (const InputError& e) {
+        r.fail(path, n, fmt::format("the case of sample '{}' refuses it at the start rate {}: {}", smp.name, exact(rate),
+                                    e.what()));
+      }
+    }
+  // Valid now (the parser accepted it): the fields that name the runs and the ETA.
+  c.index = t->get("index") ? t->get("index")->value_or(std::string("imom")) : std::string("imom");
+  const toml::node* target = t->get("target");
+  c.target = target->is_string() ? parse_quantity(target->value_or(std::string()), Dimension::ratio)
+                                 : target->value_or(0.0);
+  c.min_rate = t->get("min_rate")->value_or(0.0);
+  return c;
+}
+
 // [[stage]] tables; without them, one stage made of [design]'s ratios and rates.
 void read_stages(const StudyReader& r, const toml::table& root, const toml::table& design, Study& s) {
   std::vector<std::size_t> all_samples, all_models;
@@ -472,14 +543,15 @@ void read_stages(const StudyReader& r, const toml::table& root, const toml::tabl
     st.models = all_models;
     st.ratios = read_ratios(r, *r.array(design, "damping_ratios", "design.damping_ratios", true), "design.damping_ratios");
     st.rates = read_rates(r, *r.array(design, "strain_rates", "design.strain_rates", true), "design.strain_rates");
+    st.control = read_control(r, design.get("rate_control"), "design.rate_control", s, st.samples, st.rates);
     s.stages.push_back(std::move(st));
     return;
   }
   s.staged = true;
-  for (const char* key : {"damping_ratios", "strain_rates"})
+  for (const char* key : {"damping_ratios", "strain_rates", "rate_control"})
     if (design.get(key))
       r.fail(std::string("design.") + key, design.get(key),
-             "with [[stage]] tables, each stage gives its own damping_ratios and strain_rates (or runs)");
+             "with [[stage]] tables, each stage gives its own damping_ratios, strain_rates and rate_control (or runs)");
   const toml::array* arr = sn->as_array();
   if (!arr || arr->empty() || !arr->is_array_of_tables())
     r.fail("stage", sn, "expected [[stage]] tables (name, damping_ratios, strain_rates)");
@@ -487,7 +559,7 @@ void read_stages(const StudyReader& r, const toml::table& root, const toml::tabl
   for (std::size_t i = 0; i < arr->size(); ++i) {
     const toml::table& t = *arr->get(i)->as_table();
     const std::string p = fmt::format("stage.{}", i);
-    r.only(t, p + ".", {"name", "samples", "models", "damping_ratios", "strain_rates", "runs"});
+    r.only(t, p + ".", {"name", "samples", "models", "damping_ratios", "strain_rates", "runs", "rate_control"});
     StudyStage st;
     st.name = r.text(t, "name", p + ".name", std::nullopt);
     check_name(r, p + ".name", t.get("name"), st.name);
@@ -512,6 +584,9 @@ void read_stages(const StudyReader& r, const toml::table& root, const toml::tabl
         st.ratios = read_ratios(r, *a, p + ".damping_ratios");
       }
     }
+    std::vector<double> starts = st.rates;
+    for (const auto& l : st.listed) starts.push_back(l.rate);
+    st.control = read_control(r, t.get("rate_control"), p + ".rate_control", s, st.samples, starts);
     s.stages.push_back(std::move(st));
   }
 }
@@ -568,17 +643,29 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
   if (const toml::node* n = sel->get("rate")) a.reference_rate = read_rate(r, n, "analysis.reference.rate");
 }
 
-// The run of (sample, model, xi, rate) in a stage; false when a run of that id exists already.
+// The run of (sample, model, xi, rate) in a stage, with the stage's controller; false when a run
+// of that id exists already (a controller of the same index and target but other keys is refused).
 bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model, double xi, double rate) {
   const StudySample& smp = s.samples[sample];
   const StudyModel& m = s.models[model];
+  const StudyControl& control = s.stages[stage].control;
   StudyRun run;
-  run.id = fmt::format("{}-seed{}/{}/{}/{}", smp.name, smp.seed, m.label, xi_label(xi), rate_label(rate));
-  if (std::any_of(s.runs.begin(), s.runs.end(), [&](const StudyRun& o) { return o.id == run.id; })) return false;
+  run.id = fmt::format("{}-seed{}/{}/{}/{}", smp.name, smp.seed, m.label, xi_label(xi), run_rate_label(rate, control));
+  const auto same = std::find_if(s.runs.begin(), s.runs.end(), [&](const StudyRun& o) { return o.id == run.id; });
+  if (same != s.runs.end()) {
+    if (same->control.table != control.table)
+      throw InputError(fmt::format("{}: stage '{}': the run '{}' of stage '{}' has another rate_control ({} against "
+                                   "{}): a run id holds the index and target only; give the controllers other targets "
+                                   "or start rates",
+                                   s.file.string(), s.stages[stage].name, run.id, s.stages[same->stage].name,
+                                   same->control.table, control.table));
+    return false;
+  }
   run.sample = sample;
   run.model = model;
   run.xi = xi;
   run.rate = rate;
+  run.control = control;
   run.stage = stage;
   run.dir = "runs/" + run.id;
   run.sets = smp.run_sets;
@@ -587,6 +674,7 @@ bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model,
   if (m.named) run.sets.insert(run.sets.end(), m.sets.begin(), m.sets.end());
   for (const std::string& set : {"damping.ratio=" + exact(xi), "triaxial.strain_rate=" + exact(rate)})
     run.sets.push_back(set);
+  if (control.on()) run.sets.push_back("triaxial.rate_control=" + control.table);
   run.sets.insert(run.sets.end(), s.design_sets.begin(), s.design_sets.end());
   if (!m.named) run.sets.insert(run.sets.end(), m.sets.begin(), m.sets.end());
   Params params;
@@ -596,8 +684,11 @@ bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model,
     throw InputError(fmt::format("{}: run '{}': {}", s.file.string(), run.id, e.what()));
   }
   run.damping_model = to_json(params)["damping"]["model"].get<std::string>();
-  run.expected_steps = std::max(1.0, std::round(params.triaxial.final_axial_strain /
-                                                (params.step_ratio * params.triaxial.strain_rate)));
+  // A controlled run's rate is unknown in advance: the ETA takes the geometric mean of its start
+  // rate and its lower bound.
+  const double eta_rate = control.on() ? std::sqrt(rate * control.min_rate) : params.triaxial.strain_rate;
+  run.expected_steps =
+      std::max(1.0, std::round(params.triaxial.final_axial_strain / (params.step_ratio * eta_rate)));
   s.runs.push_back(std::move(run));
   return true;
 }
@@ -618,6 +709,7 @@ void check_picking_stage(Study& s, std::size_t k) {
   probe.samples = s.samples;
   probe.models = s.models;
   probe.design_sets = s.design_sets;
+  probe.stages = s.stages;
   for (std::size_t i = 0; i < s.samples.size(); ++i) {
     if (!stage_has_sample(st, s.samples[i], s)) continue;
     for (std::size_t m : st.models)
@@ -663,7 +755,8 @@ void add_stage_runs(Study& s, std::size_t k) {
     const auto add = [&](std::size_t model, double xi, double rate) {
       if (!add_run(s, k, i, model, xi, rate) && st.pick.empty()) {
         const auto other = std::find_if(s.runs.begin(), s.runs.end(), [&](const StudyRun& o) {
-          return o.sample == i && o.model == model && xi_label(o.xi) == xi_label(xi) && rate_label(o.rate) == rate_label(rate);
+          return o.sample == i && o.model == model && xi_label(o.xi) == xi_label(xi) &&
+                 run_rate_label(o.rate, o.control) == run_rate_label(rate, st.control);
         });
         throw InputError(fmt::format("{}: stage '{}' lists the run '{}' of stage '{}' again: list each run once",
                                      s.file.string(), st.name, other->id, s.stages[other->stage].name));
@@ -705,7 +798,7 @@ Study load_study(const fs::path& file) {
   const toml::table* design = r.table(root, "design", "design");
   if (!design)
     r.fail("design", nullptr, "is required but missing: a [design] table with models, damping_ratios, strain_rates");
-  r.only(*design, "design.", {"models", "damping_ratios", "strain_rates", "seeds", "set"});
+  r.only(*design, "design.", {"models", "damping_ratios", "strain_rates", "rate_control", "seeds", "set"});
   s.models = read_models(r, *design);
   const std::vector<std::uint64_t> seeds = read_seeds(r, *design);
   s.design_sets = r.sets(*design, "design.set", run_keys);
@@ -748,6 +841,12 @@ void adopt_recorded_picks(Study& s, const nlohmann::json& manifest) {
   }
 }
 
+namespace {
+nlohmann::ordered_json control_json(const StudyControl& c) {
+  return {{"index", c.index}, {"target", c.target}, {"set", "triaxial.rate_control=" + c.table}};
+}
+}  // namespace
+
 nlohmann::ordered_json study_manifest(const Study& study) {
   using ojson = nlohmann::ordered_json;
   ojson m;
@@ -773,6 +872,7 @@ nlohmann::ordered_json study_manifest(const Study& study) {
         j["strain_rates"] = st.rates;
         if (st.pick.empty()) j["damping_ratios"] = st.ratios;
       }
+      if (st.control.on()) j["rate_control"] = control_json(st.control);
       if (!st.pick.empty()) {
         j["from"] = study.stages[st.from].name;
         j["pick"] = st.pick;
@@ -804,6 +904,7 @@ nlohmann::ordered_json study_manifest(const Study& study) {
     ojson j = {{"id", run.id},         {"sample", smp.name}, {"seed", smp.seed}, {"model", model.label},
                {"xi", run.xi},         {"rate", run.rate},   {"dir", run.dir}};
     if (study.staged) j["stage"] = study.stages[run.stage].name;
+    if (run.control.on()) j["rate_control"] = control_json(run.control);
     if (!model.named) {
       j["damping_model"] = run.damping_model;
       j["set"] = model.sets;

@@ -210,7 +210,7 @@ Table table_stages(const Analysis& a) {
   for (const DesignStage& st : a.stages) {
     int n = 0, fin = 0;
     for (const Run& r : a.runs)
-      if (st.lists(r.sample, r.model, r.xi, r.rate)) ++n, fin += r.finished;
+      if (st.lists(r)) ++n, fin += r.finished;
     std::string ratios, rates, models;
     if (!st.listed.empty()) {
       for (const DesignStage::Listed& l : st.listed) {
@@ -292,6 +292,30 @@ Table table_references(const Analysis& a) {
     t.rows.push_back({key.first, std::to_string(key.second), r->id, r->finished ? "finished" : r->problem,
                       first && s != a.scatter.end() ? sig(s->phi) : "", first && s != a.scatter.end() ? pct(s->ev) : "",
                       first && s != a.scatter.end() ? sig(s->cn) : ""});
+  }
+  return t;
+}
+
+// Controlled runs against the constant-rate power law of the same sample, seed, model and ratio.
+Table table_controls(const Analysis& a) {
+  Table t{"Controlled runs: the rate that holds the index at its target",
+          "ε' of a controlled run: its mean over the rows (equal strain increments: strain-weighted) and its last "
+          "value. Fit: the index's power law over the constant-rate runs of the same sample, seed, model and ratio "
+          "(controlled runs are in no fit); ε'QS is where it meets the target. Share: rows with the index within a "
+          "factor f of the target. Steps at ε' final: a constant-rate run at the final ε' over the same strain.",
+          {"run", "index", "target (%)", "mean ε'", "final ε'", "share in band", "f", "mean index (%)", "wall (s)",
+           "steps", "steps at ε' final", "fit runs", "fit ε'QS", "mean / ε'QS", "final / ε'QS"},
+          {}};
+  for (const ControlComparison& k : a.controls) {
+    const Run& r = *k.run;
+    const Control& c = r.control;
+    if (!r.finished) {
+      t.rows.push_back({r.id, c.index, pct(c.target), r.problem, "", "", "", "", "", "", "", "", "", "", ""});
+      continue;
+    }
+    t.rows.push_back({r.id, c.index, pct(c.target), sig(c.mean_rate), sig(c.final_rate), sig(c.share_in_band),
+                      sig(c.band_factor), pct(c.mean_index), sig(r.wall_s), sig(r.steps, 4), sig(c.steps_at_final, 4),
+                      std::to_string(k.fit.n), sig(k.eps_qs), sig(k.mean_over_qs), sig(k.final_over_qs)});
   }
   return t;
 }
@@ -533,7 +557,7 @@ void add_stage_figures(std::vector<Figure>& figs, const Analysis& a, const std::
   for (const DesignStage& st : a.stages) {
     std::vector<const Run*> shown;
     for (const Run& r : a.runs)
-      if (r.sample == s && r.finished && !r.s.e1.empty() && st.lists(r.sample, r.model, r.xi, r.rate)) shown.push_back(&r);
+      if (r.sample == s && r.finished && !r.s.e1.empty() && st.lists(r)) shown.push_back(&r);
     if (shown.empty() || shown.size() > max_stage_curves) continue;
     figs.push_back(response_figure(fmt::format("stage_{}_{}", tag(st.name), tag(s)),
                                    fmt::format("{}: the runs of stage {}", s, st.name),
@@ -635,6 +659,7 @@ std::vector<Table> make_tables(const Analysis& a) {
   if (!a.stages.empty()) tables.push_back(table_stages(a));
   if (!a.picks.empty()) tables.push_back(table_picks(a));
   tables.push_back(table_power_law(a));
+  if (!a.controls.empty()) tables.push_back(table_controls(a));
   tables.push_back(table_optima(a));
   for (const Group& g : a.groups) tables.push_back(table_points(g));
   tables.push_back(table_equal(a));
