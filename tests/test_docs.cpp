@@ -221,6 +221,7 @@ TEST(Docs, AnnotatedExampleIsTheDefaultCaseWithEveryKeyWritten) {
   for (const std::string& key : qsdem::case_keys()) {
     if (not_taken.count(key)) continue;
     if (key.rfind("phase.", 0) == 0) continue;  // a [[phase]] list replaces [compaction] and [triaxial]
+    if (key.rfind("triaxial.rate_control.", 0) == 0) continue;  // an optional table: writing it changes the case
     std::string pointer = "/" + key;
     for (char& c : pointer) c = c == '.' ? '/' : c;
     if (key.rfind("sample.particles.", 0) == 0) pointer.insert(std::string("/sample/particles").size(), "/0");

@@ -311,6 +311,10 @@ void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
   w.pod(r.first_step);
   w.pod(r.prepare_only);
   w.str(r.changes);
+  if (version >= 8) {  // the controllers' states at their phases' ends
+    w.pod(static_cast<std::uint64_t>(r.controller_end.size()));
+    for (const auto& c : r.controller_end) w.vec(c);
+  }
 }
 
 void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
@@ -332,6 +336,13 @@ void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
   in.pod(r.first_step);
   in.pod(r.prepare_only);
   in.str(r.changes);
+  if (version >= 8) {
+    std::uint64_t m = 0;
+    in.pod(m);
+    if (m > n) in.damaged("more controller states than phases");
+    r.controller_end.resize(m);
+    for (auto& c : r.controller_end) in.vec(c);
+  }
 }
 
 // The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats

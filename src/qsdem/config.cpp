@@ -22,6 +22,7 @@
 
 #include "qsdem/contact/laws.hpp"
 #include "qsdem/controller.hpp"
+#include "qsdem/rate_control.hpp"
 #include "qsdem/units.hpp"
 
 namespace qsdem {
@@ -292,7 +293,7 @@ class Reader {
     static const std::set<std::string> sections{
         "material",       "sample",           "sample.particles",
         "time",           "contact",          "damping",
-        "compaction",     "triaxial",         "servo",
+        "compaction",     "triaxial",         "triaxial.rate_control", "servo",
         "neighbor",       "checkpoint",       "limits",
         "output",         "phase",            "phase.damping",
         "phase.strain_rate", "phase.stress",  "phase.servo",
@@ -470,6 +471,18 @@ class ControllerTable final : public ControllerKeys {
                              }
                            });
   }
+  std::string text_or(const std::string& key, const std::string& def, const std::vector<std::string>& choices) override {
+    return r_.text(path(key), def, choices);
+  }
+  double number(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
+                const std::string& allowed) override {
+    return r_.number(path(key), def, ok, allowed);
+  }
+  double quantity(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
+                  const std::string& allowed) override {
+    return r_.quantity(path(key), Dimension::ratio, def, ok, allowed);
+  }
+  long integer(const std::string& key, long def, long lo, long hi) override { return r_.integer(path(key), def, lo, hi); }
   [[noreturn]] void fail(const std::string& key, const std::string& why) override {
     r_.fail(path(key), r_.find(path(key)), why);
   }
@@ -631,6 +644,10 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     ControllerTable table(r, k + ".controller");
     for (const ControllerKind& kind : controller_kinds())
       if (kind.name == ph.controller) ph.make_controller = kind.read(table, ph, step_ratio);
+    if (ph.controller == "rate") {
+      const std::string name = r.text(k + ".controller.component", std::nullopt, {"11", "22", "33"});
+      ph.rate_component = name[0] - '1';
+    }
   }
   int planned = 2;
   for (int c = 0; c < 3; ++c)
@@ -782,6 +799,18 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
                          "strain_rate)): lower it or lower triaxial.strain_rate",
                          steps));
     p.protocol = default_protocol(p);
+    if (r.find("triaxial.rate_control")) {
+      // The axial strain rate follows an index; the rows are spread by axial strain, so that each
+      // stands for an equal strain increment whatever the rate (docs/config.md).
+      Phase& triaxial = p.protocol.back();
+      ControllerTable table(r, "triaxial.rate_control");
+      triaxial.controller = "rate";
+      triaxial.make_controller = rate_control_factory(read_rate_control_settings(table, triaxial, 2, p.step_ratio));
+      triaxial.rate_component = 2;
+      triaxial.output.cadence.kind = Cadence::Kind::every_strain;
+      triaxial.output.cadence.strain_component = 2;
+      triaxial.output.cadence.every_strain = t.final_axial_strain / t.sample_points;
+    }
   } else {
     // The phase list is the whole protocol: the tables of the default one would be ignored.
     for (const char* section : {"compaction", "triaxial", "damping"})
@@ -856,10 +885,37 @@ std::vector<std::string> case_keys() {
     stop = { equilibrium = { ufr = 0.01 } }
     controller = { kind = "schedule", component = "11", at_sample = [1], values = ["2 Pa"] }
   )";
-  std::set<std::string> asked, phase_asked;
+  // The rate controller's keys, of a phase and of the default triaxial test.
+  static const char* const every_rate_key = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    stop = { strain = { 33 = 0.01 } }
+    output = { every_strain = { 33 = 0.001 } }
+    controller = { kind = "rate", component = "33", target = 0.01, min_rate = 1e-6, max_rate = 1e-4 }
+  )";
+  static const char* const every_triaxial_rate_key = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [triaxial.rate_control]
+    target = 0.01
+    min_rate = 1e-6
+    max_rate = 1e-4
+  )";
+  std::set<std::string> asked;
   parse(every_shape, "<case_keys>", {}, {}, &asked);
-  parse(every_phase_key, "<case_keys>", {}, {}, &phase_asked);
-  asked.insert(phase_asked.begin(), phase_asked.end());
+  for (const char* text : {every_phase_key, every_rate_key, every_triaxial_rate_key}) {
+    std::set<std::string> more;
+    parse(text, "<case_keys>", {}, {}, &more);
+    asked.insert(more.begin(), more.end());
+  }
   // The keys of an array's entries without the index: sample.particles.2.count -> sample.particles.count.
   const auto unindexed = [](const std::string& key, const std::string& array) {
     const std::string head = array + ".";

@@ -1,5 +1,7 @@
 #include "qsdem/controller.hpp"
 
+#include "qsdem/rate_control.hpp"
+
 #include <fmt/format.h>
 
 #include <algorithm>
@@ -70,6 +72,8 @@ const std::vector<ControllerKind>& controller_kinds() {
   static const std::vector<ControllerKind> kinds{
       {"schedule", "at the sample points at_sample, the component's strain rate or stress target becomes the next of values",
        &read_schedule},
+      {"rate", "the component's strain rate follows an equilibrium index to its target (docs/physics.md, adaptive loading rate)",
+       &read_rate_control},
   };
   return kinds;
 }

@@ -8,7 +8,10 @@
 // (ControllerKeys) and returns a factory, and an entry in controller_kinds() (controller.cpp).
 #pragma once
 #include <array>
+#include <functional>
 #include <memory>
+#include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -42,6 +45,11 @@ class Controller {
   // What it needs to continue exactly after a resume (saved in the checkpoint), and its restoration.
   virtual std::vector<double> save() const { return {}; }
   virtual void restore(const std::vector<double>& /*saved*/) {}
+  // At the phase's last row (no change can apply any more): a controller that keeps figures of
+  // the rows counts it.
+  virtual void at_end(const SamplePoint& /*point*/, const PhaseControls& /*controls*/) {}
+  // Its figures for the phase's entry of summary.json (after restore() of the phase's last state).
+  virtual nlohmann::json figures() const { return nlohmann::json::object(); }
 };
 
 // The case parser's reader of one [phase.controller] table: each accessor reads the key (relative to
@@ -53,6 +61,13 @@ class ControllerKeys {
   virtual std::vector<long> integers(const std::string& key, long lo, long hi) = 0;
   virtual std::vector<double> numbers(const std::string& key) = 0;
   virtual std::vector<double> quantities(const std::string& key, Dimension dim) = 0;
+  // One value; `def`: its value when absent (nullopt: the key is required).
+  virtual std::string text_or(const std::string& key, const std::string& def, const std::vector<std::string>& choices) = 0;
+  virtual double number(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
+                        const std::string& allowed) = 0;
+  virtual double quantity(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
+                          const std::string& allowed) = 0;  // a ratio ("0.1 %" or a number)
+  virtual long integer(const std::string& key, long def, long lo, long hi) = 0;
   [[noreturn]] virtual void fail(const std::string& key, const std::string& why) = 0;
 };
 

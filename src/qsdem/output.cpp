@@ -52,7 +52,7 @@ constexpr Column columns[] = {
 
 }  // namespace
 
-std::string series_header(bool phase_column, bool dp_column, bool shear_columns) {
+std::string series_header(bool phase_column, bool dp_column, bool shear_columns, bool rate_column) {
   std::string h;
   for (const Column& c : columns) {
     if (!h.empty()) h += ',';
@@ -60,6 +60,7 @@ std::string series_header(bool phase_column, bool dp_column, bool shear_columns)
   }
   if (shear_columns) h += ",s12_Pa,s13_Pa,s23_Pa,g12,g13,g23";
   if (dp_column) h += ",dp_Pa";
+  if (rate_column) h += ",strain_rate";
   return phase_column ? h + ",phase" : h;
 }
 
@@ -76,19 +77,23 @@ std::string series_row(const SeriesRow& r) {
                    g[0], g[1], g[2]);
   }
   if (r.dp) fmt::format_to(std::back_inserter(out), ",{:.10g}", *r.dp);
+  if (r.rate_column) {
+    out.push_back(',');
+    if (r.strain_rate) fmt::format_to(std::back_inserter(out), "{:.10g}", *r.strain_rate);
+  }
   if (r.phase) fmt::format_to(std::back_inserter(out), ",{}", *r.phase);
   return fmt::to_string(out);
 }
 
 SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, bool phase_column, bool dp_column,
-                           bool shear_columns)
+                           bool shear_columns, bool rate_column)
     : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
     file_ = std::fopen(partial_.c_str(), "w");
     if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
-    write(series_header(phase_column, dp_column, shear_columns));
+    write(series_header(phase_column, dp_column, shear_columns, rate_column));
     return;
   }
   std::ifstream in(partial_);

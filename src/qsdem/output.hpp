@@ -4,6 +4,7 @@
 #include <array>
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 #include <string>
 
 #include "qsdem/measures.hpp"
@@ -22,11 +23,16 @@ struct SeriesRow {
   // The shear strains gamma_12, gamma_13, gamma_23 of the file's reference, when the file has the
   // shear columns (s12_Pa, s13_Pa, s23_Pa, g12, g13, g23).
   const std::array<double, 3>* shear_strain = nullptr;
+  // The file has a strain_rate column (a phase writing to it has a rate controller); the row's
+  // eps' there, or none (an empty field) for a phase without one.
+  bool rate_column = false;
+  std::optional<double> strain_rate;
 };
 
-// The header: SPEC 10's columns, then those added after them, then the shear columns, `dp_Pa`
-// and `phase` when asked for.
-std::string series_header(bool phase_column, bool dp_column = false, bool shear_columns = false);
+// The header: SPEC 10's columns, then those added after them, then the shear columns, `dp_Pa`,
+// `strain_rate` and `phase` when asked for.
+std::string series_header(bool phase_column, bool dp_column = false, bool shear_columns = false,
+                          bool rate_column = false);
 std::string series_row(const SeriesRow& row);
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
@@ -35,7 +41,7 @@ std::string series_row(const SeriesRow& row);
 class SeriesWriter {
  public:
   explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, bool phase_column = false,
-                        bool dp_column = false, bool shear_columns = false);
+                        bool dp_column = false, bool shear_columns = false, bool rate_column = false);
   ~SeriesWriter();
   SeriesWriter(const SeriesWriter&) = delete;
   SeriesWriter& operator=(const SeriesWriter&) = delete;

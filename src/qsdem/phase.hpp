@@ -104,6 +104,7 @@ struct Phase {
   PhaseOutput output;
   std::string controller;             // its kind (controller.hpp), "" for none
   ControllerFactory make_controller;  // a new controller of that kind for the phase
+  int rate_component = -1;  // a "rate" controller's component: its eps' is the strain_rate column
   PhaseKeys keys;
 };
 

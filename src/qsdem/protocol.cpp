@@ -335,6 +335,9 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     const double error = stress_error(m, ps.controls);
     ended = ended || (check && in_equilibrium(m, *equilibrium, error));
     const double e1 = 1 - st.stress_h(2, 2) / ref.h0(2, 2);
+    // The eps' of the rate-controlled component at which the steps up to this row were taken.
+    const double strain_rate_now =
+        phase.rate_component >= 0 ? ps.controls.component[static_cast<std::size_t>(phase.rate_component)].value : 0.0;
     if (row || ended) {
       const double ev = m.volume / ref.v0 - 1;
       const double dp = m.mean_stress - p0;
@@ -346,10 +349,11 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
       if (sink.writer) {
         ScopedStage ts(st.timers, Stage::output);
-        sink.writer->write(series_row({run_clock ? st.step - 1 : n,
-                                       run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt, e1, ev, m,
-                                       sink.phase_column ? &phase.name : nullptr, sink.dp_column ? &dp : nullptr,
-                                       sink.shear_columns ? &gamma : nullptr}));
+        SeriesRow r{run_clock ? st.step - 1 : n, run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt, e1,
+                    ev, m, sink.phase_column ? &phase.name : nullptr, sink.dp_column ? &dp : nullptr,
+                    sink.shear_columns ? &gamma : nullptr, sink.rate_column,
+                    phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt};
+        sink.writer->write(series_row(r));
       }
       ++rec.rows;
       ps.last_row_step = n;
@@ -382,9 +386,16 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
                                   m.mean_stress / 1e3, 100 * error, m.ufr, m.void_ratio));
     else
       progress.update(static_cast<double>(n - steps_at_start),
-                      fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}", 100 * e1,
-                                  m.friction_angle_deg, m.ufr, m.imom));
-    if (ended) break;
+                      fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}{}", 100 * e1,
+                                  m.friction_angle_deg, m.ufr, m.imom,
+                                  phase.rate_component >= 0 ? fmt::format(" | eps' {:.3g}", strain_rate_now) : ""));
+    if (ended) {
+      if (controller) {
+        controller->at_end({n, rec.rows, &m, phase_strain(st.stress_h, rec.h0), model.critical_time}, ps.controls);
+        keep_controller();
+      }
+      break;
+    }
     if (row && controller) {
       const SamplePoint point{n, rec.rows, &m, phase_strain(st.stress_h, rec.h0), model.critical_time};
       const PhaseControls before = ps.controls;
@@ -412,6 +423,8 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
                                phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3,
                                100 * (1 - st.stress_h(2, 2) / rec.h0(2, 2)), phase.keys.max_steps));
   }
+  run.controller_end.resize(run.phases.size());
+  run.controller_end.at(static_cast<std::size_t>(run.phase)) = ps.controller;
   const double rows = static_cast<double>(std::max(1L, rec.rows));
   if (equilibrium)
     progress.end(fmt::format("{} done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}", phase.name,

@@ -66,6 +66,8 @@ struct RunProgress {
                                // sample's first phase is not this run's)
   bool prepare_only = false;   // `qsdem prepare`: the run ends with its first phase
   std::string changes;         // `resume --set` changes, one "from PHASE step N: key=value" a line
+  // Per phase that ended: its controller's saved state at its end (Controller::figures()).
+  std::vector<std::vector<double>> controller_end;
 
   PhaseRecord& current() { return phases.at(static_cast<std::size_t>(phase)); }
   const PhaseRecord& current() const { return phases.at(static_cast<std::size_t>(phase)); }
@@ -105,6 +107,7 @@ struct RowSink {
   bool phase_column = false;
   bool dp_column = false;
   bool shear_columns = false;
+  bool rate_column = false;  // the file has a strain_rate column
 };
 
 // The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).

@@ -1,5 +1,7 @@
 #include "qsdem/run.hpp"
 
+#include "qsdem/controller.hpp"
+
 #include <fmt/format.h>
 #include <omp.h>
 #include <sys/resource.h>
@@ -235,7 +237,8 @@ long snapshot_rows(const RunProgress& run) {
   return k;
 }
 
-nlohmann::json phase_json(const Phase& phase, const PhaseRecord& r) {
+// The figures of every phase.
+nlohmann::json phase_figures(const Phase& phase, const PhaseRecord& r) {
   const double rows = static_cast<double>(std::max(1L, r.rows));
   int normal_targets = 0;
   for (int c = 0; c < 3; ++c)
@@ -256,6 +259,17 @@ nlohmann::json phase_json(const Phase& phase, const PhaseRecord& r) {
           {"mean_stress_error", normal_targets > 0 ? r.stress_error / (normal_targets * rows) : 0.0},
           {"max_shear_stress", r.max_shear_stress},
           {"final", measures_json(r.final)}};
+}
+
+// `controller`: the phase's controller's state at its end (RunProgress::controller_end), or none.
+nlohmann::json phase_json(const Phase& phase, const PhaseRecord& r, const std::vector<double>* controller) {
+  nlohmann::json j = phase_figures(phase, r);
+  if (phase.make_controller && controller && !controller->empty()) {
+    const std::unique_ptr<Controller> c = phase.make_controller();
+    c->restore(*controller);
+    if (nlohmann::json f = c->figures(); !f.empty()) j["controller"] = f;
+  }
+  return j;
 }
 
 // Everything after the sample exists: the phases from wherever `run` stands, checkpoints, results.
@@ -345,15 +359,19 @@ class Execution {
     for (int q : file.phases)
       if (q < p || (q == p && run_.phase_started)) held += run_.phases[static_cast<std::size_t>(q)].rows;
     const bool begun = file.phases.front() < p || run_.phase_started;
-    bool dp_column = false, shear_columns = false;
+    bool dp_column = false, shear_columns = false, rate_column = false;
     for (int q : file.phases) {
-      dp_column = dp_column || holds_volume(params_.protocol[static_cast<std::size_t>(q)]);
-      shear_columns = shear_columns || shears(params_.protocol[static_cast<std::size_t>(q)]);
+      const Phase& other = params_.protocol[static_cast<std::size_t>(q)];
+      dp_column = dp_column || holds_volume(other);
+      shear_columns = shear_columns || shears(other);
+      rate_column = rate_column || other.rate_component >= 0;
     }
-    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, file.phases.size() > 1, dp_column, shear_columns);
+    SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, file.phases.size() > 1, dp_column, shear_columns,
+                        rate_column);
     rows_ = &writer;
     try {
-      run_phase(params_, st_, run_, {&writer, file.phases.front(), file.phases.size() > 1, dp_column, shear_columns},
+      run_phase(params_, st_, run_,
+                {&writer, file.phases.front(), file.phases.size() > 1, dp_column, shear_columns, rate_column},
                 progress_,
                 [this](bool sample_point) { on_step(sample_point); });
     } catch (const InputError& e) {
@@ -431,14 +449,15 @@ class Execution {
     }
     nlohmann::json phases = nlohmann::json::array();
     for (std::size_t p = 0; p < params_.protocol.size() && p < static_cast<std::size_t>(run_.phase); ++p)
-      phases.push_back(phase_json(params_.protocol[p], run_.phases[p]));
+      phases.push_back(phase_json(params_.protocol[p], run_.phases[p], controller_end(p)));
     s["phases"] = phases;
     // The first phase as the sample's compaction; the last, when it is another, as the test.
     const PhaseRecord& first = run_.phases.front();
     s["compaction"] = {{"steps", first.steps}, {"wall_s", first.wall_s}, {"final", measures_json(first.final)}};
     s["void_ratio_after_compaction"] = first.final.void_ratio;
     if (!run_.prepare_only && run_.phases.size() > 1) {
-      const nlohmann::json last = phase_json(params_.protocol.back(), run_.phases.back());
+      const nlohmann::json last =
+          phase_json(params_.protocol.back(), run_.phases.back(), controller_end(run_.phases.size() - 1));
       s["triaxial"] = {{"steps", last["steps"]},
                        {"rows", last["rows"]},
                        {"wall_s", last["wall_s"]},
@@ -446,6 +465,7 @@ class Execution {
                        {"max_lateral_stress_error", last["max_stress_error"]},
                        {"mean_lateral_stress_error", last["mean_stress_error"]},
                        {"max_shear_stress", last["max_shear_stress"]}};
+      if (last.contains("controller")) s["triaxial"]["controller"] = last["controller"];
       for (const char* key : {"mean_ufr", "mean_iuf", "mean_imom", "peak_phi_deg", "peak_phi_e1", "final_ev"})
         s[key] = last[key];
     }
@@ -473,6 +493,10 @@ class Execution {
   const std::vector<PhaseFile> files_;
   Progress progress_;
   const double wall_before_;
+
+  const std::vector<double>* controller_end(std::size_t p) const {
+    return p < run_.controller_end.size() ? &run_.controller_end[p] : nullptr;
+  }
   const std::chrono::steady_clock::time_point t0_ = std::chrono::steady_clock::now();
   std::chrono::steady_clock::time_point last_save_ = std::chrono::steady_clock::now();
   SeriesWriter* rows_ = nullptr;  // the phase's file: on disk before each checkpoint counts its rows
