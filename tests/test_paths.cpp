@@ -4,9 +4,12 @@
 #include <unistd.h>
 
 #include <Eigen/LU>
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <nlohmann/json.hpp>
+#include <numbers>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -227,5 +230,128 @@ TEST(LoadingPaths, IsotropicCycleReachesTheNamedStresses) {
     if (target > 200e3) EXPECT_LT(dev, 0) << name << " compresses";
     else EXPECT_GT(dev, 0) << name << " dilates";
     ev_before = s.at(last, "ev");
+  }
+}
+
+// examples/cyclic-triaxial.toml (drained, q = s33 - (s11 + s22)/2 between 50 and 150 kPa, 5 cycles,
+// a row per step). The corners of the loops are the rows where e1 turns; the test finds them in the
+// rows and checks, against the rows alone:
+// - each turn was caused by the bound: the row before a top corner is the first at or above
+//   150 kPa since the last corner (below 50 kPa for a bottom); the cell moves one more step at the
+//   old rate, so q overshoots a bound by at most two steps' increments of q (2 max |dq| over the
+//   rows, measured 2 x 0.6 kPa);
+// - 2 x 5 turns, the phase ending at the 11th corner, and summary.json's 5 cycles;
+// - each cycle's figures (top -> bottom -> top): E_sec = dq / de1 between its bottom and closing top,
+//   W_loop = the trapezoid sum of q de1 over its rows minus the chord (q0 + q2)/2 (e2 - e0),
+//   D = W_loop / (4 pi dq de1 / 8), e1 and ev at the closing corner, to 1e-6 (the rows' 10 digits).
+TEST(LoadingPaths, CyclicTriaxialTurnsAtTheBoundsAndMeasuresItsLoops) {
+  const fs::path dir = run_example("cyclic-triaxial.toml", "cyclic-triaxial");
+  const Csv s = read_csv(dir / "series.csv");
+  const nlohmann::json summary = nlohmann::json::parse(slurp(dir / "summary.json"));
+  const std::size_t rows = s.rows.size();
+  ASSERT_GT(rows, 1000u);
+  std::vector<double> q(rows), e(rows);
+  double step_dq = 0;  // the largest change of q from one force evaluation to the next
+  for (std::size_t k = 0; k < rows; ++k) {
+    ASSERT_EQ(std::stol(s.rows[k][s.col("step")]), static_cast<long>(k)) << "a row per step";
+    q[k] = s.at(k, "s33_Pa") - 0.5 * (s.at(k, "s11_Pa") + s.at(k, "s22_Pa"));
+    e[k] = s.at(k, "e1");
+    if (k > 0) step_dq = std::max(step_dq, std::abs(q[k] - q[k - 1]));
+  }
+  const double lower = 50e3, upper = 150e3, tol = 2 * step_dq;
+  std::vector<std::size_t> corner;
+  for (std::size_t k = 1; k + 1 < rows; ++k)
+    if ((e[k] - e[k - 1]) * (e[k + 1] - e[k]) < 0) corner.push_back(k);
+  ASSERT_EQ(corner.size(), 10u) << "5 cycles: 2 turns each";
+  corner.push_back(rows - 1);  // the phase ends at the closing corner of the last cycle
+  EXPECT_GT(e[rows - 1], e[rows - 2]) << "the last cycle ends on reloading";
+  std::size_t from = 0;
+  for (std::size_t c = 0; c < corner.size(); ++c) {
+    const bool top = c % 2 == 0;
+    const std::size_t k = corner[c];
+    EXPECT_EQ(e[k] > e[k - 1], top) << "corner " << c;
+    // The crossing: the row before the corner reached the bound, none between the last corner and it.
+    EXPECT_TRUE(top ? q[k - 1] >= upper : q[k - 1] <= lower) << "corner " << c << " q " << q[k - 1];
+    for (std::size_t j = from; j + 1 < k; ++j)
+      EXPECT_TRUE(top ? q[j] < upper : q[j] > lower) << "corner " << c << " row " << j << " q " << q[j];
+    from = k;
+  }
+  EXPECT_LT(step_dq, 1e3) << "steps of q small against the 100 kPa range";
+  for (std::size_t k = 0; k < rows; ++k) {
+    EXPECT_LE(q[k], upper + tol) << "row " << k;
+    if (k >= corner[0]) EXPECT_GE(q[k], lower - tol) << "row " << k;
+  }
+  const nlohmann::json& cycles = summary["phases"][1]["controller"]["cycles"];
+  ASSERT_EQ(cycles.size(), 5u);
+  for (std::size_t n = 0; n < 5; ++n) {
+    const std::size_t c0 = corner[2 * n], c1 = corner[2 * n + 1], c2 = corner[2 * n + 2];
+    double work = 0;
+    for (std::size_t k = c0 + 1; k <= c2; ++k) work += 0.5 * (q[k] + q[k - 1]) * (e[k] - e[k - 1]);
+    work -= 0.5 * (q[c0] + q[c2]) * (e[c2] - e[c0]);
+    const double dq = q[c2] - q[c1], de = e[c2] - e[c1];
+    const nlohmann::json& f = cycles[n];
+    EXPECT_EQ(f["cycle"].get<long>(), static_cast<long>(n + 1));
+    EXPECT_NEAR(f["q_max_Pa"].get<double>(), q[c2], 1e-6 * q[c2]);
+    EXPECT_NEAR(f["q_min_Pa"].get<double>(), q[c1], 1e-6 * q[c2]);
+    EXPECT_NEAR(f["secant_modulus_Pa"].get<double>(), dq / de, 1e-6 * dq / de) << "cycle " << n + 1;
+    EXPECT_NEAR(f["loop_work_J_m3"].get<double>(), work, 1e-6 * std::abs(work)) << "cycle " << n + 1;
+    const double d = work / (4 * std::numbers::pi * dq * de / 8);
+    EXPECT_NEAR(f["damping_ratio"].get<double>(), d, 1e-6 * std::abs(d)) << "cycle " << n + 1;
+    EXPECT_GT(d, 0) << "a loop dissipates";
+    EXPECT_NEAR(f["e1"].get<double>(), e[c2], 1e-12);
+    EXPECT_NEAR(f["ev"].get<double>(), s.at(c2, "ev"), 1e-12);
+  }
+}
+
+// The path controllers' keys are checked: what drives the phase, one kind of bounds, their ranges.
+TEST(LoadingPaths, PathControllerKeysAreChecked) {
+  const std::string head = R"(
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[[sample.particles]]
+diameter = "2 mm"
+count = 10
+[[phase]]
+friction = 0.5
+)";
+  const std::string lateral = "stress = { 11 = \"100 kPa\", 22 = \"100 kPa\" }\n";
+  const struct {
+    std::string text, key, expected;
+  } cases[] = {
+      {"strain_rate = { 33 = -1e-5 }\ncontroller = { kind = \"cyclic\", q_mean = \"1 kPa\", q_amplitude = \"1 kPa\" }\n",
+       "controller.kind", "loads axis 3 first"},
+      {"strain_rate = { 33 = 1e-5 }\nstop = { strain = { 33 = \"1 %\" } }\n"
+       "controller = { kind = \"cyclic\", q_mean = \"1 kPa\", q_amplitude = \"1 kPa\" }\n",
+       "controller.kind", "remove stop.strain.33"},
+      {"strain_rate = { 33 = 1e-5 }\ncontroller = { kind = \"cyclic\", q_mean = \"1 kPa\" }\n", "controller.q_amplitude",
+       "one of them"},
+      {"strain_rate = { 33 = 1e-5 }\n"
+       "controller = { kind = \"cyclic\", q_mean = \"1 kPa\", q_amplitude = \"1 kPa\", strain_amplitude = 0.01 }\n",
+       "controller.q_amplitude", "one of them"},
+      {"strain_rate = { 33 = 1e-5 }\ncontroller = { kind = \"cyclic\", q_mean = \"1 kPa\", q_amplitude = \"-1 kPa\" }\n",
+       "controller.q_amplitude", "must be > 0"},
+      {"strain_rate = { 33 = 1e-5 }\ncontroller = { kind = \"cyclic\", strain_mean = -0.02, strain_amplitude = 0.01 }\n",
+       "controller.strain_mean", "must be > 0"},
+      {"strain_rate = { 33 = 1e-5 }\ncontroller = { kind = \"cyclic\", strain_amplitude = 0.01, cycles = 0 }\n",
+       "controller.cycles", "[1, 100000]"},
+      {"strain_rate = { 33 = 1e-5 }\nstop = { strain = { 33 = \"1 %\" } }\n"
+       "controller = { kind = \"true_triaxial\", p = \"100 kPa\", b = 1.5 }\n",
+       "controller.b", "[0, 1]"},
+      {"strain_rate = { 33 = 1e-5, 22 = 1e-5 }\nstress = { 11 = \"100 kPa\" }\nstop = { strain = { 33 = \"1 %\" } }\n"
+       "controller = { kind = \"true_triaxial\", p = \"100 kPa\", b = 0.5 }\n",
+       "controller.kind", "axes 1 and 2"},
+  };
+  for (const auto& c : cases) {
+    std::string what = "(no error)";
+    try {
+      parse_case(head + (c.text.find("stress = {") == std::string::npos ? lateral : "") + c.text, "bad.toml");
+    } catch (const InputError& e) {
+      what = e.what();
+    }
+    EXPECT_NE(what.find("bad.toml"), std::string::npos) << what;
+    EXPECT_NE(what.find("key 'phase.0." + c.key + "'"), std::string::npos) << "the key is not named: " << what;
+    EXPECT_NE(what.find(c.expected), std::string::npos) << "expected '" << c.expected << "' in: " << what;
   }
 }
