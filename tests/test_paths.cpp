@@ -355,3 +355,27 @@ friction = 0.5
     EXPECT_NE(what.find(c.expected), std::string::npos) << "expected '" << c.expected << "' in: " << what;
   }
 }
+
+// examples/true-triaxial.toml: s1 = s33 loaded to e1 = 2 %, s2 = s11 and s3 = s22 servo-held at the
+// targets that keep p = 200 kPa and b = 0.5. After the servo's start-up (the rows from e1 = 0.1 %,
+// about 100 steps; at the first row, step 31, p is 5.8 % high), every row holds p within 1 %
+// (measured 0.41 %) and b within 0.03 (measured 0.016, 0.8 % of s1 - s3 in s2), and s1 - s3 has
+// grown to more than 0.2 p (b is defined); the path ends at e1 = 2 % at its planned step.
+TEST(LoadingPaths, TrueTriaxialHoldsPAndB) {
+  const fs::path dir = run_example("true-triaxial.toml", "true-triaxial");
+  const Csv s = read_csv(dir / "series.csv");
+  ASSERT_EQ(s.rows.size(), 100u);
+  std::size_t held = 0;
+  for (std::size_t k = 0; k < s.rows.size(); ++k) {
+    if (s.at(k, "e1") < 1e-3) continue;
+    ++held;
+    const double s1 = s.at(k, "s33_Pa"), s2 = s.at(k, "s11_Pa"), s3 = s.at(k, "s22_Pa");
+    const double p = (s1 + s2 + s3) / 3;
+    EXPECT_LE(std::abs(p / 200e3 - 1), 0.01) << "row " << k;
+    ASSERT_GT(s1 - s3, 0.2 * p) << "row " << k;
+    EXPECT_NEAR((s2 - s3) / (s1 - s3), 0.5, 0.03) << "row " << k;
+    EXPECT_NEAR(s.at(k, "p_Pa"), p, 1e-6 * p) << "p_Pa is the mean of the normal stresses";
+  }
+  EXPECT_GE(held, 90u);
+  EXPECT_NEAR(s.at(s.rows.size() - 1, "e1"), 0.02, 0.32 * 2e-5);
+}
