@@ -7,7 +7,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 #include <numbers>
 #include <sstream>
@@ -378,4 +380,87 @@ TEST(LoadingPaths, TrueTriaxialHoldsPAndB) {
   }
   EXPECT_GE(held, 90u);
   EXPECT_NEAR(s.at(s.rows.size() - 1, "e1"), 0.02, 0.32 * 2e-5);
+}
+
+// A simple cubic lattice of equal Hertz spheres (radius R, n^3 in a periodic cube, spacing
+// a0 = 2R - delta0) against its closed-form small-strain moduli (docs/loading-paths.md, "Hertz
+// lattice moduli"). Each sphere has 6 contacts along the axes; per sphere (volume a^3) one contact
+// per axis with branch vector a along it, so the Love-Weber stress (SPEC 7) is
+//   sigma_kk = F(delta_k) a_k / (a_1 a_2 a_3) = F(delta_k) / (a_i a_j)   (i, j the other axes),
+//   F(delta) = (4/3) E* sqrt(R_e) delta^(3/2), R_e = R/2, delta_k = 2R - a_k   (SPEC 4.7),
+// and p0 = F(delta0) / a0^2. Under an affine strain (every sphere is a centre of symmetry: the
+// forces on it cancel, it stays at its lattice site) with a_k = a0 (1 - e_k), d delta_k = a0 de_k:
+//   uniaxial strain e_3:  d sigma_33 / d e_3 = k_n a0 / a0^2 = k_n / a0 = C11,
+//                         d sigma_11 / d e_3 = F / a0^2 = p0 = C12 (the area a_1 a_3 shrinks);
+//   isotropic strain e:   d sigma_kk / d e = k_n / a0 + 2 p0, d eps_v / d e = 3:
+//                         K = (k_n / a0 + 2 p0) / 3 = (C11 + 2 C12) / 3,
+// with k_n = dF/d delta = 2 E* sqrt(R_e delta0) = 3 F / (2 delta0). The contacts' normals stay
+// on the axes, so no tangential displacement arises: friction (here 0.5) plays no part.
+// Measured: the secant over the first step (e grows by c_t eps' = 3.2e-7): Hertz stiffening makes
+// it exceed the tangent by d delta / (4 delta0) = a0 c_t eps' / (4 delta0) (1.6e-4 here) to first
+// order; the tolerance is 1.5 times that.
+TEST(LoadingPaths, HertzLatticeModuliMatchTheClosedForm) {
+  const int n = 6;
+  const double R = 1e-3, delta0 = 1e-3 * R, a0 = 2 * R - delta0;
+  const double E = 78e9, nu = 0.3, Es = E / (2 * (1 - nu * nu)), Re = R / 2;
+  const double F = 4.0 / 3 * Es * std::sqrt(Re) * std::pow(delta0, 1.5);
+  const double kn = 2 * Es * std::sqrt(Re * delta0);
+  const double p0 = F / (a0 * a0), c11 = kn / a0, c12 = p0, bulk = (c11 + 2 * c12) / 3;
+  const double eps = 1e-6, de = 0.32 * eps;
+  const double tol = 1.5 * a0 * de / (4 * delta0);
+  const fs::path dir = scratch("lattice");
+  fs::create_directories(dir);
+  {
+    std::ostringstream p;
+    p.precision(17);
+    p << "format qsdem-packing 1\ncell " << n * a0 << " 0 0 0 " << n * a0 << " 0 0 0 " << n * a0 << "\nparticles "
+      << n * n * n << "\n";
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j)
+        for (int k = 0; k < n; ++k)
+          p << (i + 0.5) * a0 << ' ' << (j + 0.5) * a0 << ' ' << (k + 0.5) * a0 << ' ' << R << ' ' << R << ' ' << R
+            << " 1 0 0 0\n";
+    std::ofstream(dir / "lattice.packing") << p.str();
+    std::ofstream(dir / "lattice.toml") << R"(
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+from = "lattice.packing"
+[[phase]]
+name = "strain"
+friction = 0.5
+strain_rate = { 33 = 1e-6 }
+stop = { steps = 2 }
+output = { every_steps = 1 }
+)";
+  }
+  const auto run = [&](const std::string& name, const std::string& set) {
+    const fs::path out = dir / name;
+    std::string cmd = std::string("'") + QSDEM_BINARY + "' run '" + (dir / "lattice.toml").string() + "' --out '" +
+                      out.string() + "' --threads 1 --quiet" + set + " > '" + out.string() + ".log' 2>&1";
+    EXPECT_EQ(std::system(cmd.c_str()), 0) << cmd << "\n" << slurp(out.string() + ".log");
+    return read_csv(out / "series.csv");
+  };
+  const Csv u = run("uniaxial", "");
+  ASSERT_EQ(u.rows.size(), 2u);
+  for (const char* c : {"s11_Pa", "s22_Pa", "s33_Pa"})
+    EXPECT_NEAR(u.at(0, c), p0, 1e-9 * p0) << c << ": the lattice's stress at rest is p0";
+  ASSERT_NEAR(u.at(1, "e1"), de, 1e-8 * de) << "one step of c_t eps' (the row's 10 digits)";
+  const double c11_measured = (u.at(1, "s33_Pa") - u.at(0, "s33_Pa")) / de;
+  const double c12_measured = (u.at(1, "s11_Pa") - u.at(0, "s11_Pa")) / de;
+  EXPECT_NEAR(c11_measured / c11, 1, tol) << "C11 " << c11_measured << " closed form " << c11;
+  // sigma_33 = F(delta0 + a0 e) / a0^2 exactly (a_1, a_2 fixed): the excess of the secant is the
+  // Hertz curvature's, a0 de / (4 delta0) (the next order, -(a0 de / delta0)^2 / 24, is 2e-8).
+  EXPECT_NEAR(c11_measured / c11 - 1, a0 * de / (4 * delta0), 0.02 * a0 * de / (4 * delta0))
+      << "the secant's excess over the tangent is Hertz's delta^(3/2) stiffening";
+  // d sigma_11 is 0.064 Pa, the rows' 10 digits of sigma_11 (2e5 Pa) resolve it to 1.6e-4.
+  EXPECT_NEAR(c12_measured / c12, 1, 1e-3) << "C12 " << c12_measured << " closed form " << c12;
+  const Csv iso = run("isotropic", " --set 'phase.0.strain_rate.11=1e-6' --set 'phase.0.strain_rate.22=1e-6'");
+  ASSERT_EQ(iso.rows.size(), 2u);
+  const double bulk_measured = (iso.at(1, "p_Pa") - iso.at(0, "p_Pa")) / -(iso.at(1, "ev") - iso.at(0, "ev"));
+  EXPECT_NEAR(bulk_measured / bulk, 1, tol) << "K " << bulk_measured << " closed form " << bulk;
+  std::printf("Hertz lattice: p0 %.6g Pa, C11 %.6g (closed form %.6g), C12 %.6g (%.6g), K %.6g (%.6g) Pa\n", p0,
+              c11_measured, c11, c12_measured, c12, bulk_measured, bulk);
 }
