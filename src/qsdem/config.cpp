@@ -483,6 +483,11 @@ class ControllerTable final : public ControllerKeys {
     return r_.quantity(path(key), Dimension::ratio, def, ok, allowed);
   }
   long integer(const std::string& key, long def, long lo, long hi) override { return r_.integer(path(key), def, lo, hi); }
+  double stress(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
+                const std::string& allowed) override {
+    return r_.quantity(path(key), Dimension::stress, def, ok, allowed);
+  }
+  bool has(const std::string& key) override { return r_.find(path(key)) != nullptr; }
   [[noreturn]] void fail(const std::string& key, const std::string& why) override {
     r_.fail(path(key), r_.find(path(key)), why);
   }
@@ -591,6 +596,10 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   bool any_stop = stop.steps > 0 || stop.equilibrium.has_value();
   for (int c = 0; c < component_count; ++c)
     any_stop = any_stop || stop.strain[static_cast<std::size_t>(c)] || stop.stress[static_cast<std::size_t>(c)];
+  // A controller that ends the phase itself (ControllerKind::ends_phase) is a stop criterion.
+  const toml::node* controller_kind = r.find(k + ".controller.kind");
+  for (const ControllerKind& kind : controller_kinds())
+    any_stop = any_stop || (kind.ends_phase && controller_kind && controller_kind->value<std::string>() == std::string(kind.name));
   if (!any_stop)
     r.fail(k + ".stop", r.find(k + ".stop"), "give at least one end: steps, strain, stress or equilibrium");
   const long end = planned_end(ph, step_ratio);
@@ -911,9 +920,46 @@ std::vector<std::string> case_keys() {
     min_rate = 1e-6
     max_rate = 1e-4
   )";
+  // The path controllers' keys (path_control.hpp): cyclic by q, cyclic by strain, true triaxial.
+  static const char* const every_path_key[] = {
+      R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    controller = { kind = "cyclic", q_mean = "1 Pa", q_amplitude = "1 Pa", cycles = 2 }
+  )",
+      R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    controller = { kind = "cyclic", strain_mean = 0.001, strain_amplitude = 0.001 }
+  )",
+      R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    stop = { strain = { 33 = 0.01 } }
+    controller = { kind = "true_triaxial", p = "1 Pa", b = 0.5, intermediate = "11" }
+  )"};
   std::set<std::string> asked;
   parse(every_shape, "<case_keys>", {}, {}, &asked);
-  for (const char* text : {every_phase_key, every_rate_key, every_triaxial_rate_key}) {
+  for (const char* text : {every_phase_key, every_rate_key, every_triaxial_rate_key, every_path_key[0],
+                           every_path_key[1], every_path_key[2]}) {
     std::set<std::string> more;
     parse(text, "<case_keys>", {}, {}, &more);
     asked.insert(more.begin(), more.end());

@@ -39,9 +39,14 @@ class Controller {
   // the next step. Returns whether it changed any.
   virtual bool at_sample(const SamplePoint& point, PhaseControls& controls) = 0;
   // A controller that acts between sample points too returns true here; at_step is then called
-  // after every step with the state of the last force evaluation (State::stress, stress_h).
+  // after every step with the state of the last force evaluation (State::stress, stress_h) and
+  // the cell at the phase's start.
   virtual bool every_step() const { return false; }
-  virtual bool at_step(const State& /*state*/, long /*step*/, PhaseControls& /*controls*/) { return false; }
+  virtual bool at_step(const State& /*state*/, long /*step*/, const Mat3& /*h0*/, PhaseControls& /*controls*/) {
+    return false;
+  }
+  // Whether the phase ends after this step (a controller that counts cycles, ControllerKind::ends_phase).
+  virtual bool done() const { return false; }
   // What it needs to continue exactly after a resume (saved in the checkpoint), and its restoration.
   virtual std::vector<double> save() const { return {}; }
   virtual void restore(const std::vector<double>& /*saved*/) {}
@@ -68,6 +73,9 @@ class ControllerKeys {
   virtual double quantity(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
                           const std::string& allowed) = 0;  // a ratio ("0.1 %" or a number)
   virtual long integer(const std::string& key, long def, long lo, long hi) = 0;
+  virtual double stress(const std::string& key, std::optional<double> def, const std::function<bool(double)>& ok,
+                        const std::string& allowed) = 0;  // a stress ("50 kPa")
+  virtual bool has(const std::string& key) = 0;  // whether the table gives the key
   [[noreturn]] virtual void fail(const std::string& key, const std::string& why) = 0;
 };
 
@@ -76,6 +84,7 @@ struct ControllerKind {
   std::string_view meaning;
   // Reads the kind's own keys for `phase` (whose controls are read) and returns its factory.
   ControllerFactory (*read)(ControllerKeys& keys, const Phase& phase, double step_ratio);
+  bool ends_phase = false;  // its done() ends the phase: the phase needs no stop criterion of its own
 };
 
 // Every controller kind a case may name (phase.controller.kind).

@@ -324,11 +324,12 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     ended = (end >= 0 && n >= end) || measured_end(phase, ps, st, rec.h0);
     if (controller && controller->every_step()) {
       const PhaseControls before = ps.controls;
-      if (controller->at_step(st, n, ps.controls)) {
+      if (controller->at_step(st, n, rec.h0, ps.controls)) {
         replan(before, n);
         sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
       }
       keep_controller();
+      ended = ended || controller->done();
     }
     const bool row = ended || (sample >= 0 && n >= sample) || measured_row(phase, ps, rec.rows, st, rec.h0);
     const bool check = equilibrium && rec.steps % equilibrium->every == 0;
