@@ -889,7 +889,7 @@ TEST(StudyStages, MpiRanksRunTheStagesAlike) {
   fs::remove_all(dir);
 }
 
-// studies/damping-small.toml (issue 24): its runs as its header says, and its design runs: the
+// studies/damping-small.toml: its runs as its header says, and its design runs: the
 // same [design], stages and [analysis] on 120 spheres sheared to 0.2 %, every run to its end with
 // its model's damping, then the analysis with the damping dependence against the undamped runs.
 TEST(Study, DampingSmallStudyRunsOnATinySample) {
