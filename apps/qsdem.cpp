@@ -161,6 +161,7 @@ int main(int argc, char** argv) {
 
   std::string study_file;
   int parallel = 0;
+  std::string order;
   auto* study = app.add_subcommand(
       "study",
       "Run a study (SPEC 9, docs/study.md): every sample of the study file prepared once, then sheared with every "
@@ -173,6 +174,10 @@ int main(int argc, char** argv) {
   study->add_option("--parallel,-j", parallel,
                     "Child processes at once (per MPI rank); default: execution.parallel_runs of the study file")
       ->check(whole_number_at_least(1));
+  study->add_option("--order", order,
+                    "Runs of a stage longest_first (the shortest total time) or shortest_first (the most runs "
+                    "finished soonest); default: execution.order of the study file")
+      ->check(CLI::IsMember({"longest_first", "shortest_first"}));
   study->add_flag("--quiet,-q", quiet, "No progress display");
 
   std::string analyze_dir;
@@ -225,7 +230,7 @@ int main(int argc, char** argv) {
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*study) {
-      return qsdem::run_study(study_file, {out_dir, quiet, parallel});
+      return qsdem::run_study(study_file, {out_dir, quiet, parallel, order});
     } else if (*analyze) {
       qsdem::analyze_study(analyze_dir);
       std::cout << "Analysis written to " << analyze_dir << "/analysis/\n";

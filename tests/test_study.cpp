@@ -190,6 +190,8 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
        {"sample.0.case", "\"nowhere/missing.toml\"", "no such case file"}},
       {"wrong type of parallel_runs", sample + design + "[execution]\nparallel_runs = \"2\"\n",
        {"execution.parallel_runs", "\"2\"", "expected an integer"}},
+      {"an order that is not one", sample + design + "[execution]\norder = \"random\"\n",
+       {"execution.order", "\"random\"", "longest_first", "shortest_first"}},
       {"a key the study sets", sample + design + "set = [\"damping.ratio=0.3 %\"]\n",
        {"design.set.0", "damping.ratio", "set by the study"}},
       {"a bad override, caught by the case's own checks", sample + design + "set = [\"triaxial.sample_points=0\"]\n",

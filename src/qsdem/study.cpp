@@ -573,12 +573,15 @@ std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level) {
   return jobs;
 }
 
-// This rank's share (index % size), longest first so that the last runs of the pool are short.
-std::vector<Job> share(std::vector<Job> jobs, const Mpi& m) {
+// This rank's share (index % size), longest first so that the last runs of the pool are short, or
+// shortest first (Study::shortest_first).
+std::vector<Job> share(std::vector<Job> jobs, const Mpi& m, bool shortest_first = false) {
   std::vector<Job> mine;
   for (std::size_t k = 0; k < jobs.size(); ++k)
     if (int(k % std::size_t(m.size)) == m.rank) mine.push_back(std::move(jobs[k]));
-  std::stable_sort(mine.begin(), mine.end(), [](const Job& a, const Job& b) { return a.expected_steps > b.expected_steps; });
+  std::stable_sort(mine.begin(), mine.end(), [shortest_first](const Job& a, const Job& b) {
+    return shortest_first ? a.expected_steps < b.expected_steps : a.expected_steps > b.expected_steps;
+  });
   return mine;
 }
 
@@ -692,6 +695,7 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
     return 2;
   }
   if (options.parallel > 0) study.parallel_runs = options.parallel;
+  if (!options.order.empty()) study.shortest_first = options.order == "shortest_first";
   const fs::path out = fs::absolute(options.out);
 
   // Rank 0 sets the directory up; the others wait for its verdict, then read the picks it kept.
@@ -751,7 +755,7 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
       if (on_rank0(pick) != 0) return status;
       failures.insert(failures.end(), picked.begin(), picked.end());
     }
-    r = run_pool(share(run_jobs(study, out, level), mpi), level_label(study, level), study.parallel_runs, launcher,
+    r = run_pool(share(run_jobs(study, out, level), mpi, study.shortest_first), level_label(study, level), study.parallel_runs, launcher,
                  progress);
     failures.insert(failures.end(), r.failures.begin(), r.failures.end());
     if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());

@@ -108,6 +108,9 @@ struct Study {
   std::vector<StudyRun> runs;             // those known so far (a picking stage adds its own)
   int parallel_runs = 1;    // processes at once (per MPI rank)
   int threads_per_run = 1;  // --threads of every child
+  // Runs of a level in order of their expected steps: longest first (the pool ends with short
+  // runs: the shortest makespan) or shortest first (the most runs finished soonest).
+  bool shortest_first = false;
 };
 
 // Reads and checks a study file, and every case it names with every override of every run.
@@ -134,6 +137,7 @@ struct StudyOptions {
   std::filesystem::path out;
   bool quiet = false;
   int parallel = 0;  // > 0: overrides execution.parallel_runs
+  std::string order;  // "longest_first" or "shortest_first": overrides execution.order
 };
 
 // Runs (or continues) the study described by `study_file` in options.out, then analyses it.

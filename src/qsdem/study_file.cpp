@@ -282,8 +282,12 @@ std::vector<std::uint64_t> read_seeds(const StudyReader& r, const toml::table& d
 void read_execution(const StudyReader& r, const toml::table& root, Study& s) {
   long threads = 1, parallel = 0;
   if (const toml::table* ex = r.table(root, "execution", "execution")) {
-    r.only(*ex, "execution.", {"parallel_runs", "threads_per_run"});
+    r.only(*ex, "execution.", {"parallel_runs", "threads_per_run", "order"});
     threads = r.integer(*ex, "threads_per_run", "execution.threads_per_run", 1, 1, 1024);
+    const std::string order = r.text(*ex, "order", "execution.order", std::string("longest_first"));
+    if (order != "longest_first" && order != "shortest_first")
+      r.fail("execution.order", ex->get("order"), "allowed values: \"longest_first\", \"shortest_first\"");
+    s.shortest_first = order == "shortest_first";
     parallel = r.integer(*ex, "parallel_runs", "execution.parallel_runs", 0, 1, 4096);
   }
   s.threads_per_run = static_cast<int>(threads);
