@@ -15,6 +15,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "qsdem/config.hpp"
@@ -141,6 +142,29 @@ std::string controlled(const std::string& target = "3 %", double max_rate = 1e-3
          fmt::format("target = \"{}\"\nmin_rate = 1e-6\nmax_rate = {}\n", target, max_rate);
 }
 
+// Runs a case uninterrupted and again stopped by SIGTERM after `kill_at_rows` rows and resumed;
+// both must give the same series.csv and final.packing. Returns the two directories, uninterrupted first.
+std::pair<fs::path, fs::path> run_and_resume(const std::string& name, const std::string& text, long kill_at_rows) {
+  const fs::path case_path = case_file(name, text);
+  const fs::path ref = scratch(name), stopped = scratch(name + "-stopped");
+  run(case_path, ref);
+  run(case_path, stopped, kill_at_rows);
+  for (const char* f : {"series.csv", "final.packing"})
+    EXPECT_EQ(slurp(ref / f), slurp(stopped / f)) << f << " differs after a stop and resume";
+  return {ref, stopped};
+}
+
+// Every row's rate within [lo, hi], and at most a factor 2 (max_factor_per_point) from the row before.
+void expect_rates_within_bounds(const std::vector<double>& rate, double lo, double hi) {
+  for (std::size_t k = 0; k < rate.size(); ++k) {
+    EXPECT_GE(rate[k], lo) << "row " << k + 1;
+    EXPECT_LE(rate[k], hi) << "row " << k + 1;
+    if (k > 0) {
+      EXPECT_LE(std::abs(std::log(rate[k] / rate[k - 1])), std::log(2.0) + 1e-9) << "row " << k + 1;
+    }
+  }
+}
+
 double log_sd(const std::vector<double>& v, std::size_t from) {
   double mean = 0, sq = 0;
   for (std::size_t k = from; k < v.size(); ++k) mean += std::log(v[k]);
@@ -161,12 +185,7 @@ double log_sd(const std::vector<double>& v, std::size_t from) {
 // the start-up. The rates stay within their bounds and change by at most the factor 2 per row;
 // summary.json's figures are those of series.csv; a stopped and resumed run gives the same bits.
 TEST(RateControl, HoldsTheIndexInItsBandWithinBoundsAndResumesToTheSameBits) {
-  const fs::path case_path = case_file("controlled", controlled());
-  const fs::path ref = scratch("controlled"), stopped = scratch("controlled-stopped");
-  run(case_path, ref);
-  run(case_path, stopped, 22);
-  for (const char* f : {"series.csv", "final.packing"})
-    EXPECT_EQ(slurp(ref / f), slurp(stopped / f)) << f << " differs after a stop and resume";
+  const auto [ref, stopped] = run_and_resume("controlled", controlled(), 22);
   EXPECT_EQ(summary(ref)["triaxial"]["controller"], summary(stopped)["triaxial"]["controller"]);
 
   const Csv s = read_csv(ref / "series.csv");
@@ -174,12 +193,8 @@ TEST(RateControl, HoldsTheIndexInItsBandWithinBoundsAndResumesToTheSameBits) {
   ASSERT_EQ(s.rows.size(), 60u);
   const std::vector<double> imom = s.column("imom"), rate = s.column("strain_rate"), e1 = s.column("e1");
   const double target = 0.03, band = 1.5;
+  expect_rates_within_bounds(rate, 1e-6, 1e-3);
   for (std::size_t k = 0; k < rate.size(); ++k) {
-    EXPECT_GE(rate[k], 1e-6) << "row " << k + 1;
-    EXPECT_LE(rate[k], 1e-3) << "row " << k + 1;
-    if (k > 0) {
-      EXPECT_LE(std::abs(std::log(rate[k] / rate[k - 1])), std::log(2.0) + 1e-9) << "row " << k + 1;
-    }
     // The rows are equal increments of axial strain (3 % / 60) within a step at the row's rate.
     EXPECT_NEAR(e1[k], 0.0005 * static_cast<double>(k + 1), 0.32 * rate[k] + 1e-9) << "row " << k + 1;
   }
@@ -396,22 +411,15 @@ controller = { kind = "rate", component = "13", target = "3 %", min_rate = 1e-6,
 // c_t gamma' (1 + |e33|) at most. The rates keep their bounds and their factor per row, the
 // controller acts (the rate leaves its start), and a stopped and resumed run gives the same bits.
 TEST(RateControl, DrivesAShearStrainRate) {
-  const fs::path case_path = case_file("shear", controlled_shear());
-  const fs::path ref = scratch("shear"), stopped = scratch("shear-stopped");
-  run(case_path, ref);
-  run(case_path, stopped, 15);
-  for (const char* f : {"series.csv", "final.packing"})
-    EXPECT_EQ(slurp(ref / f), slurp(stopped / f)) << f << " differs after a stop and resume";
+  const fs::path ref = run_and_resume("shear", controlled_shear(), 15).first;
 
   const Csv s = read_csv(ref / "series.csv");
   ASSERT_EQ(s.header.back(), "strain_rate");
   const std::vector<double> g13 = s.column("g13"), rate = s.column("strain_rate"), s33 = s.column("s33_Pa");
   ASSERT_EQ(g13.size(), 40u);
+  expect_rates_within_bounds(rate, 1e-6, 1e-3);
   double lowest = rate.front(), highest = rate.front();
   for (std::size_t k = 0; k < rate.size(); ++k) {
-    EXPECT_GE(rate[k], 1e-6) << "row " << k + 1;
-    EXPECT_LE(rate[k], 1e-3) << "row " << k + 1;
-    if (k > 0) EXPECT_LE(std::abs(std::log(rate[k] / rate[k - 1])), std::log(2.0) + 1e-9) << "row " << k + 1;
     const double mark = 0.0005 * static_cast<double>(k + 1);
     if (k + 1 < g13.size()) {  // the last row is the phase's end, at or past 2 %
       EXPECT_GE(g13[k], mark) << "row " << k + 1;
