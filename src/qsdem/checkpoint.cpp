@@ -399,6 +399,7 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
   io.pod(st.stress_volume);
   io.pod(st.stress_h);
   io.pod(st.timers.seconds);
+  if (version >= 9) io.pod(st.energy);
 }
 
 void fsync_dir(const std::filesystem::path& dir) {
@@ -510,7 +511,8 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);
   const std::size_t np = c.state.pairs.size();
-  c.state.pairs.overlap.assign(np, 0.0);
+  // Before format 9 the overlaps were not kept (the energy ledger's stiffness work reads them).
+  if (version < 9) c.state.pairs.overlap.assign(np, 0.0);
   build_incidence(c.state.pairs, c.state.particles.size());
   if (version < 2) {
     // Format 1 (before apart pairs were skipped): no skip state, so every pair is tested at the

@@ -16,8 +16,9 @@ namespace qsdem {
 // sums field by field with their wall time, the prepare flag and the `resume --set` changes; 6: the
 // contact history named by its law's layout; 7: any protocol (phase.hpp): a record per phase, the
 // current phase's control values, plan and controller state (formats 1 to 6 are read as the
-// default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures)
-inline constexpr std::uint32_t checkpoint_format_version = 8;
+// default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures);
+// 9: the energy ledger (State::energy)
+inline constexpr std::uint32_t checkpoint_format_version = 9;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

@@ -846,6 +846,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   p.checkpoint.every_minutes = r.number("checkpoint.every_minutes", 10.0, [](double v) { return v >= 0; }, "must be >= 0");
   p.output.vtk_every = static_cast<int>(r.integer("output.vtk_every", 0, 0, 1'000'000));
   p.output.classes = r.boolean("output.classes", true);
+  p.output.energy = r.boolean("output.energy", false);
   p.limits.max_overlap = r.quantity("limits.max_overlap", Dimension::ratio, 1.0, [](double v) { return v > 0 && v <= 1; },
                                     "must be in (0, 100 %]");
   p.limits.max_kinetic_ratio = r.number("limits.max_kinetic_ratio", 1.0, positive, "must be > 0");
@@ -1064,7 +1065,7 @@ nlohmann::json to_json(const Params& p) {
       {"checkpoint", {{"every_sample_points", p.checkpoint.every_sample_points},
                       {"every_minutes", p.checkpoint.every_minutes}}},
       {"limits", {{"max_overlap", p.limits.max_overlap}, {"max_kinetic_ratio", p.limits.max_kinetic_ratio}}},
-      {"output", {{"vtk_every", p.output.vtk_every}, {"classes", p.output.classes}}},
+      {"output", {{"vtk_every", p.output.vtk_every}, {"classes", p.output.classes}, {"energy", p.output.energy}}},
       {"protocol", protocol},
   };
 }

@@ -93,6 +93,7 @@ struct Params {
   struct Output {
     int vtk_every = 0;  // a VTK snapshot every N sample points (0: never), docs/visualisation.md
     bool classes = true;  // classes.csv, the measures per size class (docs/physics.md 10.3)
+    bool energy = false;  // series.csv's energy columns (docs/physics.md 12)
   } output;
 
   struct Limits {

@@ -15,14 +15,21 @@
 namespace qsdem {
 namespace {
 
-// A law whose driver also sums each particle's contact stiffnesses (State::contact_stiffness):
-// a separate instantiation, so that a phase that does not read them does not pay for them.
-template <class Law>
-struct SummingStiffness : Law {
-  static constexpr bool sums_stiffness = true;
+struct EnergySums {
+  double elastic = 0, slip = 0, viscous = 0, stiffness = 0;
+};
+
+// The law as the driver runs it, with what it sums besides forces and stress: each particle's
+// contact stiffnesses (State::contact_stiffness) and the energy terms (State::energy). Each choice is
+// its own instantiation, so that a phase that does not read the sums does not pay for them.
+template <class Law, bool Stiffness, bool Energy>
+struct DrivenLaw : Law {
+  static constexpr bool sums_stiffness = Stiffness, sums_energy = Energy;
 };
 template <class Law>
-constexpr bool sums_contact_stiffness = requires { Law::sums_stiffness; };
+constexpr bool sums_contact_stiffness = Law::sums_stiffness;
+template <class Law>
+constexpr bool sums_energy = Law::sums_energy;
 
 // Inputs of the force stage's blocks, read-only except the pair history and results.
 template <class Law>
@@ -34,7 +41,7 @@ struct ForceInputs {
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
   Schedule& schedule;            // owners of the update region (group_contacts_by_owner)
-  double* contact_stiffness = nullptr;             // State's, for a SummingStiffness law
+  double* contact_stiffness = nullptr;             // State's, for a law that sums stiffnesses
   double* contact_rotational_stiffness = nullptr;
 };
 
@@ -75,9 +82,13 @@ struct ContactLanes {
   // The contact's terms of the viscosity sums (laws with has_dashpots).
   static constexpr int viscous_stride = Law::has_dashpots ? stride : 1;
   double viscosity[3][viscous_stride], shear_viscosity[3][viscous_stride];
-  // k_n, k_t |arm_i|^2 and k_t |arm_j|^2 (a SummingStiffness law).
+  // k_n, k_t |arm_i|^2 and k_t |arm_j|^2 (a law that sums stiffnesses).
   static constexpr int stiffness_stride = sums_contact_stiffness<Law> ? stride : 1;
   double kn[stiffness_stride], kt_arm_i[stiffness_stride], kt_arm_j[stiffness_stride];
+  // The contact's stored energy and the step's slip and dashpot dissipation (a law that sums energy).
+  static constexpr int energy_stride = sums_energy<Law> ? stride : 1;
+  double elastic[energy_stride], slip_work[energy_stride], viscous_work[energy_stride];
+  double stiffness_work[energy_stride], previous_overlap[energy_stride];
 
   // Appends the contact of pair k (i, j) with branch l; returns its lane.
   [[gnu::always_inline]] int add(const ForceInputs<Law>& in, const Particles& p, const PairList& pairs,
@@ -93,6 +104,7 @@ struct ContactLanes {
     const double* const h = pairs.history.values.data() + width * k;
     for (int c = 0; c < width; ++c) history[c][a] = h[c];
     if constexpr (Law::needs_masses) mass[a] = p.mass[i] * p.mass[j] / (p.mass[i] + p.mass[j]);
+    if constexpr (sums_energy<Law>) previous_overlap[a] = pairs.overlap.size() == pairs.size() ? pairs.overlap[k] : 0.0;
     r_min[a] = std::min(p.equiv_radius[i], p.equiv_radius[j]);
     return a;
   }
@@ -136,10 +148,16 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
     in.wz = Law::needs_spins ? wjz - wiz : 0.0;
     if constexpr (Law::needs_masses) in.mass = c.mass[a];
     else in.mass = 0;
+    if constexpr (sums_energy<Law>) in.previous_overlap = c.previous_overlap[a];
+    else in.previous_overlap = 0;
     ContactOutput out;
     law.evaluate(in, dt, HistoryView{&c.history[0][a], ContactLanes<Law>::stride}, out);
     const double fx = out.fx, fy = out.fy, fz = out.fz, kn = out.kn, kt = out.kt;
     c.fx[a] = fx, c.fy[a] = fy, c.fz[a] = fz;
+    if constexpr (sums_energy<Law>) {
+      c.elastic[a] = out.energy, c.slip_work[a] = out.slip_work, c.viscous_work[a] = out.viscous_work;
+      c.stiffness_work[a] = out.stiffness_work;
+    }
     if constexpr (sums_contact_stiffness<Law>) {
       c.kn[a] = kn;
       c.kt_arm_i[a] = kt * ((aix * aix + aiy * aiy) + aiz * aiz);
@@ -232,6 +250,13 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, Par
     for (int a = 0; a < c.size; ++a)
       for (int q = 0; q < 3; ++q)
         acc.viscosity_sum[q] += c.viscosity[q][a], acc.shear_viscosity_sum[q] += c.shear_viscosity[q][a];
+  if constexpr (sums_energy<Law>)
+    for (int a = 0; a < c.size; ++a) {
+      acc.elastic_energy += c.elastic[a];
+      acc.slip_work += c.slip_work[a];
+      acc.viscous_work += c.viscous_work[a];
+      acc.stiffness_work += c.stiffness_work[a];
+    }
   acc.contacts += static_cast<std::uint32_t>(c.size);
   for (int r = 0; r < 3; ++r)
     for (int q = 0; q < 3; ++q) acc.stress_sum(r, q) = stress[3 * r + q];
@@ -271,7 +296,7 @@ inline void mark_apart(PairList& pairs, std::uint32_t k) {
 }
 
 // Zeroes the i-side resultants of block b's particles (the pair loop sums into them), and their
-// stiffness sums for a SummingStiffness law.
+// stiffness sums for a law that sums stiffnesses.
 template <class Law>
 inline void clear_block_resultants(const ForceInputs<Law>& in, Particles& p, const PairList& pairs, std::size_t b) {
   for (std::uint32_t a = pairs.block_first[b]; a < pairs.block_first[b + 1]; ++a) {
@@ -560,16 +585,18 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
                                                    contact_settings(model)});
   std::visit(
       [&]<class Law>(const Law& law) {
-        if (stiffness_sums) {
-          const SummingStiffness<Law> summing{law};
-          const ForceInputs<SummingStiffness<Law>> in{summing, model.dt, state.cell, state.shapes.data(), ns,
-                                                      skip_apart, schedule, state.contact_stiffness.data(),
-                                                      state.contact_rotational_stiffness.data()};
+        const auto run = [&]<bool Stiffness, bool Energy>() {
+          const DrivenLaw<Law, Stiffness, Energy> driven{law};
+          const ForceInputs<DrivenLaw<Law, Stiffness, Energy>> in{
+              driven,     model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule,
+              Stiffness ? state.contact_stiffness.data() : nullptr,
+              Stiffness ? state.contact_rotational_stiffness.data() : nullptr};
           run_force_blocks(in, state, nblocks, nthreads, all_spheres);
-        } else {
-          const ForceInputs<Law> in{law, model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule};
-          run_force_blocks(in, state, nblocks, nthreads, all_spheres);
-        }
+        };
+        if (stiffness_sums && model.track_energy) run.template operator()<true, true>();
+        else if (stiffness_sums) run.template operator()<true, false>();
+        else if (model.track_energy) run.template operator()<false, true>();
+        else run.template operator()<false, false>();
       },
       contact_law);
   schedule.timed_build = ns.builds;
@@ -577,6 +604,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   pairs.overlap_known = true;
   if (nthreads > 1) record_thread_balance(schedule, state.timers);
 
+  EnergySums energy;
   Mat3 sum = Mat3::Zero();
   Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero(), viscosity = Vec3::Zero(), shear_viscosity = Vec3::Zero();
   state.max_overlap = 0;
@@ -588,6 +616,8 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
     shear_stiff += b.shear_stiffness_sum;
     viscosity += b.viscosity_sum;
     shear_viscosity += b.shear_viscosity_sum;
+    energy.elastic += b.elastic_energy, energy.slip += b.slip_work, energy.viscous += b.viscous_work;
+    energy.stiffness += b.stiffness_work;
     state.narrow_tests += b.narrow_tests;
     state.pw_iterations += b.pw_iterations;
     if (b.max_overlap > state.max_overlap) {
@@ -604,6 +634,12 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   state.shear_viscosity = shear_viscosity / v;
   state.stress_volume = v;
   state.stress_h = cell.h;
+  if (model.track_energy) {
+    state.energy.elastic = energy.elastic;
+    state.energy.friction += energy.slip;
+    state.energy.contact_damping += energy.viscous;
+    state.energy.stiffness_change += energy.stiffness;
+  }
 }
 
 void gather_resultants(const PairList& pairs, const Schedule& schedule, Particles& p, std::size_t t) {

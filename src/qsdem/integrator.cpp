@@ -23,9 +23,11 @@ namespace {
 }
 
 // The kick of particles [lo, hi); Local: with Cundall's damping (alpha on translation and
-// rotation), else the viscous factors alone (the code of the viscous models, unchanged).
-template <bool Local>
-double kick_particles(const Model& model, Particles& p, std::size_t lo, std::size_t hi, LocalDampingCoefficients alpha) {
+// rotation), else the viscous factors alone (the code of the viscous models, unchanged). Track:
+// also each particle's dissipation and kinetic energy (KickEnergy).
+template <bool Local, bool Track>
+double kick_particles(const Model& model, Particles& p, std::size_t lo, std::size_t hi, LocalDampingCoefficients alpha,
+                      KickEnergy energy) {
   const double dt = model.dt;
   hi = std::min(hi, p.size());
   double v2max = 0;
@@ -58,10 +60,24 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
                               alpha.rotation);
     }
     const Vec3 v = kick(vel[i], accel);
+    const Vec3 v_old = vel[i], l_old = angmom[i];
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
     angmom[i] = kick_rot(angmom[i], moment);
+    if constexpr (Track) {
+      // The kick's energy identity: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the damping
+      // took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
+      // drift keeps the rotational energy: a free rotation).
+      const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + angmom[i]);
+      const auto spin = [&](const Vec3& l) {
+        return shape[i] == ShapeKind::sphere ? Vec3(l * inv_inertia[i].x()) : angular_velocity(p.q[i], p.inertia[i], l);
+      };
+      const double mass = 1 / inv_mass[i];
+      energy.dissipated[i] = (dt * force[i] - mass * (v - v_old)).dot(v_mid) +
+                             (dt * torque[i] - (angmom[i] - l_old)).dot(spin(l_mid));
+      energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * angmom[i].dot(spin(angmom[i]));
+    }
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
     if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
@@ -71,9 +87,14 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
 
 }  // namespace
 
-double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
-  if (model.damping == DampingModel::local) return kick_particles<true>(model, p, lo, hi, local_damping(model));
-  return kick_particles<false>(model, p, lo, hi, {});
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
+  const bool local = model.damping == DampingModel::local;
+  if (energy.dissipated) {
+    if (local) return kick_particles<true, true>(model, p, lo, hi, local_damping(model), energy);
+    return kick_particles<false, true>(model, p, lo, hi, {}, energy);
+  }
+  if (local) return kick_particles<true, false>(model, p, lo, hi, local_damping(model), energy);
+  return kick_particles<false, false>(model, p, lo, hi, {}, energy);
 }
 
 // Orientation scheme (SPEC 5; notes-ellipsoid-algorithms 3). The kick above moves L with the

@@ -26,11 +26,19 @@ inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, do
   return DampedKick(a, dt)(v, force_over_mass);
 }
 
+// Where the kick writes, per particle, the energy the damping took in it and the kinetic energy
+// after it (J): State::kick_dissipation, kick_kinetic (Model::track_energy), or none (null).
+struct KickEnergy {
+  double* dissipated = nullptr;
+  double* kinetic = nullptr;
+};
+
 // Velocities and angular momenta to t + dt/2 (SPEC 5) with the damping stage's factors
 // (Particles::damping_translation, damping_rotation); angular velocity from the body inertia.
 // Particles [lo, hi), on the calling thread (the step runs it on each thread's range, step.cpp).
 // Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
-double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX);
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX,
+                            KickEnergy energy = {});
 
 // Free rotation of a rigid body over dt at constant world angular momentum L (the drift half of
 // the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and

@@ -52,6 +52,7 @@ struct Model {
   double skin = 0;              // Verlet skin (m)
   bool sort_particles = false;  // re-sort particles in space at every list rebuild (reorder.hpp);
                                 // the protocols turn it on, hand-built states keep their order
+  bool track_energy = false;    // keep State::energy (the force stage and the kick sum their terms)
   bool skip_apart_pairs = false;  // skip ellipsoid pairs while provably apart (neighbor.hpp); needs
                                   // every move to go through step(); the protocols turn it on
 };

@@ -90,7 +90,7 @@ void for_each_pair_field(F&& f, First& first, Lists&... lists) {
   f(*first.history.layout, PairField{true, 1}, first.history.values, lists.history.values...);
   f(pw_lambda_layout, PairField{true, 1}, first.pw_lambda, lists.pw_lambda...);
   f(apart_until_layout, PairField{false, 2}, first.apart_until, lists.apart_until...);  // motion bounds restart
-  f(overlap_layout, PairField{true, 0}, first.overlap, lists.overlap...);
+  f(overlap_layout, PairField{true, 9}, first.overlap, lists.overlap...);  // the energy ledger's previous overlap
 }
 
 // The history of the law about to run: kept when the list holds one of the same name and width

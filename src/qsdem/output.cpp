@@ -61,6 +61,7 @@ std::string series_header(const SeriesColumns& columns) {
   if (columns.shear) h += ",s12_Pa,s13_Pa,s23_Pa,g12,g13,g23";
   if (columns.dp) h += ",dp_Pa";
   if (columns.strain_rate) h += ",strain_rate";
+  if (columns.energy) h += ",work_J,friction_J,contact_damping_J,damping_J,stiffness_change_J,elastic_J";
   return columns.phase ? h + ",phase" : h;
 }
 
@@ -80,6 +81,11 @@ std::string series_row(const SeriesRow& r, const SeriesColumns& columns) {
   if (columns.strain_rate) {
     out.push_back(',');
     if (r.strain_rate) fmt::format_to(std::back_inserter(out), "{:.10g}", *r.strain_rate);
+  }
+  if (columns.energy) {
+    const EnergyLedger& e = r.energy;
+    fmt::format_to(std::back_inserter(out), ",{:.12g},{:.12g},{:.12g},{:.12g},{:.12g},{:.12g}", e.boundary_work,
+                   e.friction, e.contact_damping, e.damping, e.stiffness_change, e.elastic);
   }
   if (columns.phase) fmt::format_to(std::back_inserter(out), ",{}", r.phase ? *r.phase : std::string());
   return fmt::to_string(out);

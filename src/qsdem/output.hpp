@@ -25,6 +25,7 @@ struct SeriesRow {
   std::array<double, 3> shear_strain{};
   // The eps' of the row's phase, none (an empty field) for a phase without a rate controller.
   std::optional<double> strain_rate;
+  EnergyLedger energy{};  // the run's energy (energy columns)
 };
 
 // The columns a series file has after SPEC 10's and `phi_al_deg,tilt_deg`, in this order; a file
@@ -34,6 +35,7 @@ struct SeriesColumns {
   bool dp = false;           // dp_Pa: a phase that holds the volume
   bool strain_rate = false;  // strain_rate: a phase with a rate controller
   bool phase = false;        // phase: several phases write to the file
+  bool energy = false;       // work_J,friction_J,contact_damping_J,damping_J,stiffness_change_J,elastic_J
 };
 
 std::string series_header(const SeriesColumns& columns = {});

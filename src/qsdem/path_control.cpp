@@ -12,6 +12,22 @@ namespace qsdem {
 
 double axial_deviator(const Mat3& stress) { return stress(2, 2) - 0.5 * (stress(0, 0) + stress(1, 1)); }
 
+nlohmann::json cycle_energy(const EnergyLedger& start, const EnergyLedger& end) {
+  const double work = end.boundary_work - start.boundary_work, friction = end.friction - start.friction;
+  const double contact_damping = end.contact_damping - start.contact_damping, damping = end.damping - start.damping;
+  const double stiffness = end.stiffness_change - start.stiffness_change;
+  const double elastic = end.elastic - start.elastic, kinetic = end.kinetic - start.kinetic;
+  const double balance = work + stiffness - (friction + contact_damping + damping + elastic + kinetic);
+  return {{"work_J", work},
+          {"friction_J", friction},
+          {"contact_damping_J", contact_damping},
+          {"damping_J", damping},
+          {"stiffness_change_J", stiffness},
+          {"elastic_change_J", elastic},
+          {"kinetic_change_J", kinetic},
+          {"balance_error_J", balance}};
+}
+
 double CycleLoop::damping_ratio() const {
   const double stored = 0.125 * (q_max - q_min) * (e1_max - e1_min);
   return work / (4 * std::numbers::pi * stored);
@@ -51,7 +67,7 @@ class Cyclic final : public Controller {
     q_last_ = q;
     e1_last_ = e1;
     if (turning_) {
-      corners_.push_back({q, e1, st.stress_h.determinant() / h0.determinant() - 1, work_});
+      corners_.push_back({q, e1, st.stress_h.determinant() / h0.determinant() - 1, work_, st.energy});
       turning_ = false;
     }
     if (done()) return false;
@@ -67,16 +83,26 @@ class Cyclic final : public Controller {
   }
   bool done() const override { return static_cast<long>(corners_.size()) >= 2 * s_.cycles + 1; }
 
+  // v[0] = seen + 2: the corners hold the energy ledger (11 values each; 4 in checkpoints of format 8).
   std::vector<double> save() const override {
-    std::vector<double> v{seen_ ? 1.0 : 0.0, turning_ ? 1.0 : 0.0, q_last_, e1_last_, work_};
-    for (const Corner& c : corners_) v.insert(v.end(), {c.q, c.e1, c.ev, c.work});
+    std::vector<double> v{seen_ ? 3.0 : 2.0, turning_ ? 1.0 : 0.0, q_last_, e1_last_, work_};
+    for (const Corner& c : corners_) {
+      const EnergyLedger& e = c.energy;
+      v.insert(v.end(), {c.q, c.e1, c.ev, c.work, e.boundary_work, e.friction, e.contact_damping, e.damping,
+                         e.stiffness_change, e.elastic, e.kinetic});
+    }
     return v;
   }
   void restore(const std::vector<double>& v) override {
-    if (v.size() < 5 || (v.size() - 5) % 4 != 0) return;
-    seen_ = v[0] != 0, turning_ = v[1] != 0, q_last_ = v[2], e1_last_ = v[3], work_ = v[4];
+    const std::size_t width = v.empty() || v[0] < 2 ? 4 : 11;
+    if (v.size() < 5 || (v.size() - 5) % width != 0) return;
+    seen_ = v[0] == 1 || v[0] == 3, turning_ = v[1] != 0, q_last_ = v[2], e1_last_ = v[3], work_ = v[4];
     corners_.clear();
-    for (std::size_t k = 5; k < v.size(); k += 4) corners_.push_back({v[k], v[k + 1], v[k + 2], v[k + 3]});
+    for (std::size_t k = 5; k < v.size(); k += width) {
+      Corner c{v[k], v[k + 1], v[k + 2], v[k + 3], {}};
+      if (width == 11) c.energy = {v[k + 4], v[k + 5], v[k + 6], v[k + 7], v[k + 8], v[k + 9], v[k + 10]};
+      corners_.push_back(c);
+    }
   }
 
   nlohmann::json figures() const override {
@@ -87,16 +113,19 @@ class Cyclic final : public Controller {
       l.q_max = end.q, l.q_min = bottom.q, l.e1_max = end.e1, l.e1_min = bottom.e1;
       l.work = end.work - top.work - 0.5 * (top.q + end.q) * (end.e1 - top.e1);
       l.e1 = end.e1, l.ev = end.ev;
-      cycles.push_back({{"cycle", k / 2},
-                        {"q_max_Pa", l.q_max},
-                        {"q_min_Pa", l.q_min},
-                        {"e1_max", l.e1_max},
-                        {"e1_min", l.e1_min},
-                        {"secant_modulus_Pa", l.secant_modulus()},
-                        {"loop_work_J_m3", l.work},
-                        {"damping_ratio", l.damping_ratio()},
-                        {"e1", l.e1},
-                        {"ev", l.ev}});
+      nlohmann::json cycle{{"cycle", k / 2},
+                           {"q_max_Pa", l.q_max},
+                           {"q_min_Pa", l.q_min},
+                           {"e1_max", l.e1_max},
+                           {"e1_min", l.e1_min},
+                           {"secant_modulus_Pa", l.secant_modulus()},
+                           {"loop_work_J_m3", l.work},
+                           {"damping_ratio", l.damping_ratio()},
+                           {"e1", l.e1},
+                           {"ev", l.ev}};
+      // A loaded sample stores elastic energy: 0 at the corners means the run kept no ledger.
+      if (top.energy.elastic > 0 && end.energy.elastic > 0) cycle["energy"] = cycle_energy(top.energy, end.energy);
+      cycles.push_back(cycle);
     }
     return {{"bounds", s_.strain_bounds ? "strain" : "stress"},
             {"lower", s_.lower},
@@ -107,6 +136,7 @@ class Cyclic final : public Controller {
  private:
   struct Corner {
     double q, e1, ev, work;
+    EnergyLedger energy;  // the run's energy at the corner (all 0 unless output.energy)
   };
   CyclicSettings s_;
   bool seen_ = false, turning_ = false;

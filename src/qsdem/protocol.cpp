@@ -218,6 +218,7 @@ Model base_model(const Params& params, const Particles& particles) {
   m.skin = params.neighbor.skin_ratio * m.r_min;
   m.sort_particles = true;
   m.skip_apart_pairs = true;
+  m.track_energy = params.output.energy;
   return m;
 }
 
@@ -362,7 +363,8 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       const long row_step = run_clock ? st.step - 1 : n;
       const double row_time = run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt;
       const SeriesRow r{row_step, row_time, e1, ev, m, &phase.name, m.mean_stress - p0, gamma,
-                        phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt};
+                        phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt,
+                        st.energy};
       if (sink.writer) {
         ScopedStage ts(st.timers, Stage::output);
         sink.writer->write(series_row(r, sink.columns));

@@ -364,6 +364,7 @@ class Execution {
     const bool begun = file.phases.front() < p || run_.phase_started;
     SeriesColumns columns;
     columns.phase = file.phases.size() > 1;
+    columns.energy = params_.output.energy;
     for (int q : file.phases) {
       const Phase& writer_phase = params_.protocol[static_cast<std::size_t>(q)];
       columns.dp = columns.dp || holds_volume(writer_phase);

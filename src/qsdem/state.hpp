@@ -23,6 +23,8 @@ struct ForceBlock {
   Vec3 shear_viscosity_sum = Vec3::Zero();
   double max_overlap = 0;                   // largest delta / min(R_i, R_j) (blow-up watch)
   std::size_t max_overlap_pair = 0;
+  // The energy sums (Model::track_energy, J): stored, and the step's slip, dashpot and stiffness work.
+  double elastic_energy = 0, slip_work = 0, viscous_work = 0, stiffness_work = 0;
   long narrow_tests = 0;  // pairs whose narrow phase ran (not skipped as provably apart)
   long pw_iterations = 0;  // their Perram-Wertheim iterations (3x3 factorisations)
   // The block's contacts: PairList::contact_pairs[first_contact, + contacts), grouped by the
@@ -30,6 +32,20 @@ struct ForceBlock {
   // order (Schedule::contact_owner_first).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
+};
+
+// The energy of a run since its start (docs/physics.md 12), kept only when Model::track_energy.
+// Between two instants, work of the cell + stiffness change = the dissipations + the change of the
+// stored and kinetic energies, up to the time discretisation.
+struct EnergyLedger {
+  double boundary_work = 0;    // work done on the sample by the cell, sum -V sigma : L dt (J)
+  double friction = 0;         // dissipated by Coulomb sliding (J)
+  double contact_damping = 0;  // dissipated by the contacts' dashpots (J)
+  double damping = 0;          // dissipated by the particle damping (J)
+  double stiffness_change = 0; // stored energy the contact law made with no work: the tangential
+                               // springs' as k_t follows the overlap (ContactOutput::stiffness_work, J)
+  double elastic = 0;          // stored in the contacts at the last force evaluation (J)
+  double kinetic = 0;          // of the fluctuations after the last kick, translation and rotation (J)
 };
 
 struct State {
@@ -56,6 +72,10 @@ struct State {
   // Per particle, only when the phase's damping reads them (`stiffness`, damping.hpp), else empty:
   // sum over its contacts of k_n and of k_t |x_c - x_i|^2 (N/m, N m).
   std::vector<double> contact_stiffness, contact_rotational_stiffness;
+  EnergyLedger energy;
+  // Per particle, only when Model::track_energy: what its last kick dissipated and its kinetic
+  // energy after it (J), summed in particle order by the step (thread-count independent).
+  std::vector<double> kick_dissipation, kick_kinetic;
 
   std::vector<ForceBlock> blocks;       // per force block (PairList::block_first)
   long contacts_build = -1;             // NeighborState::builds of the list the contacts are of

@@ -47,6 +47,12 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   if (!schedule.has_owners_of(s)) assign_single_owner(schedule, s);
   const std::size_t owners = schedule.owners();
   const int nthreads = static_cast<int>(owners);
+  KickEnergy kick_energy;
+  if (model.track_energy) {
+    s.kick_dissipation.resize(p.size());
+    s.kick_kinetic.resize(p.size());
+    kick_energy = {s.kick_dissipation.data(), s.kick_kinetic.data()};
+  }
   double v2max = 0;
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
   const double start = omp_get_wtime();
@@ -65,7 +71,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       if (!s.contact_stiffness.empty()) gather_contact_stiffness(s.pairs, schedule, s, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
       update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping.hpp)
-      m = std::max(m, integrate_velocities(model, p, lo, hi));
+      m = std::max(m, integrate_velocities(model, p, lo, hi, kick_energy));
       const double t2 = omp_get_wtime();
       advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);
       const double t3 = omp_get_wtime();
@@ -81,6 +87,12 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   constexpr std::array stages{Stage::gather, Stage::integrate, Stage::advance};
   for (std::size_t k = 0; k < 3; ++k)
     s.timers.seconds[static_cast<std::size_t>(stages[k])] += sum > 0 ? wall * busy[k] / sum : wall / 3;
+  if (model.track_energy) {  // in particle order: the same sums for any thread count
+    double dissipated = 0, kinetic = 0;
+    for (std::size_t i = 0; i < p.size(); ++i) dissipated += s.kick_dissipation[i], kinetic += s.kick_kinetic[i];
+    s.energy.damping += dissipated;
+    s.energy.kinetic = kinetic;
+  }
   return v2max;
 }
 
@@ -97,7 +109,13 @@ void step(const Model& model, State& s) {
 }
 
 void step(const Model& model, State& s, Schedule& schedule) {
+  // The cell's work from the last force evaluation to this one: the cell moved by L dt under the
+  // stresses at both ends (trapezoid), -V sigma : L dt (compression positive).
+  // (The force stage leaves L alone: the servo runs after it.)
+  const auto power = [&] { return s.stress_volume * s.stress.cwiseProduct(s.cell.L).sum(); };  // V sigma : L
+  const double power_before = model.track_energy ? power() : 0.0;
   pair_forces(model, s, schedule);
+  if (model.track_energy) s.energy.boundary_work -= 0.5 * model.dt * (power_before + power());
   {
     // The cell's motion for the step needs only the stress and stiffness of the pair forces.
     ScopedStage t(s.timers, Stage::servo);

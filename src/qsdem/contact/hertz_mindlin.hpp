@@ -20,7 +20,11 @@
 //     then capped at |F_t| <= mu F_n (Coulomb sliding).
 //   Output (ContactOutput)
 //     force on j = F_n n + F_t (particle i receives the opposite), k_n and k_t, and the elastic
-//     energy 2/5 F_n delta (= 8/15 E* sqrt(R_e) delta^(5/2), the integral of F_n) + |F_t|^2 / (2 k_t).
+//     energy 2/5 F_n delta (= 8/15 E* sqrt(R_e) delta^(5/2), the integral of F_n) + |F_t|^2 / (2 k_t),
+//     and the sliding's dissipation mu F_n (|F_t trial| - mu F_n) / k_t (the cap times the slip).
+//     k_t follows the overlap while the turned F_t keeps its magnitude, so |F_t|^2 / (2 k_t)
+//     changes by |F_t|^2 / 2 (1/k_t - 1/k_t,before) with no work done (stiffness_work; the
+//     incremental Mindlin law is not conservative, Elata & Berryman, Mech. Mater. 24 (1996)).
 //   No contact damping (the paper uses none), no masses, no spins, no torque of its own.
 #pragma once
 #include <array>
@@ -62,14 +66,25 @@ struct HertzMindlin {
     out.kn = 2.0 * effective_modulus * a;
     out.kt = 8.0 * effective_shear_modulus * a;
     double sx = shear[0], sy = shear[1], sz = shear[2];
+    out.stiffness_work = stiffness_work(c, out.kt, sx, sy, sz);
     turn_into_plane(c.nx, c.ny, c.nz, sx, sy, sz);
     add_tangential_spring(c, out.kt * dt, sx, sy, sz);
-    cap_by_friction(friction * fn, sx, sy, sz);
+    out.slip_work = cap_by_friction(friction * fn, out.kt, sx, sy, sz);
     shear[0] = sx, shear[1] = sy, shear[2] = sz;
     out.fx = fn * c.nx + sx, out.fy = fn * c.ny + sy, out.fz = fn * c.nz + sz;
     out.tx = out.ty = out.tz = 0;
     out.cn = out.ct = 0;
+    out.viscous_work = 0;
     out.energy = 0.4 * fn * c.overlap + ((sx * sx + sy * sy) + sz * sz) / (2 * out.kt);
+  }
+
+  // |F_t|^2 / 2 (1/k_t - 1/k_t,before) of the stored force F_t = s, k_t,before = 8 G* sqrt(R_e
+  // delta_before) (the current R_e: exact for spheres); 0 for a new contact.
+  [[gnu::always_inline]] inline double stiffness_work(const ContactInput& c, double kt, double sx, double sy,
+                                                      double sz) const {
+    const double before = 8.0 * effective_shear_modulus * std::sqrt(c.radius * c.previous_overlap);
+    const double mag2 = (sx * sx + sy * sy) + sz * sz;
+    return c.previous_overlap > 0 ? 0.5 * mag2 * (1 / kt - 1 / before) : 0.0;
   }
 
   // Hertz: F_n = 4/3 E* a delta, a = sqrt(R_e delta).
@@ -106,12 +121,17 @@ struct HertzMindlin {
     sx = sx - kdt * (c.vx - vn * c.nx), sy = sy - kdt * (c.vy - vn * c.ny), sz = sz - kdt * (c.vz - vn * c.nz);
   }
 
-  // Coulomb: |F_t| <= cap (= mu F_n), by scaling F_t down to the cap when it is beyond.
-  [[gnu::always_inline]] static inline void cap_by_friction(double cap, double& sx, double& sy, double& sz) {
+  // Coulomb: |F_t| <= cap (= mu F_n), by scaling F_t down to the cap when it is beyond. Returns
+  // the energy the slip dissipates, cap (|F_t| - cap) / k_t (the slip is the spring's excess
+  // stretch; 0 without sliding). A driver that does not read it pays nothing (inlined, unused).
+  [[gnu::always_inline]] static inline double cap_by_friction(double cap, double kt, double& sx, double& sy,
+                                                              double& sz) {
     const double mag2 = (sx * sx + sy * sy) + sz * sz;
-    const double slide = cap / std::sqrt(mag2);
+    const double mag = std::sqrt(mag2);
+    const double slide = cap / mag;
     const bool sliding = mag2 > cap * cap;
     sx = sliding ? sx * slide : sx, sy = sliding ? sy * slide : sy, sz = sliding ? sz * slide : sz;
+    return sliding ? cap * (mag - cap) / kt : 0.0;
   }
 };
 

@@ -81,11 +81,12 @@ struct HertzMindlinDashpot {
     const double gamma_n = dashpot * std::sqrt(out.kn * c.mass), gamma_t = dashpot * std::sqrt(out.kt * c.mass);
     const double fn = fn_elastic - gamma_n * vn;
     double sx = spring[0], sy = spring[1], sz = spring[2];
+    out.stiffness_work = elastic.stiffness_work(c, out.kt, sx, sy, sz);
     HertzMindlin::turn_into_plane(c.nx, c.ny, c.nz, sx, sy, sz);
     HertzMindlin::add_tangential_spring(c, out.kt * dt, sx, sy, sz);
     const double cap = elastic.friction * std::abs(fn);
     const bool sliding = (sx * sx + sy * sy) + sz * sz > cap * cap;
-    HertzMindlin::cap_by_friction(cap, sx, sy, sz);
+    out.slip_work = HertzMindlin::cap_by_friction(cap, out.kt, sx, sy, sz);
     spring[0] = sx, spring[1] = sy, spring[2] = sz;
     const double vtx = c.vx - vn * c.nx, vty = c.vy - vn * c.ny, vtz = c.vz - vn * c.nz;
     const double tx = sliding ? sx : sx - gamma_t * vtx, ty = sliding ? sy : sy - gamma_t * vty;
@@ -93,6 +94,9 @@ struct HertzMindlinDashpot {
     out.fx = fn * c.nx + tx, out.fy = fn * c.ny + ty, out.fz = fn * c.nz + tz;
     out.tx = out.ty = out.tz = 0;
     out.cn = gamma_n, out.ct = sliding ? 0.0 : gamma_t;
+    // The dashpots' power on the relative velocity, over the step: gamma_n vn^2 + gamma_t |v_t|^2.
+    const double vt2 = (vtx * vtx + vty * vty) + vtz * vtz;
+    out.viscous_work = dt * (gamma_n * vn * vn + out.ct * vt2);
     out.energy = 0.4 * fn_elastic * c.overlap + ((sx * sx + sy * sy) + sz * sz) / (2 * out.kt);
   }
 };

@@ -70,6 +70,8 @@ struct ContactInput {
                        // including the affine field's part L l (SPEC 3)
   double wx, wy, wz;   // w_j - w_i (rad/s), for laws with needs_spins (else 0)
   double mass;         // m* = m_i m_j / (m_i + m_j) (kg), for laws with needs_masses (else 0)
+  double previous_overlap;  // delta at the pair's last force evaluation, 0 for a new contact (m): for
+                            // stiffness_work, given only when the run keeps its energy (else 0)
 };
 
 // What the law returns for one contact.
@@ -81,6 +83,12 @@ struct ContactOutput {
   double cn, ct;      // normal and tangential viscous coefficient (N s/m) of the contact's force,
                       // laws with has_dashpots: the servo's affine viscosity
   double energy;      // elastic energy stored in the contact (J)
+  double slip_work;   // energy the Coulomb sliding of this step dissipated (J): the capped force
+                      // times the slip, mu F_n (|F_t trial| - mu F_n) / k_t
+  double viscous_work;  // energy the contact's dashpots dissipated in this step (J), laws with
+                        // has_dashpots (else 0)
+  double stiffness_work;  // change of the stored energy in this step that no force's work made (J):
+                          // an incremental law whose stiffness follows the overlap (0 if none)
 };
 
 // What every law is made from: the material's contact constants (SPEC 4), the phase's friction
@@ -105,7 +113,7 @@ template <class Law>
 ContactOutput evaluate_contact(const Law& law, const ContactGeometry& g, const Vec3& v, const Vec3& spin, double mass,
                                double dt, double* history) {
   const ContactInput in{g.normal.x(), g.normal.y(), g.normal.z(), g.overlap, g.radius, v.x(),  v.y(),
-                        v.z(),        spin.x(),     spin.y(),     spin.z(),  mass};
+                        v.z(),        spin.x(),     spin.y(),     spin.z(),  mass,     0.0};
   ContactOutput out;
   law.evaluate(in, dt, HistoryView{history}, out);
   return out;
