@@ -211,15 +211,49 @@ TEST(LoadingPaths, SimpleShearHoldsTheNormalStress) {
 // 400 kPa) ends with every normal stress within its 0.5 % equilibrium tolerance of the named
 // stress, the normal stresses stay equal within 1 % of p at every row (measured 0.49 %, the servo
 // moving each axis at its cap), and the volume follows the load: loading and reloading compress,
-// unloading dilates.
-TEST(LoadingPaths, IsotropicCycleReachesTheNamedStresses) {
+// unloading dilates. Each branch's `isotropic` record in summary.json is the same computation on the
+// rows, from the last row of the phase before (compaction.csv's for the load) to its own last row:
+// p at both ends, volume_strain = -(V_end - V_start)/V_start, K = dp/volume_strain > 0, and for the
+// unload and the reload, which return to the start stress of the branch before, the volume strain
+// the pair leaves, -(V_end/V_start of the branch before - 1). V/V_load in series.csv is 1 + ev; the
+// load's start, in compaction.csv, comes into that reference by the void ratios: V = V_s (1 + e).
+// Tolerances from the rows' digits, which round each value by half a unit of its last digit: p_Pa
+// and ev have 10 significant digits (p to a relative 5e-10; ev, |ev| < 1e-2, to 5e-13), void_ratio
+// 8 (e, 0.1 <= e < 1, to 5e-9; a ratio (1 + e)/(1 + e') to 1e-8): a volume strain between rows of
+// series.csv to 1e-12 (two ev's), one from the load's start to 2e-8 (the ratio, then two ev's), each
+// doubled for the arithmetic; K to the sum of the relative errors of dp and of the volume strain.
+TEST(LoadingPaths, IsotropicCycleReachesTheNamedStressesAndMeasuresItsBranches) {
   const fs::path dir = run_example("isotropic-cycle.toml", "isotropic-cycle");
   const Csv s = read_csv(dir / "series.csv");
+  const Csv compaction = read_csv(dir / "compaction.csv");
+  const nlohmann::json summary = nlohmann::json::parse(slurp(dir / "summary.json"));
   ASSERT_FALSE(s.rows.empty());
+  ASSERT_FALSE(compaction.rows.empty());
   const std::size_t phase = s.col("phase");
   const std::vector<std::pair<std::string, double>> branches{{"load", 400e3}, {"unload", 100e3}, {"reload", 400e3}};
-  double ev_before = 0;  // ev is counted from the start of the loading
-  for (const auto& [name, target] : branches) {
+  const nlohmann::json& phases = summary["phases"];
+  ASSERT_EQ(phases.size(), 4u);
+  EXPECT_FALSE(phases[0].contains("isotropic")) << "the compaction is no branch";
+  // The end of the phase before the branch (first: the compaction's, brought into series.csv's reference).
+  ASSERT_EQ(s.rows[0][phase], "load");
+  const std::size_t c_last = compaction.rows.size() - 1;
+  const std::size_t l_last = [&] {
+    std::size_t k = 0;
+    while (k + 1 < s.rows.size() && s.rows[k + 1][phase] == "load") ++k;
+    return k;
+  }();
+  double p_before = compaction.at(c_last, "p_Pa");
+  double ev_before = (1 + compaction.at(c_last, "void_ratio")) / (1 + s.at(l_last, "void_ratio")) * (1 + s.at(l_last, "ev")) - 1;
+  // The ranges the tolerances above assume.
+  for (std::size_t k = 0; k < s.rows.size(); ++k) {
+    ASSERT_LT(std::abs(s.at(k, "ev")), 1e-2) << "row " << k;
+    ASSERT_TRUE(s.at(k, "void_ratio") >= 0.1 && s.at(k, "void_ratio") < 1) << "row " << k;
+  }
+  ASSERT_TRUE(compaction.at(c_last, "void_ratio") >= 0.1 && compaction.at(c_last, "void_ratio") < 1);
+  double tol = 2e-8;  // of a volume strain from this start
+  double p_start_before = 0, ev_start_before = 0;  // the start of the branch before (none for the load)
+  for (std::size_t b = 0; b < branches.size(); ++b) {
+    const auto& [name, target] = branches[b];
     std::size_t last = s.rows.size();
     for (std::size_t k = 0; k < s.rows.size(); ++k) {
       if (s.rows[k][phase] != name) continue;
@@ -231,10 +265,35 @@ TEST(LoadingPaths, IsotropicCycleReachesTheNamedStresses) {
     ASSERT_LT(last, s.rows.size()) << "no rows of " << name;
     for (const char* c : {"s11_Pa", "s22_Pa", "s33_Pa"})
       EXPECT_LE(std::abs(s.at(last, c) / target - 1), 0.005) << name << " " << c;
-    const double dev = s.at(last, "ev") - ev_before;
-    if (target > 200e3) EXPECT_LT(dev, 0) << name << " compresses";
-    else EXPECT_GT(dev, 0) << name << " dilates";
-    ev_before = s.at(last, "ev");
+    const double ev = s.at(last, "ev"), p = s.at(last, "p_Pa");
+    if (target > 200e3) EXPECT_LT(ev, ev_before) << name << " compresses";
+    else EXPECT_GT(ev, ev_before) << name << " dilates";
+
+    const nlohmann::json& rec = phases[b + 1];
+    ASSERT_EQ(rec["name"], name);
+    ASSERT_TRUE(rec.contains("isotropic")) << name;
+    const nlohmann::json& iso = rec["isotropic"];
+    const double volume_strain = -(ev - ev_before) / (1 + ev_before);
+    EXPECT_NEAR(iso["p_start_Pa"].get<double>(), p_before, 1e-9 * p_before) << name;
+    EXPECT_NEAR(iso["p_end_Pa"].get<double>(), p, 1e-9 * p) << name;
+    EXPECT_NEAR(iso["volume_strain"].get<double>(), volume_strain, tol) << name;
+    const double k_bulk = iso["bulk_modulus_Pa"].get<double>();
+    EXPECT_GT(k_bulk, 0) << name;
+    const double k_rows = (p - p_before) / volume_strain;  // relative error: that of volume_strain
+    const double k_tol = 1e-9 * (p + p_before) / std::abs(p - p_before) + tol / std::abs(volume_strain);
+    EXPECT_NEAR(k_bulk, k_rows, std::abs(k_rows) * k_tol) << name;
+    if (b == 0) {
+      EXPECT_FALSE(iso.contains("residual_volume_strain")) << "no isotropic branch before the load";
+    } else {
+      ASSERT_LE(std::abs(target / p_start_before - 1), 0.01) << name << " returns to the start of the branch before";
+      ASSERT_TRUE(iso.contains("residual_volume_strain")) << name;
+      // The unload's: ev at its end minus ev at the start of the load (the hysteresis of the cycle).
+      EXPECT_NEAR(iso["residual_volume_strain"].get<double>(), -(ev - ev_start_before) / (1 + ev_start_before),
+                  b == 1 ? 2e-8 : 2e-12)
+          << name;
+    }
+    p_start_before = p_before, ev_start_before = ev_before;
+    p_before = p, ev_before = ev, tol = 2e-12;
   }
 }
 
@@ -248,7 +307,8 @@ TEST(LoadingPaths, IsotropicCycleReachesTheNamedStresses) {
 // - 2 x 5 turns, the phase ending at the 11th corner, and summary.json's 5 cycles;
 // - each cycle's figures (top -> bottom -> top): E_sec = dq / de1 between its bottom and closing top,
 //   W_loop = the trapezoid sum of q de1 over its rows minus the chord (q0 + q2)/2 (e2 - e0),
-//   D = W_loop / (4 pi dq de1 / 8), e1 and ev at the closing corner, to 1e-6 (the rows' 10 digits).
+//   D = W_loop / (4 pi dq de1 / 8), e1 and ev at the closing corner, to 1e-6 (the rows' 10 digits);
+// - no `isotropic` record: the compaction is the first phase, the cyclic one drives 33 at a rate.
 TEST(LoadingPaths, CyclicTriaxialTurnsAtTheBoundsAndMeasuresItsLoops) {
   const fs::path dir = run_example("cyclic-triaxial.toml", "cyclic-triaxial");
   const Csv s = read_csv(dir / "series.csv");
@@ -286,6 +346,8 @@ TEST(LoadingPaths, CyclicTriaxialTurnsAtTheBoundsAndMeasuresItsLoops) {
     EXPECT_LE(q[k], upper + tol) << "row " << k;
     if (k >= corner[0]) EXPECT_GE(q[k], lower - tol) << "row " << k;
   }
+  for (const nlohmann::json& rec : summary["phases"])
+    EXPECT_FALSE(rec.contains("isotropic")) << rec["name"];
   const nlohmann::json& cycles = summary["phases"][1]["controller"]["cycles"];
   ASSERT_EQ(cycles.size(), 5u);
   for (std::size_t n = 0; n < 5; ++n) {

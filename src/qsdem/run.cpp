@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <cmath>
 #include <chrono>
 #include <csignal>
 #include <cstdio>
@@ -239,33 +240,69 @@ long snapshot_rows(const RunProgress& run) {
   return k;
 }
 
-// The figures of every phase.
-nlohmann::json phase_figures(const Phase& phase, const PhaseRecord& r) {
+// The common target (Pa) of the three normal components of a phase that holds them all at one
+// stress, else none. "Equal" allows for unit conversion's rounding ("400 kPa" and "0.4 MPa").
+std::optional<double> isotropic_target(const Phase& phase) {
+  const auto& c = phase.controls.component;
+  for (std::size_t k = 0; k < 3; ++k)
+    if (c[k].kind != ComponentControl::Kind::stress || std::abs(c[k].value - c[0].value) > 1e-9 * std::abs(c[0].value))
+      return std::nullopt;
+  return c[0].value;
+}
+
+// Phase p as an isotropic branch (docs/loading-paths.md): a phase after the first with an isotropic
+// target, from the end of the phase before to its own end; null for any other phase. Compression
+// positive: volume_strain = -(V_end - V_start)/V_start, the secant bulk modulus dp/volume_strain;
+// a branch back to the start stress (within 1 %) of the isotropic branch before it also gives the
+// volume strain the pair of branches leaves (the hysteresis of a load-unload cycle).
+nlohmann::json isotropic_branch(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p) {
+  const std::optional<double> target = isotropic_target(protocol[p]);
+  if (p == 0 || !target) return nullptr;
+  const Measures &start = records[p - 1].final, &end = records[p].final;
+  const double volume_strain = -(end.volume - start.volume) / start.volume;
+  nlohmann::json j = {{"p_start_Pa", start.mean_stress}, {"p_end_Pa", end.mean_stress}, {"volume_strain", volume_strain}};
+  if (volume_strain != 0) j["bulk_modulus_Pa"] = (end.mean_stress - start.mean_stress) / volume_strain;
+  if (p >= 2 && isotropic_target(protocol[p - 1])) {
+    const Measures& before = records[p - 2].final;  // the start of the branch before
+    if (std::abs(*target - before.mean_stress) <= 0.01 * before.mean_stress)
+      j["residual_volume_strain"] = -(end.volume / before.volume - 1);
+  }
+  return j;
+}
+
+// The figures of phase p, which has ended; `records`: those of the protocol's phases.
+nlohmann::json phase_figures(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p) {
+  const Phase& phase = protocol[p];
+  const PhaseRecord& r = records[p];
   const double rows = static_cast<double>(std::max(1L, r.rows));
   int normal_targets = 0;
   for (int c = 0; c < 3; ++c)
     normal_targets += phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::stress;
-  return {{"name", phase.name},
-          {"file", phase.output.file},
-          {"steps", r.steps},
-          {"rows", r.rows},
-          {"wall_s", r.wall_s},
-          {"mean_ufr", r.ufr / rows},
-          {"mean_iuf", r.iuf / rows},
-          {"mean_imom", r.imom / rows},
-          {"peak_phi_deg", r.peak_phi_deg},
-          {"peak_phi_e1", r.peak_phi_e1},
-          {"final_e1", r.final_e1},
-          {"final_ev", r.final_ev},
-          {"max_stress_error", r.max_stress_error},
-          {"mean_stress_error", normal_targets > 0 ? r.stress_error / (normal_targets * rows) : 0.0},
-          {"max_shear_stress", r.max_shear_stress},
-          {"final", measures_json(r.final)}};
+  nlohmann::json j = {{"name", phase.name},
+                      {"file", phase.output.file},
+                      {"steps", r.steps},
+                      {"rows", r.rows},
+                      {"wall_s", r.wall_s},
+                      {"mean_ufr", r.ufr / rows},
+                      {"mean_iuf", r.iuf / rows},
+                      {"mean_imom", r.imom / rows},
+                      {"peak_phi_deg", r.peak_phi_deg},
+                      {"peak_phi_e1", r.peak_phi_e1},
+                      {"final_e1", r.final_e1},
+                      {"final_ev", r.final_ev},
+                      {"max_stress_error", r.max_stress_error},
+                      {"mean_stress_error", normal_targets > 0 ? r.stress_error / (normal_targets * rows) : 0.0},
+                      {"max_shear_stress", r.max_shear_stress},
+                      {"final", measures_json(r.final)}};
+  if (nlohmann::json iso = isotropic_branch(protocol, records, p); !iso.is_null()) j["isotropic"] = iso;
+  return j;
 }
 
 // `controller`: the phase's controller's state at its end (RunProgress::controller_end), or none.
-nlohmann::json phase_json(const Phase& phase, const PhaseRecord& r, const std::vector<double>* controller) {
-  nlohmann::json j = phase_figures(phase, r);
+nlohmann::json phase_json(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p,
+                          const std::vector<double>* controller) {
+  const Phase& phase = protocol[p];
+  nlohmann::json j = phase_figures(protocol, records, p);
   if (phase.make_controller && controller && !controller->empty()) {
     const std::unique_ptr<Controller> c = phase.make_controller();
     c->restore(*controller);
@@ -478,7 +515,7 @@ class Execution {
     }
     nlohmann::json phases = nlohmann::json::array();
     for (std::size_t p = 0; p < params_.protocol.size() && p < static_cast<std::size_t>(run_.phase); ++p)
-      phases.push_back(phase_json(params_.protocol[p], run_.phases[p], controller_end(p)));
+      phases.push_back(phase_json(params_.protocol, run_.phases, p, controller_end(p)));
     s["phases"] = phases;
     // The first phase as the sample's compaction; the last, when it is another, as the test.
     const PhaseRecord& first = run_.phases.front();
@@ -486,7 +523,7 @@ class Execution {
     s["void_ratio_after_compaction"] = first.final.void_ratio;
     if (!run_.prepare_only && run_.phases.size() > 1) {
       const nlohmann::json last =
-          phase_json(params_.protocol.back(), run_.phases.back(), controller_end(run_.phases.size() - 1));
+          phase_json(params_.protocol, run_.phases, run_.phases.size() - 1, controller_end(run_.phases.size() - 1));
       s["triaxial"] = {{"steps", last["steps"]},
                        {"rows", last["rows"]},
                        {"wall_s", last["wall_s"]},
