@@ -32,6 +32,7 @@
 
 using namespace qsdem;
 namespace fs = std::filesystem;
+using qsdem_test::lines;
 
 extern char** environ;
 
@@ -79,13 +80,6 @@ std::string read(const fs::path& p) {
   std::stringstream ss;
   ss << in.rdbuf();
   return ss.str();
-}
-
-long lines(const fs::path& p) {
-  std::ifstream in(p);
-  long n = 0;
-  for (std::string l; std::getline(in, l);) ++n;
-  return n;
 }
 
 // Starts the qsdem binary with arguments; stdout and stderr go to files in `log`.
@@ -487,29 +481,18 @@ TEST(CheckpointFile, Format1PreparedSampleStillShears) {
                     d.string()),
             0)
       << read(d.string() + ".err");
-  const auto table = [](const fs::path& f) {
-    std::vector<std::vector<double>> rows;
-    std::ifstream in(f);
-    std::string line;
-    std::getline(in, line);  // header
-    while (std::getline(in, line)) {
-      std::vector<double> row;
-      std::stringstream ss(line);
-      for (std::string cell; std::getline(ss, cell, ',');) row.push_back(std::stod(cell));
-      rows.push_back(row);
-    }
-    return rows;
-  };
-  const auto got = table(d / "series.csv"), want = table(golden / "series-by-7240daa.csv");
-  ASSERT_EQ(got.size(), 10u);
-  ASSERT_EQ(got.size(), want.size());
+  const qsdem_test::Csv got = qsdem_test::read_csv(d / "series.csv");
+  const qsdem_test::Csv want = qsdem_test::read_csv(golden / "series-by-7240daa.csv");
+  ASSERT_EQ(got.rows.size(), 10u);
+  ASSERT_EQ(got.rows.size(), want.rows.size());
   // Same physics, other round-off (the force loop now sums in another order): 1e-6 of each
   // column's largest magnitude, as the golden test.
-  for (std::size_t c = 0; c < want[0].size(); ++c) {
+  for (const std::string& name : want.header) {
+    const std::vector<double> g = got.column(name), w = want.column(name);
     double scale = 0;
-    for (const auto& r : want) scale = std::max(scale, std::abs(r[c]));
-    for (std::size_t k = 0; k < want.size(); ++k)
-      EXPECT_NEAR(got[k][c], want[k][c], 1e-6 * scale + 1e-300) << "row " << k << " column " << c;
+    for (double v : w) scale = std::max(scale, std::abs(v));
+    for (std::size_t k = 0; k < w.size(); ++k)
+      EXPECT_NEAR(g[k], w[k], 1e-6 * scale + 1e-300) << "row " << k << " column " << name;
   }
 }
 

@@ -28,6 +28,8 @@
 
 using namespace qsdem;
 namespace fs = std::filesystem;
+using qsdem_test::Csv;
+using qsdem_test::read_csv;
 using qsdem_test::slurp;
 
 namespace {
@@ -39,33 +41,6 @@ fs::path scratch(const std::string& name) {
   fs::remove_all(d);
   fs::create_directories(d.parent_path());
   return d;
-}
-
-struct Csv {
-  std::vector<std::string> header;
-  std::vector<std::vector<std::string>> rows;
-  std::size_t col(const std::string& name) const {
-    for (std::size_t k = 0; k < header.size(); ++k)
-      if (header[k] == name) return k;
-    ADD_FAILURE() << "no column " << name;
-    return 0;
-  }
-  double at(std::size_t row, const std::string& name) const { return std::stod(rows.at(row).at(col(name))); }
-};
-
-Csv read_csv(const fs::path& p) {
-  Csv t;
-  std::istringstream in(slurp(p));
-  std::string line;
-  const auto split = [](const std::string& l) {
-    std::vector<std::string> out;
-    std::stringstream s(l);
-    for (std::string cell; std::getline(s, cell, ',');) out.push_back(cell);
-    return out;
-  };
-  if (std::getline(in, line)) t.header = split(line);
-  while (std::getline(in, line)) t.rows.push_back(split(line));
-  return t;
 }
 
 // Runs an example case (with overrides) to its end in a fresh directory.

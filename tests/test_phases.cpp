@@ -21,6 +21,9 @@
 
 using namespace qsdem;
 namespace fs = std::filesystem;
+using qsdem_test::Csv;
+using qsdem_test::lines;
+using qsdem_test::read_csv;
 using qsdem_test::slurp;
 
 extern char** environ;
@@ -97,39 +100,6 @@ std::string input_error(const std::string& phases) {
     return e.what();
   }
   return "(no error)";
-}
-
-struct Csv {
-  std::vector<std::string> header;
-  std::vector<std::vector<std::string>> rows;
-  std::size_t col(const std::string& name) const {
-    for (std::size_t k = 0; k < header.size(); ++k)
-      if (header[k] == name) return k;
-    ADD_FAILURE() << "no column " << name;
-    return 0;
-  }
-};
-
-Csv read_csv(const fs::path& p) {
-  Csv t;
-  std::istringstream in(slurp(p));
-  std::string line;
-  const auto split = [](const std::string& l) {
-    std::vector<std::string> out;
-    std::stringstream s(l);
-    for (std::string cell; std::getline(s, cell, ',');) out.push_back(cell);
-    return out;
-  };
-  if (std::getline(in, line)) t.header = split(line);
-  while (std::getline(in, line)) t.rows.push_back(split(line));
-  return t;
-}
-
-long lines(const fs::path& p) {
-  std::ifstream in(p);
-  long n = 0;
-  for (std::string l; std::getline(in, l);) ++n;
-  return n;
 }
 
 // Runs `case_path` to the end in `dir`, or, with `kill_at_rows` > 0, stops it by SIGTERM once

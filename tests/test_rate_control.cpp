@@ -26,6 +26,9 @@
 
 using namespace qsdem;
 namespace fs = std::filesystem;
+using qsdem_test::Csv;
+using qsdem_test::lines;
+using qsdem_test::read_csv;
 using qsdem_test::slurp;
 
 namespace {
@@ -65,47 +68,6 @@ fs::path case_file(const std::string& name, const std::string& text) {
   const fs::path f = scratch(name + ".toml");
   std::ofstream(f) << text;
   return f;
-}
-
-struct Csv {
-  std::vector<std::string> header;
-  std::vector<std::vector<double>> rows;
-  std::size_t col(const std::string& name) const {
-    for (std::size_t k = 0; k < header.size(); ++k)
-      if (header[k] == name) return k;
-    ADD_FAILURE() << "no column " << name;
-    return 0;
-  }
-  std::vector<double> column(const std::string& name) const {
-    std::vector<double> v;
-    const std::size_t c = col(name);
-    for (const auto& r : rows) v.push_back(r.at(c));
-    return v;
-  }
-};
-
-Csv read_csv(const fs::path& p) {
-  Csv t;
-  std::istringstream in(slurp(p));
-  std::string line;
-  if (std::getline(in, line)) {
-    std::stringstream s(line);
-    for (std::string cell; std::getline(s, cell, ',');) t.header.push_back(cell);
-  }
-  while (std::getline(in, line)) {
-    std::vector<double> row;
-    std::stringstream s(line);
-    for (std::string cell; std::getline(s, cell, ',');) row.push_back(std::stod(cell));
-    t.rows.push_back(row);
-  }
-  return t;
-}
-
-long lines(const fs::path& p) {
-  std::ifstream in(p);
-  long n = 0;
-  for (std::string l; std::getline(in, l);) ++n;
-  return n;
 }
 
 // Runs `case_path` in `dir`; with kill_at_rows > 0, stops it by SIGTERM once series.csv.partial
@@ -292,23 +254,15 @@ controller = {{ kind = "rate", component = "33", target = "1 %", min_rate = 1e-7
 )",
                                                                         r1))),
       both);
-  // The file has a phase column (text): its rows of load2, split by hand.
-  std::istringstream in(slurp(both / "series.csv"));
-  std::string line;
-  std::getline(in, line);
-  std::vector<std::string> header;
-  for (std::stringstream hs(line); std::getline(hs, line, ',');) header.push_back(line);
-  ASSERT_EQ(header.back(), "phase");
-  ASSERT_EQ(header[header.size() - 2], "strain_rate");
-  const auto imom_col = static_cast<std::size_t>(std::find(header.begin(), header.end(), "imom") - header.begin());
+  // The file has a phase column: its rows of load2.
+  const Csv s = read_csv(both / "series.csv");
+  ASSERT_EQ(s.header.back(), "phase");
+  ASSERT_EQ(s.header[s.header.size() - 2], "strain_rate");
   std::vector<double> rate, imom;
-  while (std::getline(in, line)) {
-    std::vector<std::string> cells;
-    std::stringstream ls(line);
-    for (std::string c; std::getline(ls, c, ',');) cells.push_back(c);
-    if (cells.back() != "load2") continue;
-    rate.push_back(std::stod(cells[header.size() - 2]));
-    imom.push_back(std::stod(cells[imom_col]));
+  for (std::size_t k = 0; k < s.rows.size(); ++k) {
+    if (s.rows[k].back() != "load2") continue;
+    rate.push_back(s.at(k, "strain_rate"));
+    imom.push_back(s.at(k, "imom"));
   }
   ASSERT_EQ(rate.size(), 30u);
   EXPECT_NEAR(rate.front(), r1, 1e-9 * r1) << "load2 starts at the rate load1 ended at (10 digits in the file)";

@@ -1,7 +1,8 @@
-// Helpers the process-level tests share: read a file whole, start the CLI with its output in
-// files, wait for it. Header-only, tests only.
+// Helpers the process-level tests share: read a file whole or as CSV, start the CLI with its output
+// in files, wait for it. Header-only, tests only.
 #pragma once
 #include <fcntl.h>
+#include <gtest/gtest.h>
 #include <spawn.h>
 #include <sys/wait.h>
 #include <omp.h>
@@ -20,6 +21,49 @@ inline std::string slurp(const std::filesystem::path& p) {
   std::ostringstream s;
   s << in.rdbuf();
   return s.str();
+}
+
+// The lines of a file (a CSV file's rows and its header).
+inline long lines(const std::filesystem::path& p) {
+  std::ifstream in(p);
+  long n = 0;
+  for (std::string l; std::getline(in, l);) ++n;
+  return n;
+}
+
+// A CSV file as a run writes it: the header and the rows, cells as text (a `phase` column is text).
+struct Csv {
+  std::vector<std::string> header;
+  std::vector<std::vector<std::string>> rows;
+  // The index of column `name`; a test failure (and 0) when there is none.
+  std::size_t col(const std::string& name) const {
+    for (std::size_t k = 0; k < header.size(); ++k)
+      if (header[k] == name) return k;
+    ADD_FAILURE() << "no column " << name;
+    return 0;
+  }
+  double at(std::size_t row, const std::string& name) const { return std::stod(rows.at(row).at(col(name))); }
+  std::vector<double> column(const std::string& name) const {
+    const std::size_t c = col(name);
+    std::vector<double> v;
+    for (const auto& r : rows) v.push_back(std::stod(r.at(c)));
+    return v;
+  }
+};
+
+inline Csv read_csv(const std::filesystem::path& p) {
+  const auto split = [](const std::string& l) {
+    std::vector<std::string> cells;
+    std::stringstream s(l);
+    for (std::string cell; std::getline(s, cell, ',');) cells.push_back(cell);
+    return cells;
+  };
+  Csv t;
+  std::istringstream in(slurp(p));
+  std::string line;
+  if (std::getline(in, line)) t.header = split(line);
+  while (std::getline(in, line)) t.rows.push_back(split(line));
+  return t;
 }
 
 // Starts `args` (args[0] looked up in PATH unless it holds a '/') with stdout and stderr in
