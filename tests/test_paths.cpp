@@ -319,7 +319,9 @@ TEST(LoadingPaths, CyclicTriaxialTurnsAtTheBoundsAndMeasuresItsLoops) {
   EXPECT_LT(step_dq, 1e3) << "steps of q small against the 100 kPa range";
   for (std::size_t k = 0; k < rows; ++k) {
     EXPECT_LE(q[k], upper + tol) << "row " << k;
-    if (k >= corner[0]) EXPECT_GE(q[k], lower - tol) << "row " << k;
+    if (k >= corner[0]) {
+      EXPECT_GE(q[k], lower - tol) << "row " << k;
+    }
   }
   for (const nlohmann::json& rec : summary["phases"])
     EXPECT_FALSE(rec.contains("isotropic")) << rec["name"];
