@@ -39,21 +39,7 @@ extern char** environ;
 namespace {
 
 // 200 spheres, eps' = 1e-4 to 2 % strain: 625 triaxial steps, 40 rows, a checkpoint every 4 rows.
-const char* small_case = R"(
-name = "checkpoint-small"
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
-seed = 3
-[[sample.particles]]
-diameter = "2 mm"
-count = 150
-[[sample.particles]]
-diameter = "2.4 mm"
-count = 50
-[triaxial]
+const std::string small_case = qsdem_test::sample_200("checkpoint-small") + R"([triaxial]
 strain_rate = 1e-4
 final_axial_strain = "2 %"
 sample_points = 40

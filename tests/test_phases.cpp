@@ -31,23 +31,7 @@ extern char** environ;
 namespace {
 
 // 200 spheres (as tests/test_checkpoint.cpp's small case), a checkpoint every 4 rows.
-const char* head = R"(
-name = "phases"
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
-seed = 3
-[[sample.particles]]
-diameter = "2 mm"
-count = 150
-[[sample.particles]]
-diameter = "2.4 mm"
-count = 50
-[checkpoint]
-every_sample_points = 4
-)";
+const std::string head = qsdem_test::sample_200("phases") + "[checkpoint]\nevery_sample_points = 4\n";
 
 // Compaction, then axial loading at eps' = 1e-5 to 1 %, 20 rows, the rate doubled after row 10.
 const char* two_phases = R"(

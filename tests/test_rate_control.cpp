@@ -34,21 +34,7 @@ using qsdem_test::slurp;
 namespace {
 
 // 200 spheres (as tests/test_phases.cpp), compacted fast; a 3 % triaxial test of 60 rows.
-const char* head = R"(
-name = "rate"
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
-seed = 3
-[[sample.particles]]
-diameter = "2 mm"
-count = 150
-[[sample.particles]]
-diameter = "2.4 mm"
-count = 50
-[compaction]
+const std::string head = qsdem_test::sample_200("rate") + R"([compaction]
 max_strain_rate = 1e-4
 [checkpoint]
 every_sample_points = 4

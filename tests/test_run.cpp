@@ -33,31 +33,7 @@ namespace {
 
 // 120 spheres of 2.0 and 2.4 mm, eps' = 1.25e-4 to 1 % axial strain: exactly 250 steps of
 // c_t eps' = 4e-5, sampled every 25 steps (10 rows). About 15000 compaction steps, ~1 s.
-const char* tiny_case = R"(
-name = "run-tiny"
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
-seed = 1
-initial_solid_fraction = 0.2
-[[sample.particles]]
-diameter = "2.4 mm"
-count = 60
-[[sample.particles]]
-diameter = "2.0 mm"
-count = 60
-[damping]
-model = "nd"
-ratio = "0.5 %"
-[compaction]
-max_strain_rate = 1e-3
-[triaxial]
-strain_rate = 1.25e-4
-final_axial_strain = "1 %"
-sample_points = 10
-)";
+const std::string tiny_case = qsdem_test::tiny_case("run-tiny");
 
 const std::string spec10_header =
     "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,ekin_trans_J,"

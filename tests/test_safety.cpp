@@ -60,33 +60,7 @@ namespace {
 
 // 120 spheres of 2.0 and 2.4 mm to 1 % axial strain: 250 triaxial steps, a row every 25 steps
 // (10 rows), about 15000 compaction steps (~1 s).
-const char* tiny_case = R"(
-name = "safety-tiny"
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
-seed = 1
-initial_solid_fraction = 0.2
-[[sample.particles]]
-diameter = "2.4 mm"
-count = 60
-[[sample.particles]]
-diameter = "2.0 mm"
-count = 60
-[damping]
-model = "nd"
-ratio = "0.5 %"
-[compaction]
-max_strain_rate = 1e-3
-[triaxial]
-strain_rate = 1.25e-4
-final_axial_strain = "1 %"
-sample_points = 10
-[checkpoint]
-every_sample_points = 4
-)";
+const std::string tiny_case = qsdem_test::tiny_case("safety-tiny") + "[checkpoint]\nevery_sample_points = 4\n";
 
 const fs::path root = fs::temp_directory_path() / ("qsdem_safety_" + std::to_string(::getpid()));
 

@@ -16,6 +16,55 @@
 
 namespace qsdem_test {
 
+// The small cases of the process-level tests, as TOML text that a test extends with its own tables.
+// 200 spheres of 2 and 2.4 mm (150 + 50), seed 3: the name, material and sample tables.
+inline std::string sample_200(const std::string& name) {
+  return "name = \"" + name + R"("
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+seed = 3
+[[sample.particles]]
+diameter = "2 mm"
+count = 150
+[[sample.particles]]
+diameter = "2.4 mm"
+count = 50
+)";
+}
+
+// 120 spheres of 2.0 and 2.4 mm (60 + 60), seed 1, nd 0.5 %, eps' = 1.25e-4 to 1 % axial strain:
+// exactly 250 steps of c_t eps' = 4e-5, sampled every 25 steps (10 rows); about 15000 compaction
+// steps, ~1 s.
+inline std::string tiny_case(const std::string& name) {
+  return "name = \"" + name + R"("
+[material]
+density = "2650 kg/m^3"
+young_modulus = "78 GPa"
+poisson_ratio = 0.3
+[sample]
+seed = 1
+initial_solid_fraction = 0.2
+[[sample.particles]]
+diameter = "2.4 mm"
+count = 60
+[[sample.particles]]
+diameter = "2.0 mm"
+count = 60
+[damping]
+model = "nd"
+ratio = "0.5 %"
+[compaction]
+max_strain_rate = 1e-3
+[triaxial]
+strain_rate = 1.25e-4
+final_axial_strain = "1 %"
+sample_points = 10
+)";
+}
+
 inline std::string slurp(const std::filesystem::path& p) {
   std::ifstream in(p, std::ios::binary);
   std::ostringstream s;
