@@ -174,6 +174,33 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
   EXPECT_EQ(m1.solid_volume, m2.solid_volume);
 }
 
+// The same packing with the energy ledger kept (output.energy, docs/physics.md 12): its sums are
+// in block order (force stage) and particle order (kick), so 1 and 2 threads give the same ledger
+// bit for bit; keeping it changes no particle's state.
+TEST(Run, ThreadCountDoesNotChangeTheEnergyLedger) {
+  const auto [start, plain] = large_packing();
+  Model model = plain;
+  model.track_energy = true;
+  auto run = [&](int threads, const Model& m) {
+    Threads t(threads);
+    State st = start;
+    Schedule schedule;
+    for (int k = 0; k < 30; ++k) step(m, st, schedule);
+    return st;
+  };
+  const State s1 = run(1, model), s2 = run(2, model), untracked = run(2, plain);
+  const auto bits = [](const EnergyLedger& e) {
+    return std::vector<double>{e.boundary_work, e.friction, e.contact_damping, e.damping, e.stiffness_change,
+                               e.elastic, e.kinetic};
+  };
+  EXPECT_EQ(bits(s1.energy), bits(s2.energy));
+  EXPECT_GT(s1.energy.elastic, 0.0);
+  EXPECT_GT(s1.energy.kinetic, 0.0);
+  EXPECT_GT(s1.energy.damping, 0.0) << "nd damps the packing";
+  EXPECT_EQ(particles_differing(s1, untracked), 0u) << "the ledger changes no result";
+  EXPECT_TRUE(s1.stress == untracked.stress);
+}
+
 // A thread done with its blocks takes those left at the end of another thread's range
 // (compute_contact_forces). Here every step's cut gives all the blocks to thread 1 (the smoothed
 // block times are overwritten: the first block seems to cost everything), so thread 0 can only
