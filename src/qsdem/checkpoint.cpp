@@ -315,6 +315,8 @@ void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
     w.pod(static_cast<std::uint64_t>(r.controller_end.size()));
     for (const auto& c : r.controller_end) w.vec(c);
   }
+  if (version >= 9)  // each phase's energy ledger at its start and last row
+    for (const PhaseRecord& p : r.phases) w.pod(p.energy_start), w.pod(p.energy_end);
 }
 
 void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
@@ -343,6 +345,8 @@ void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
     r.controller_end.resize(m);
     for (auto& c : r.controller_end) in.vec(c);
   }
+  if (version >= 9)
+    for (PhaseRecord& p : r.phases) in.pod(p.energy_start), in.pod(p.energy_end);
 }
 
 // The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats

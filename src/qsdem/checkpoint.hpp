@@ -17,7 +17,7 @@ namespace qsdem {
 // contact history named by its law's layout; 7: any protocol (phase.hpp): a record per phase, the
 // current phase's control values, plan and controller state (formats 1 to 6 are read as the
 // default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures);
-// 9: the energy ledger (State::energy)
+// 9: the energy ledger (State::energy, and each phase's at its start and last row)
 inline constexpr std::uint32_t checkpoint_format_version = 9;
 
 struct Checkpoint {

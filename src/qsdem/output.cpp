@@ -91,6 +91,22 @@ std::string series_row(const SeriesRow& r, const SeriesColumns& columns) {
   return fmt::to_string(out);
 }
 
+nlohmann::json energy_change(const EnergyLedger& start, const EnergyLedger& end) {
+  const double work = end.boundary_work - start.boundary_work, friction = end.friction - start.friction;
+  const double contact_damping = end.contact_damping - start.contact_damping, damping = end.damping - start.damping;
+  const double stiffness = end.stiffness_change - start.stiffness_change;
+  const double elastic = end.elastic - start.elastic, kinetic = end.kinetic - start.kinetic;
+  const double balance = work + stiffness - (friction + contact_damping + damping + elastic + kinetic);
+  return {{"work_J", work},
+          {"friction_J", friction},
+          {"contact_damping_J", contact_damping},
+          {"damping_J", damping},
+          {"stiffness_change_J", stiffness},
+          {"elastic_change_J", elastic},
+          {"kinetic_change_J", kinetic},
+          {"balance_error_J", balance}};
+}
+
 std::string classes_header() {
   return "step,time_s,e1,ev,phase,radius_mm,count,contacts_per_particle,in_contact,in_contact_2,p_share,speed_m_s,"
          "spin_1_s";

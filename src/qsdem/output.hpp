@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <optional>
 #include <string>
+#include <nlohmann/json.hpp>
 #include <vector>
 
 #include "qsdem/measures.hpp"
@@ -45,6 +46,12 @@ std::string series_row(const SeriesRow& row, const SeriesColumns& columns = {});
 // time and strains as in the row of the phase's own file.
 std::string classes_header();
 std::string classes_rows(const SeriesRow& row, const std::vector<ClassMeasures>& classes);
+
+// The energy of a stretch of a run from the ledgers at its ends (docs/physics.md 12), as summary.json
+// gives it for a phase and a cycle: the cell's work, each dissipation, the law's stiffness change,
+// the changes of the stored and kinetic energies, and what the balance work + stiffness change =
+// dissipated + stored + kinetic misses.
+nlohmann::json energy_change(const EnergyLedger& start, const EnergyLedger& end);
 
 // The header line of a file that is not series.csv's (SeriesWriter's second constructor).
 struct CsvHeader {

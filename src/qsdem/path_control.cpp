@@ -6,27 +6,12 @@
 #include <cmath>
 #include <numbers>
 
+#include "qsdem/output.hpp"
 #include "qsdem/units.hpp"
 
 namespace qsdem {
 
 double axial_deviator(const Mat3& stress) { return stress(2, 2) - 0.5 * (stress(0, 0) + stress(1, 1)); }
-
-nlohmann::json cycle_energy(const EnergyLedger& start, const EnergyLedger& end) {
-  const double work = end.boundary_work - start.boundary_work, friction = end.friction - start.friction;
-  const double contact_damping = end.contact_damping - start.contact_damping, damping = end.damping - start.damping;
-  const double stiffness = end.stiffness_change - start.stiffness_change;
-  const double elastic = end.elastic - start.elastic, kinetic = end.kinetic - start.kinetic;
-  const double balance = work + stiffness - (friction + contact_damping + damping + elastic + kinetic);
-  return {{"work_J", work},
-          {"friction_J", friction},
-          {"contact_damping_J", contact_damping},
-          {"damping_J", damping},
-          {"stiffness_change_J", stiffness},
-          {"elastic_change_J", elastic},
-          {"kinetic_change_J", kinetic},
-          {"balance_error_J", balance}};
-}
 
 double CycleLoop::damping_ratio() const {
   const double stored = 0.125 * (q_max - q_min) * (e1_max - e1_min);
@@ -124,7 +109,7 @@ class Cyclic final : public Controller {
                            {"e1", l.e1},
                            {"ev", l.ev}};
       // A loaded sample stores elastic energy: 0 at the corners means the run kept no ledger.
-      if (top.energy.elastic > 0 && end.energy.elastic > 0) cycle["energy"] = cycle_energy(top.energy, end.energy);
+      if (top.energy.elastic > 0 && end.energy.elastic > 0) cycle["energy"] = energy_change(top.energy, end.energy);
       cycles.push_back(cycle);
     }
     return {{"bounds", s_.strain_bounds ? "strain" : "stress"},

@@ -24,11 +24,6 @@ struct CycleLoop {
   double damping_ratio() const;
 };
 
-// The energy of a stretch of a run from the ledgers at its ends (docs/physics.md 12): the cell's
-// work, each dissipation, the law's stiffness change, the changes of the stored and kinetic
-// energies, and what the balance work + stiffness change = dissipated + stored + kinetic misses.
-nlohmann::json cycle_energy(const EnergyLedger& start, const EnergyLedger& end);
-
 ControllerFactory read_cyclic(ControllerKeys& keys, const Phase& phase, double step_ratio);
 ControllerFactory read_true_triaxial(ControllerKeys& keys, const Phase& phase, double step_ratio);
 

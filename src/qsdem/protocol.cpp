@@ -283,6 +283,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     rec = {};
     rec.h0 = st.cell.h;
     rec.v0 = st.cell.volume;
+    rec.energy_start = st.energy;
     st.servo_integral.setZero();
     ps = fresh_state(phase);
   } else if (!ps.live) {
@@ -397,6 +398,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       rec.final_ev = ev;
       rec.final_e1 = e1;
       rec.final = m;
+      rec.energy_end = st.energy;
     }
     if (equilibrium)
       progress.update(static_cast<double>(rec.steps - steps_at_start),

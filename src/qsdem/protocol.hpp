@@ -36,6 +36,8 @@ struct PhaseRecord {
   double peak_phi_deg = 0, peak_phi_e1 = 0;  // the largest phi over the rows and the e1 of its row
   double final_e1 = 0, final_ev = 0;         // of the last row
   Measures final;                            // the measures of the last row
+  // The run's energy ledger at the phase's start and at its last row (output.energy).
+  EnergyLedger energy_start, energy_end;
 };
 
 // The current phase's own state besides its record: what it needs to continue exactly.

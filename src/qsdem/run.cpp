@@ -270,8 +270,10 @@ nlohmann::json isotropic_branch(const Protocol& protocol, const std::vector<Phas
   return j;
 }
 
-// The figures of phase p, which has ended; `records`: those of the protocol's phases.
-nlohmann::json phase_figures(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p) {
+// The figures of phase p, which has ended; `records`: those of the protocol's phases; with
+// `energy`, the change of the energy ledger over the phase (docs/physics.md 12).
+nlohmann::json phase_figures(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p,
+                             bool energy) {
   const Phase& phase = protocol[p];
   const PhaseRecord& r = records[p];
   const double rows = static_cast<double>(std::max(1L, r.rows));
@@ -295,14 +297,16 @@ nlohmann::json phase_figures(const Protocol& protocol, const std::vector<PhaseRe
                       {"max_shear_stress", r.max_shear_stress},
                       {"final", measures_json(r.final)}};
   if (nlohmann::json iso = isotropic_branch(protocol, records, p); !iso.is_null()) j["isotropic"] = iso;
+  if (energy) j["energy"] = energy_change(r.energy_start, r.energy_end);
   return j;
 }
 
-// `controller`: the phase's controller's state at its end (RunProgress::controller_end), or none.
+// `controller`: the phase's controller's state at its end (RunProgress::controller_end), or none;
+// `energy`: the run keeps the energy ledger (output.energy).
 nlohmann::json phase_json(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p,
-                          const std::vector<double>* controller) {
+                          const std::vector<double>* controller, bool energy) {
   const Phase& phase = protocol[p];
-  nlohmann::json j = phase_figures(protocol, records, p);
+  nlohmann::json j = phase_figures(protocol, records, p, energy);
   if (phase.make_controller && controller && !controller->empty()) {
     const std::unique_ptr<Controller> c = phase.make_controller();
     c->restore(*controller);
@@ -515,7 +519,7 @@ class Execution {
     }
     nlohmann::json phases = nlohmann::json::array();
     for (std::size_t p = 0; p < params_.protocol.size() && p < static_cast<std::size_t>(run_.phase); ++p)
-      phases.push_back(phase_json(params_.protocol, run_.phases, p, controller_end(p)));
+      phases.push_back(phase_json(params_.protocol, run_.phases, p, controller_end(p), params_.output.energy));
     s["phases"] = phases;
     // The first phase as the sample's compaction; the last, when it is another, as the test.
     const PhaseRecord& first = run_.phases.front();
@@ -523,7 +527,8 @@ class Execution {
     s["void_ratio_after_compaction"] = first.final.void_ratio;
     if (!run_.prepare_only && run_.phases.size() > 1) {
       const nlohmann::json last =
-          phase_json(params_.protocol, run_.phases, run_.phases.size() - 1, controller_end(run_.phases.size() - 1));
+          phase_json(params_.protocol, run_.phases, run_.phases.size() - 1, controller_end(run_.phases.size() - 1),
+                     params_.output.energy);
       s["triaxial"] = {{"steps", last["steps"]},
                        {"rows", last["rows"]},
                        {"wall_s", last["wall_s"]},
