@@ -33,8 +33,20 @@ using qsdem_test::slurp;
 
 namespace {
 
-// 200 spheres (as tests/test_phases.cpp), compacted fast; a 3 % triaxial test of 60 rows.
-const std::string head = qsdem_test::sample_200("rate") + R"([compaction]
+// 200 spheres (as tests/test_phases.cpp): the sample, and the phase lists' first phase.
+const std::string sample = qsdem_test::sample_200("rate");
+const char* compaction_phase = R"(
+[[phase]]
+name = "compaction"
+friction = 0.2
+stress = { 11 = "390 kPa", 22 = "390 kPa", 33 = "390 kPa", 12 = "0 Pa", 13 = "0 Pa", 23 = "0 Pa" }
+servo = { max_strain_rate = 1e-4 }
+stop = { equilibrium = { ufr = "1 %" } }
+output = { file = "compaction.csv", clock = "run" }
+)";
+
+// The sample compacted fast; a 3 % triaxial test of 60 rows.
+const std::string head = sample + R"([compaction]
 max_strain_rate = 1e-4
 [checkpoint]
 every_sample_points = 4
@@ -193,16 +205,7 @@ namespace {
 // Compaction, then load1 (IMom held at 3 %, from eps' = 1e-4, to 1.5 %); `second`: then load2
 // (1 % from the rate load1 ended at, to 3 %), into the same series.csv.
 std::string two_targets(const std::string& second) {
-  std::string text = head;
-  text = text.substr(0, text.find("[compaction]")) + R"(
-[[phase]]
-name = "compaction"
-friction = 0.2
-stress = { 11 = "390 kPa", 22 = "390 kPa", 33 = "390 kPa", 12 = "0 Pa", 13 = "0 Pa", 23 = "0 Pa" }
-servo = { max_strain_rate = 1e-4 }
-stop = { equilibrium = { ufr = "1 %" } }
-output = { file = "compaction.csv", clock = "run" }
-
+  std::string text = sample + compaction_phase + R"(
 [[phase]]
 name = "load1"
 friction = 0.5
@@ -279,7 +282,6 @@ controller = {{ kind = "rate", component = "33", target = "1 %", min_rate = 1e-7
 
 // Bad keys of a rate controller name the key, its value and what is allowed.
 TEST(RateControl, BadKeysNameKeyAndWhatIsAllowed) {
-  const std::string sample = std::string(head).substr(0, std::string(head).find("[compaction]"));
   const std::string phase = "[[phase]]\nfriction = 0.5\nstress = { 11 = \"1 kPa\", 22 = \"1 kPa\" }\n"
                             "strain_rate = { 33 = 1e-5 }\nstop = { strain = { 33 = \"1 %\" } }\n";
   const std::string every = "output = { every_strain = { 33 = \"0.1 %\" } }\n";
@@ -322,16 +324,7 @@ namespace {
 // with the shear rate L13 driven by the controller: IMom held at 3 %, from gamma' = 1e-4, to
 // gamma_13 = 2 %, a row every 0.05 % of gamma_13 (40 rows).
 std::string controlled_shear() {
-  std::string text = head;
-  return text.substr(0, text.find("[compaction]")) + R"(
-[[phase]]
-name = "compaction"
-friction = 0.2
-stress = { 11 = "390 kPa", 22 = "390 kPa", 33 = "390 kPa", 12 = "0 Pa", 13 = "0 Pa", 23 = "0 Pa" }
-servo = { max_strain_rate = 1e-4 }
-stop = { equilibrium = { ufr = "1 %" } }
-output = { file = "compaction.csv", clock = "run" }
-
+  return sample + compaction_phase + R"(
 [[phase]]
 name = "shear"
 friction = 0.5

@@ -17,14 +17,16 @@
 namespace qsdem_test {
 
 // The small cases of the process-level tests, as TOML text that a test extends with its own tables.
-// 200 spheres of 2 and 2.4 mm (150 + 50), seed 3: the name, material and sample tables.
-inline std::string sample_200(const std::string& name) {
-  return "name = \"" + name + R"("
-[material]
+// Their material, that of the examples.
+inline const std::string small_case_material = R"([material]
 density = "2650 kg/m^3"
 young_modulus = "78 GPa"
 poisson_ratio = 0.3
-[sample]
+)";
+
+// 200 spheres of 2 and 2.4 mm (150 + 50), seed 3: the name, material and sample tables.
+inline std::string sample_200(const std::string& name) {
+  return "name = \"" + name + "\"\n" + small_case_material + R"([sample]
 seed = 3
 [[sample.particles]]
 diameter = "2 mm"
@@ -39,12 +41,7 @@ count = 50
 // exactly 250 steps of c_t eps' = 4e-5, sampled every 25 steps (10 rows); about 15000 compaction
 // steps, ~1 s.
 inline std::string tiny_case(const std::string& name) {
-  return "name = \"" + name + R"("
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
+  return "name = \"" + name + "\"\n" + small_case_material + R"([sample]
 seed = 1
 initial_solid_fraction = 0.2
 [[sample.particles]]

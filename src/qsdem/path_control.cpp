@@ -68,24 +68,26 @@ class Cyclic final : public Controller {
   }
   bool done() const override { return static_cast<long>(corners_.size()) >= 2 * s_.cycles + 1; }
 
-  // v[0] = seen + 2: the corners hold the energy ledger (11 values each; 4 in checkpoints of format 8).
+  // v[0] = seen + 2: each corner holds the energy ledger after its 4 values (a checkpoint of
+  // format 8 holds the 4 alone).
   std::vector<double> save() const override {
     std::vector<double> v{seen_ ? 3.0 : 2.0, turning_ ? 1.0 : 0.0, q_last_, e1_last_, work_};
     for (const Corner& c : corners_) {
-      const EnergyLedger& e = c.energy;
-      v.insert(v.end(), {c.q, c.e1, c.ev, c.work, e.boundary_work, e.friction, e.contact_damping, e.damping,
-                         e.stiffness_change, e.elastic, e.kinetic});
+      v.insert(v.end(), {c.q, c.e1, c.ev, c.work});
+      for (const auto field : energy_ledger_fields) v.push_back(c.energy.*field);
     }
     return v;
   }
   void restore(const std::vector<double>& v) override {
-    const std::size_t width = v.empty() || v[0] < 2 ? 4 : 11;
+    const bool ledger = !v.empty() && v[0] >= 2;
+    const std::size_t width = ledger ? 4 + energy_ledger_fields.size() : 4;
     if (v.size() < 5 || (v.size() - 5) % width != 0) return;
     seen_ = v[0] == 1 || v[0] == 3, turning_ = v[1] != 0, q_last_ = v[2], e1_last_ = v[3], work_ = v[4];
     corners_.clear();
     for (std::size_t k = 5; k < v.size(); k += width) {
       Corner c{v[k], v[k + 1], v[k + 2], v[k + 3], {}};
-      if (width == 11) c.energy = {v[k + 4], v[k + 5], v[k + 6], v[k + 7], v[k + 8], v[k + 9], v[k + 10]};
+      if (ledger)
+        for (std::size_t m = 0; m < energy_ledger_fields.size(); ++m) c.energy.*energy_ledger_fields[m] = v[k + 4 + m];
       corners_.push_back(c);
     }
   }

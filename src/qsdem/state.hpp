@@ -2,6 +2,7 @@
 // evaluation computed, plus the timers of every stage. How the threads share the work is not
 // here (schedule.hpp).
 #pragma once
+#include <array>
 #include <cstdint>
 #include <vector>
 
@@ -47,6 +48,10 @@ struct EnergyLedger {
   double elastic = 0;          // stored in the contacts at the last force evaluation (J)
   double kinetic = 0;          // of the fluctuations after the last kick, translation and rotation (J)
 };
+// Its fields in one order, for code that stores a ledger as numbers (a controller's saved state).
+inline constexpr std::array<double EnergyLedger::*, 7> energy_ledger_fields{
+    &EnergyLedger::boundary_work, &EnergyLedger::friction, &EnergyLedger::contact_damping, &EnergyLedger::damping,
+    &EnergyLedger::stiffness_change, &EnergyLedger::elastic, &EnergyLedger::kinetic};
 
 struct State {
   Particles particles;
