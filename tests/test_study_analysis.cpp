@@ -665,13 +665,13 @@ TEST_F(StudyAnalysisStudy, NoReferenceNoDampingDependence) {
   EXPECT_NE(slurp(*dir_ / "report.html").find("No reference run is named"), std::string::npos);
 }
 
-// The committed small study (docs/results) holds no run directories, only its analysis: rebuilt
+// The committed small study (docs/results/paper-small) holds no run directories, only its analysis: rebuilt
 // from the per-run means of its analysis.json (a summary.json per finished run, and a one-row
 // series.csv holding the run's mean kinetic energy), it analyses to the committed optimum.csv and
 // power_law.csv byte for byte: no number of docs/results moves with the analysis code.
 TEST(StudyAnalysisResults, CommittedSmallStudyReanalysesToTheSameFits) {
-  const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results";
-  if (!fs::exists(results / "analysis" / "analysis.json")) GTEST_SKIP() << "no committed analysis";
+  const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "paper-small";
+  ASSERT_TRUE(fs::exists(results / "analysis" / "analysis.json"));
   const fs::path dir = fresh_temp_dir("analysis-results");
   for (const char* f : {"study.json", "study.toml"}) fs::copy_file(results / f, dir / f);
   const json committed = json::parse(slurp(results / "analysis" / "analysis.json"));
@@ -696,6 +696,26 @@ TEST(StudyAnalysisResults, CommittedSmallStudyReanalysesToTheSameFits) {
   EXPECT_EQ(a["counts"]["finished"], committed["counts"]["finished"]);
   for (const char* f : {"optimum.csv", "power_law.csv"})
     EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
+  fs::remove_all(dir);
+}
+
+// The committed full-size study (docs/results/paper-full) holds every finished run's summary.json
+// and series.csv: `qsdem analyze` of a copy gives the committed tables and CSVs byte for byte (the
+// tables less their date line), so every number of docs/results/README.md comes from those files.
+TEST(StudyAnalysisResults, CommittedFullStudyReanalysesFromItsRuns) {
+  const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "paper-full";
+  ASSERT_TRUE(fs::exists(results / "analysis" / "analysis.json"));
+  const fs::path dir = fresh_temp_dir("analysis-full");
+  for (const char* f : {"study.json", "study.toml"}) fs::copy_file(results / f, dir / f);
+  fs::copy(results / "runs", dir / "runs", fs::copy_options::recursive);
+  const std::string cmd = fmt::format("'{}' analyze '{}' > '{}/log' 2>&1", QSDEM_BINARY, dir.string(), dir.string());
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << slurp(dir / "log");
+  for (const char* f : {"optimum.csv", "power_law.csv", "per_run.csv", "deviation.csv"})
+    EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
+  const auto without_date = [](std::string md) { return md.erase(0, md.find("Indices in percent")); };
+  EXPECT_EQ(without_date(slurp(dir / "analysis" / "tables.md")), without_date(slurp(results / "analysis" / "tables.md")));
+  const json committed = json::parse(slurp(results / "analysis" / "analysis.json"));
+  EXPECT_GE(committed["counts"]["finished"].get<int>(), 72);
   fs::remove_all(dir);
 }
 
