@@ -349,9 +349,9 @@ TEST_F(StudyAnalysisStudy, WritesTablesCsvFiguresAndReport) {
   EXPECT_NE(csv.find(std::string(missing_id) + ",A-syn,1,nd,0.02,1e-06,2e-08,missing"), std::string::npos);
   EXPECT_EQ(slurp(an / "optimum.csv").substr(0, 19), "sample,model,rate,i");
 
-  // 4 figures per (sample, model) and 3 per sample: 4*4 + 3*2.
+  // 5 figures per (sample, model) (each has runs of equal xi*eps') and 3 per sample: 5*4 + 3*2.
   const json& figs = (*result_)["figures"];
-  EXPECT_EQ(figs.size(), 22u);
+  EXPECT_EQ(figs.size(), 26u);
   const std::string png_magic = "\x89PNG\r\n\x1a\n";
   for (const json& f : figs) {
     ASSERT_TRUE(f["drawn"].get<bool>()) << f["name"];
@@ -363,8 +363,15 @@ TEST_F(StudyAnalysisStudy, WritesTablesCsvFiguresAndReport) {
     EXPECT_NE(svg.find("</svg>"), std::string::npos) << f["name"];
   }
   for (const char* name : {"imom_vs_xi_A-syn_nd", "ufr_vs_xi_Other_od", "xiopt_vs_rate_A-syn",
-                           "imom_opt_vs_rate_Other", "curves_A-syn_od", "peakphi_vs_xirate_A-syn", "ekin_Other_nd"})
+                           "imom_opt_vs_rate_Other", "curves_A-syn_od", "peakphi_vs_xirate_A-syn", "ekin_Other_nd",
+                           "equal_A-syn_od"})
     EXPECT_TRUE(fs::exists(an / "figures" / (std::string(name) + ".png"))) << name;
+  // The equal xi*eps' figure (paper Figs. 15-19) draws both runs of a set, e.g. 1 % at 1e-7 and
+  // 0.1 % at 1e-6, in each of its 6 panels.
+  const std::string equal_dat = slurp(an / "figures" / "equal_A-syn_od.dat");
+  for (const char* run : {"# od ε' = 1e-07, ξ = 1 %", "# od ε' = 1e-06, ξ = 0.1 %"})
+    EXPECT_NE(equal_dat.find(run), std::string::npos) << run;
+  EXPECT_NE(slurp(an / "figures" / "equal_A-syn_od.gp").find("set multiplot layout 3,2"), std::string::npos);
 
   const std::string html = slurp(*dir_ / "report.html");
   EXPECT_NE(html.find("synthetic-test"), std::string::npos);
@@ -398,7 +405,7 @@ TEST_F(StudyAnalysisStudy, ReportRendersInHeadlessChromium) {
   ASSERT_TRUE(std::regex_search(dom, total, std::regex("data-images-total=\"([0-9]+)\"")));
   EXPECT_GT(std::stoi(total[1]), 0);
   EXPECT_EQ(loaded[1], total[1]);
-  EXPECT_EQ(std::stoi(total[1]), 22);
+  EXPECT_EQ(std::stoi(total[1]), static_cast<int>((*result_)["figures"].size()));
 }
 
 // Without gnuplot on PATH the tables are still written and the error names the package.

@@ -240,7 +240,7 @@ struct Panel {
 
 struct Figure {
   std::string name, title, caption;
-  std::vector<Panel> panels;  // 1 or 4 (2x2)
+  std::vector<Panel> panels;  // 1, or 2 per row
 };
 
 // Numbers in tables: NaN shown as a dash.

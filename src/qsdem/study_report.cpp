@@ -492,34 +492,94 @@ Figure peak_phi_figure(const Analysis& a, const std::string& s) {
   return f;
 }
 
+// A quantity of a run's series against e1, as a panel shows it.
+enum class Quantity { phi, ev, cn, imom, ufr, ekin_over_rate2 };
+
+struct QuantityAxis {
+  const char* title;  // the panel's
+  const char* ylabel;
+  bool logy;
+};
+
+QuantityAxis axis_of(Quantity q) {
+  switch (q) {
+    case Quantity::phi: return {"φ", "friction angle φ (°)", false};
+    case Quantity::ev: return {"εv", "volumetric strain εv (%)", false};
+    case Quantity::cn: return {"Cn", "coordination number Cn", false};
+    case Quantity::imom: return {"IMom", "moment index IMom (%)", false};
+    case Quantity::ufr: return {"UFR", "unbalanced force ratio UFR (%)", false};
+    case Quantity::ekin_over_rate2: return {"Ekin/ε'²", "Ekin/ε'² (J)", true};
+  }
+  return {"", "", false};
+}
+
+Curve series_curve(const Run& r, Quantity q, const std::string& label, const std::string& style) {
+  Curve c{label, {}, {}, style};
+  for (std::size_t j = 0; j < r.s.e1.size(); ++j) {
+    double y = 0;
+    switch (q) {
+      case Quantity::phi: y = r.s.phi[j]; break;
+      case Quantity::ev: y = 100 * r.s.ev[j]; break;
+      case Quantity::cn: y = r.s.cn[j]; break;
+      case Quantity::imom: y = 100 * r.s.imom[j]; break;
+      case Quantity::ufr: y = 100 * r.s.ufr[j]; break;
+      case Quantity::ekin_over_rate2: y = r.s.ekin[j] / (r.rate * r.rate); break;
+    }
+    c.x.push_back(100 * r.s.e1[j]), c.y.push_back(y);
+  }
+  return c;
+}
+
+std::string run_label(const Run& r) { return fmt::format("{} ε' = {}, ξ = {} %", r.model, sig(r.rate), pct(r.xi)); }
+
 // phi, ev, Cn and IMom against e1 of some runs, with the sample's reference run (black, dashed) in
 // the first three panels when the study names one.
 Figure response_figure(const std::string& name, const std::string& title, const std::string& caption,
                        const std::vector<const Run*>& shown, const Run* reference) {
   Figure f{name, title, caption, {}};
-  const char* labels[4][2] = {{"friction angle φ (°)", "φ"},
-                              {"volumetric strain εv (%)", "εv"},
-                              {"coordination number Cn", "Cn"},
-                              {"moment index IMom (%)", "IMom"}};
-  const auto curve = [](const Run& r, int k, const std::string& label, const std::string& style) {
-    Curve c{label, {}, {}, style};
-    const std::vector<double>& y = k == 0 ? r.s.phi : k == 1 ? r.s.ev : k == 2 ? r.s.cn : r.s.imom;
-    const double scale = (k == 1 || k == 3) ? 100.0 : 1.0;
-    for (std::size_t j = 0; j < r.s.e1.size(); ++j) c.x.push_back(100 * r.s.e1[j]), c.y.push_back(scale * y[j]);
-    return c;
-  };
-  for (int k = 0; k < 4; ++k) {
-    Panel p{labels[k][1], "axial strain ε1 (%)", labels[k][0], false, false, {}};
+  for (const Quantity q : {Quantity::phi, Quantity::ev, Quantity::cn, Quantity::imom}) {
+    const QuantityAxis ax = axis_of(q);
+    Panel p{ax.title, "axial strain ε1 (%)", ax.ylabel, false, ax.logy, {}};
     for (std::size_t i = 0; i < shown.size(); ++i)
-      p.curves.push_back(curve(*shown[i], k, fmt::format("{} ε' = {}, ξ = {} %", shown[i]->model, sig(shown[i]->rate),
-                                                         pct(shown[i]->xi)),
-                               "lines lw 1.5 " + lc(i)));
-    if (reference && reference->finished && k < 3)
-      p.curves.push_back(curve(*reference, k, "reference: " + reference->model + " ε' = " + sig(reference->rate),
-                               "lines lw 1.5 dt 2 lc rgb '#000000'"));
+      p.curves.push_back(series_curve(*shown[i], q, run_label(*shown[i]), "lines lw 1.5 " + lc(i)));
+    if (reference && reference->finished && q != Quantity::imom)
+      p.curves.push_back(series_curve(*reference, q, "reference: " + reference->model + " ε' = " + sig(reference->rate),
+                                      "lines lw 1.5 dt 2 lc rgb '#000000'"));
     f.panels.push_back(std::move(p));
   }
   return f;
+}
+
+// (g) The runs of equal xi*eps' of one (sample, model), paper Figs. 15-19: a colour per product,
+// solid for the slowest run of a set, dashed for the faster ones.
+void add_equal_figure(std::vector<Figure>& figs, const Analysis& a, const Law& l) {
+  Figure f{fmt::format("equal_{}_{}", tag(l.sample), tag(l.model)),
+           fmt::format("{} {}: runs with equal ξ·ε'", l.sample, l.model),
+           "Friction angle, volumetric strain, coordination number, moment index, UFR and kinetic energy / ε'² "
+           "against the axial strain for the runs with equal ξ·ε' (paper Figs. 15-19, Table 6): a colour per "
+           "ξ·ε', solid for the slowest run of each, dashed for the faster.",
+           {}};
+  std::size_t k = 0;
+  std::vector<std::pair<const Run*, std::string>> shown;
+  for (const EqualSet& e : a.equal) {
+    if (e.sample != l.sample || e.model != l.model) continue;
+    double slowest = INFINITY;
+    for (const Run* r : e.runs) slowest = std::min(slowest, r->rate);
+    for (const Run* r : e.runs)
+      if (!r->s.e1.empty())
+        shown.emplace_back(r, (r->rate == slowest ? "lines lw 1.5 " : "lines lw 1.5 dt 2 ") + lc(k));
+    ++k;
+  }
+  if (shown.empty()) return;
+  for (const Quantity q : {Quantity::phi, Quantity::ev, Quantity::cn, Quantity::imom, Quantity::ufr,
+                           Quantity::ekin_over_rate2}) {
+    const QuantityAxis ax = axis_of(q);
+    Panel p{ax.title, "axial strain ε1 (%)", ax.ylabel, false, ax.logy, {}};
+    for (const auto& [r, style] : shown)
+      p.curves.push_back(series_curve(*r, q, q == Quantity::phi ? run_label(*r) : "", style));
+    f.panels.push_back(std::move(p));
+  }
+  figs.push_back(std::move(f));
 }
 
 // (d) and (f): the run closest to xi_opt at each rate, paper Figs. 10-11 and 15-19.
@@ -530,7 +590,7 @@ void add_curve_figures(std::vector<Figure>& figs, const Analysis& a, const Law& 
   figs.push_back(response_figure(
       fmt::format("curves_{}_{}", tag(l.sample), tag(l.model)), fmt::format("{} {}: runs nearest ξopt", l.sample, l.model),
       "Friction angle, volumetric strain, coordination number and moment index against the axial "
-      "strain for the run nearest ξopt at each rate (paper Figs. 10, 11, 15-18).",
+      "strain for the run nearest ξopt at each rate (paper Figs. 10-11).",
       shown, a.reference_of(l.sample)));
 
   Figure e{fmt::format("ekin_{}_{}", tag(l.sample), tag(l.model)),
@@ -539,13 +599,10 @@ void add_curve_figures(std::vector<Figure>& figs, const Analysis& a, const Law& 
            "log y, zeros skipped).",
            {}};
   Panel p{e.title, "axial strain ε1 (%)", "Ekin/ε'² (J)", false, true, {}};
-  for (std::size_t i = 0; i < shown.size(); ++i) {
-    const Run& r = *shown[i];
-    Curve c{fmt::format("ε' = {}, ξ = {} %", sig(r.rate), pct(r.xi)), {}, {}, "lines lw 1.5 " + lc(i)};
-    for (std::size_t j = 0; j < r.s.e1.size(); ++j)
-      c.x.push_back(100 * r.s.e1[j]), c.y.push_back(r.s.ekin[j] / (r.rate * r.rate));
-    p.curves.push_back(std::move(c));
-  }
+  for (std::size_t i = 0; i < shown.size(); ++i)
+    p.curves.push_back(series_curve(*shown[i], Quantity::ekin_over_rate2,
+                                    fmt::format("ε' = {}, ξ = {} %", sig(shown[i]->rate), pct(shown[i]->xi)),
+                                    "lines lw 1.5 " + lc(i)));
   e.panels.push_back(std::move(p));
   figs.push_back(std::move(e));
 }
@@ -685,12 +742,13 @@ bool render(const fs::path& figdir, Figure& f) {
     }
   write_plain(figdir / (f.name + ".dat"), dat);
   const bool multi = f.panels.size() > 1;
+  const std::size_t rows = (f.panels.size() + 1) / 2;
   std::string body = "reset\nset grid\nset key top left Left reverse samplen 2 font ',9'\n";
-  if (multi) body += "set multiplot layout 2,2 title " + gp_str(f.title) + "\n";
+  if (multi) body += fmt::format("set multiplot layout {},2 title {}\n", rows, gp_str(f.title));
   std::size_t block = 0;
   for (const Panel& p : f.panels) body += panel_commands(p, f.name + ".dat", block);
   if (multi) body += "unset multiplot\n";
-  const std::string size = multi ? "1100,820" : "820,560";
+  const std::string size = multi ? fmt::format("1100,{}", 410 * rows) : "820,560";
   std::string gp = "# " + f.title + " (generated by qsdem, SPEC 9)\nset encoding utf8\n";
   gp += "set terminal svg size " + size + " noenhanced font 'DejaVu Sans,12' background '#ffffff'\n";
   gp += "set output '" + f.name + ".svg'\n" + body + "unset output\n";
@@ -724,6 +782,7 @@ std::vector<Figure> make_figures(const Analysis& a) {
     figs.push_back(peak_phi_figure(a, s));
   }
   for (const Law& l : a.laws) add_curve_figures(figs, a, l);
+  for (const Law& l : a.laws) add_equal_figure(figs, a, l);
   for (const std::string& s : samples_of(a.laws)) {
     add_stage_figures(figs, a, s);
     if (a.settings.has_reference) figs.push_back(deviation_figure(a, s));
