@@ -72,7 +72,7 @@ struct StudyPick {
 
 // A stage of the design: a grid of samples x models x ratios x rates, or a list of runs. Without
 // [[stage]] tables the design is one stage. Stages of one level run together; a stage that picks
-// its ratios from another is one level after it.
+// its ratios from another is one level after it, and a stage nothing picks from is on the last.
 struct StudyStage {
   std::string name;
   std::vector<std::size_t> samples;  // indices of the [[sample]] tables (names)

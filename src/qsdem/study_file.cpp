@@ -534,6 +534,17 @@ StudyControl read_control(const StudyReader& r, const toml::node* n, const std::
   return c;
 }
 
+// The level of each stage: a stage that others pick from runs as early as its own source allows
+// (level 0 without one), every other stage on the last level. The independent stages then share
+// the pool with the slow picked ones, and no picked stage waits for a long independent run.
+void schedule_levels(std::vector<StudyStage>& stages) {
+  int last = 0;
+  for (const StudyStage& st : stages) last = std::max(last, st.level);
+  for (std::size_t k = 0; k < stages.size(); ++k)
+    if (std::none_of(stages.begin(), stages.end(), [&](const StudyStage& s) { return !s.pick.empty() && s.from == k; }))
+      stages[k].level = last;
+}
+
 // [[stage]] tables; without them, one stage made of [design]'s ratios and rates.
 void read_stages(const StudyReader& r, const toml::table& root, const toml::table& design, Study& s) {
   std::vector<std::size_t> all_samples, all_models;
@@ -593,6 +604,7 @@ void read_stages(const StudyReader& r, const toml::table& root, const toml::tabl
     st.control = read_control(r, t.get("rate_control"), p + ".rate_control", s, st.samples, starts);
     s.stages.push_back(std::move(st));
   }
+  schedule_levels(s.stages);
 }
 
 // [analysis]: the baseline of the improvement, the quasi-static target, the reference run and the
