@@ -431,8 +431,9 @@ Figure xiopt_vs_rate_figure(const Analysis& a, const std::string& s) {
 Figure power_law_figure(const Analysis& a, const std::string& s) {
   const double target = a.settings.imom_target;
   Figure f{"imom_opt_vs_rate_" + tag(s), s + ": moment index at the optimum damping ratio",
-           fmt::format("IMom at ξopt against ε' with the fitted power law IMom = a ε'^b (lines); dashed grey: the "
-                       "quasi-static target IMom = {} % (paper Fig. 9, Table 4).",
+           fmt::format("IMom at ξopt against ε' with the fitted power law IMom = a ε'^b (lines; dashed below the "
+                       "slowest rate, down to ε'QS); dotted: the paper's fit; dashed grey: the quasi-static target "
+                       "IMom = {} % (paper Fig. 9, Table 4).",
                        pct(target)),
            {}};
   Panel p{f.title, "dimensionless strain rate ε'", "IMom at ξopt (%)", true, true, {}};
@@ -449,21 +450,28 @@ Figure power_law_figure(const Analysis& a, const std::string& s) {
     if (l.fit.ok && l.rates.size() >= 2) {
       const double x0 = *std::min_element(l.rates.begin(), l.rates.end());
       const double x1 = *std::max_element(l.rates.begin(), l.rates.end());
-      Curve fit{fmt::format("{} fit: {} ε'^{}, R² = {}", l.model, sig(l.fit.a, 4), sig(l.fit.b, 3), sig(l.fit.r2, 4)),
-                {}, {}, "lines lw 1.5 " + lc(k)};
-      for (int i = 0; i <= 40; ++i) {
-        const double x = x0 * std::pow(x1 / x0, i / 40.0);
-        fit.x.push_back(x), fit.y.push_back(100 * l.fit.a * std::pow(x, l.fit.b));
+      const auto line = [](double from, double to, double pa, double pb, Curve c) {
+        for (int i = 0; i <= 40; ++i) {
+          const double x = from * std::pow(to / from, i / 40.0);
+          c.x.push_back(x), c.y.push_back(100 * pa * std::pow(x, pb));
+        }
+        return c;
+      };
+      p.curves.push_back(line(x0, x1, l.fit.a, l.fit.b,
+                              Curve{fmt::format("{} fit: {} ε'^{}, R² = {}", l.model, sig(l.fit.a, 4), sig(l.fit.b, 3),
+                                                sig(l.fit.r2, 4)),
+                                    {}, {}, "lines lw 1.5 " + lc(k)}));
+      // Below the slowest rate the fit is an extrapolation, drawn dashed down to eps'_QS (Table 4).
+      const double x_lo = std::isfinite(l.eps_qs) && l.eps_qs < x0 ? l.eps_qs : x0;
+      if (x_lo < x0) {
+        p.curves.push_back(line(x_lo, x0, l.fit.a, l.fit.b, Curve{"", {}, {}, "lines dt 2 lw 1.5 " + lc(k)}));
+        lo = std::min(lo, x_lo);
       }
       // The paper's fit (Fig. 9) over the same rates, for the trend (SPEC 9: never tuned to it).
-      std::optional<Curve> pf;
-      if (const auto ref = paper_ref(l.sample, l.model)) {
-        pf = Curve{fmt::format("paper {}: {} ε'^{}", l.model, sig(ref->a, 5), sig(ref->b, 4)), {}, {},
-                   "lines dt 3 lw 1.5 " + lc(k)};
-        for (double x : fit.x) pf->x.push_back(x), pf->y.push_back(100 * ref->a * std::pow(x, ref->b));
-      }
-      p.curves.push_back(std::move(fit));
-      if (pf) p.curves.push_back(std::move(*pf));
+      if (const auto ref = paper_ref(l.sample, l.model))
+        p.curves.push_back(line(x_lo, x1, ref->a, ref->b,
+                                Curve{fmt::format("paper {}: {} ε'^{}", l.model, sig(ref->a, 5), sig(ref->b, 4)),
+                                      {}, {}, "lines dt 3 lw 1.5 " + lc(k)}));
     }
     ++k;
   }
