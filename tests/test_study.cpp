@@ -16,6 +16,7 @@
 #include <fstream>
 #include <map>
 #include <optional>
+#include <regex>
 #include <set>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -383,11 +384,26 @@ TEST(Study, TinyStudyEndToEnd) {
       << "the exact source version (docs/runs.md)";
 }
 
+// A study file's comments and layout are not its study: a directory continues with a file whose
+// tables and values are the same (its copy then takes the new text); a changed value is another.
+TEST(StudyFile, CommentsAndLayoutDoNotMakeAnotherStudy) {
+  const std::string text = slurp(tiny_study);
+  EXPECT_TRUE(qsdem::same_study_values(text, "# a note on the design\n" + text + "\n# and one after it\n"));
+  EXPECT_TRUE(qsdem::same_study_values("name = \"x\"\n[design]\nmodels = [\"od\", \"nd\"]\n",
+                                       "name=\"x\"  # the study\n\n[design]\nmodels = [ \"od\",\n  \"nd\" ]\n"));
+  EXPECT_FALSE(qsdem::same_study_values("name = \"x\"\n[design]\nmodels = [\"od\", \"nd\"]\n",
+                                        "name = \"x\"\n[design]\nmodels = [\"nd\", \"od\"]\n"));
+  EXPECT_FALSE(qsdem::same_study_values(text, "this is [not toml"));
+
+}
+
 // Another study file for the same directory is refused before anything is touched.
 TEST(StudyCli, RefusesADirectoryOfAnotherStudy) {
   const fs::path dir = fresh_dir("other");
   fs::create_directories(dir / "out");
-  write(dir / "out" / "study.toml", slurp(tiny_study) + "# edited\n");
+  const std::string text = slurp(tiny_study);
+  write(dir / "out" / "study.toml", std::regex_replace(text, std::regex("count=60\\}\\]"), "count=61}]", std::regex_constants::format_first_only));
+  ASSERT_NE(slurp(dir / "out" / "study.toml"), text);
   Result r = study(tiny_study, dir / "out", dir / "log");
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("holds another study"), std::string::npos) << r.err;
@@ -821,8 +837,12 @@ TEST(StudyStages, KilledInTheSecondStageResumesToTheSameResults) {
   ASSERT_TRUE(manifest(out)["stages"][1].contains("picks"));
   EXPECT_EQ(manifest(out)["stages"][1]["picks"], m["stages"][1]["picks"]) << "picked before the stage began";
 
+  // The study file's header was edited meanwhile (same tables and values): the study continues, and
+  // its copy takes the new text.
+  write(out / "study.toml", "# an older header of the same study\n" + slurp(staged_study));
   const Result second = study(staged_study, out, dir / "second", false);
   EXPECT_TRUE(completed(second)) << second.err;
+  EXPECT_EQ(slurp(out / "study.toml"), slurp(staged_study));
   EXPECT_EQ(second.err.find("now gives"), std::string::npos) << second.err;
   EXPECT_EQ(slurp(out / "study.json"), slurp(ref.dir / "study.json"));
   for (const auto& r : m["runs"]) {

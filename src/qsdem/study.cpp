@@ -500,10 +500,10 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
     throw InputError(why);
   };
   if (fs::exists(copy)) {
-    if (read_bytes(copy) != study.text)
+    if (!same_study_values(read_bytes(copy), study.text))
       refuse(fmt::format(
-          "'{}' holds another study: its study.toml differs from '{}'. Continue a study with the study file it was "
-          "started with, or choose another --out",
+          "'{}' holds another study: its study.toml differs from '{}' in its tables and values. Continue a study "
+          "with the study file it was started with (its comments and layout may change), or choose another --out",
           out.string(), study.file.string()));
   } else if (!empty) {
     refuse(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory", out.string()));
@@ -511,7 +511,7 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
   const nlohmann::json recorded = recorded_manifest(out);
   check_recorded(study, out, recorded);
   adopt_recorded_picks(study, recorded);
-  if (!fs::exists(copy)) write_file_atomic(copy, study.text);
+  if (!fs::exists(copy) || read_bytes(copy) != study.text) write_file_atomic(copy, study.text);  // new comments
   write_file_atomic(out / "study.json", manifest_keeping(study, recorded).dump(2) + "\n");
 }
 

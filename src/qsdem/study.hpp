@@ -117,6 +117,10 @@ struct Study {
 // Throws InputError naming the file, line, key, value and what is allowed.
 Study load_study(const std::filesystem::path& file);
 
+// Two study files with the same tables and values (comments and layout aside): a study directory
+// made with one continues with the other.
+bool same_study_values(const std::string& a, const std::string& b);
+
 // Adds the runs of stage `stage` whose ratios are known (given, listed, or picked so far) and that
 // the study does not hold yet. Throws InputError when two stages of given ratios list one run.
 void add_stage_runs(Study& study, std::size_t stage);

@@ -795,6 +795,14 @@ void add_stage_runs(Study& s, std::size_t k) {
   }
 }
 
+bool same_study_values(const std::string& a, const std::string& b) {
+  try {
+    return toml::parse(a) == toml::parse(b);
+  } catch (const toml::parse_error&) {
+    return false;
+  }
+}
+
 Study load_study(const fs::path& file) {
   Study s;
   s.file = file;
