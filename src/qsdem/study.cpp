@@ -499,8 +499,10 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
     lock.reset();
     throw InputError(why);
   };
-  if (fs::exists(copy)) {
-    if (!same_study_values(read_bytes(copy), study.text))
+  const bool has_copy = fs::exists(copy);
+  const std::string copied = has_copy ? read_bytes(copy) : std::string();
+  if (has_copy) {
+    if (!same_study_values(copied, study.text))
       refuse(fmt::format(
           "'{}' holds another study: its study.toml differs from '{}' in its tables and values. Continue a study "
           "with the study file it was started with (its comments and layout may change), or choose another --out",
@@ -511,7 +513,7 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
   const nlohmann::json recorded = recorded_manifest(out);
   check_recorded(study, out, recorded);
   adopt_recorded_picks(study, recorded);
-  if (!fs::exists(copy) || read_bytes(copy) != study.text) write_file_atomic(copy, study.text);  // new comments
+  if (!has_copy || copied != study.text) write_file_atomic(copy, study.text);  // new, or new comments
   write_file_atomic(out / "study.json", manifest_keeping(study, recorded).dump(2) + "\n");
 }
 
