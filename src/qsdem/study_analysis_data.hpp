@@ -81,7 +81,7 @@ struct Group {
   double rate = nan;
   std::vector<Point> points;  // sorted by xi
   OptimumFit opt_imom, opt_ufr;
-  const Run* chosen = nullptr;  // the finished run closest to xi_opt (IMom), for Figs. 10-11, 15-19
+  const Run* chosen = nullptr;  // the finished run closest to xi_opt (IMom), for Figs. 10-11, 19
 };
 
 // One (sample, model): the power law of IMom at the optimum against eps'.

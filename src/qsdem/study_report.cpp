@@ -590,7 +590,7 @@ void add_equal_figure(std::vector<Figure>& figs, const Analysis& a, const Law& l
   figs.push_back(std::move(f));
 }
 
-// (d) and (f): the run closest to xi_opt at each rate, paper Figs. 10-11 and 15-19.
+// (d) and (f): the run closest to xi_opt at each rate, paper Figs. 10-11 and 19.
 void add_curve_figures(std::vector<Figure>& figs, const Analysis& a, const Law& l) {
   std::vector<const Run*> shown;
   for (const Group& g : a.groups)
