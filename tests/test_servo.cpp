@@ -24,6 +24,7 @@
 #include "qsdem/protocol.hpp"
 #include "qsdem/servo.hpp"
 #include "qsdem/step.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -43,13 +44,7 @@ Model sphere_model(double r_min) {
 // 200 spheres of 2.0 and 2.4 mm (size ratio 1.2), the paper's material and loading, made fast:
 // the densest loose start SPEC 8 allows (0.2), a compaction rate cap of 1e-3 per t_c, and
 // eps' = 1.25e-5 to 1 % axial strain (exactly 2500 steps of 4e-6), 25 sample points.
-const char* small_case = R"(
-name = "servo-small"
-[material]
-density = "2650 kg/m^3"
-young_modulus = "78 GPa"
-poisson_ratio = 0.3
-[sample]
+const std::string small_case = "name = \"servo-small\"\n" + qsdem_test::small_case_material + R"([sample]
 seed = 11
 initial_solid_fraction = 0.2
 [[sample.particles]]
