@@ -510,6 +510,61 @@ TEST(Study, KilledStudyResumesToTheSameResults) {
   fs::remove_all(dir);
 }
 
+// A study continues from what a repository keeps of it (docs/results/*/): study.toml, study.json
+// and the finished runs' summary.json, series.csv and classes.csv, without the prepared samples,
+// checkpoints or logs. The sample is prepared again (to its recorded hash), the kept runs are not
+// repeated, and the others give the uninterrupted study's series.
+TEST(Study, ContinuesFromTheFilesARepositoryKeeps) {
+  const Reference& ref = reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const auto m = manifest(ref.dir);
+  const fs::path dir = fresh_dir("kept");
+  const fs::path out = dir / "study";
+  fs::create_directories(out);
+  fs::copy_file(ref.dir / "study.toml", out / "study.toml");
+  fs::copy_file(ref.dir / "study.json", out / "study.json");
+  std::vector<std::string> kept;
+  for (std::size_t k = 0; k < m["runs"].size(); k += 2) {
+    const std::string rel = m["runs"][k]["dir"].get<std::string>();
+    fs::create_directories(out / rel);
+    for (const char* f : {"summary.json", "series.csv", "classes.csv"}) fs::copy_file(ref.dir / rel / f, out / rel / f);
+    kept.push_back(rel);
+  }
+  ASSERT_FALSE(fs::exists(out / "samples"));
+  std::map<std::string, fs::file_time_type> mtimes;
+  for (const auto& rel : kept) mtimes[rel] = fs::last_write_time(out / rel / "summary.json");
+
+  const Result r = study(tiny_study, out, dir / "continued");
+  EXPECT_TRUE(completed(r)) << r.err;
+  EXPECT_TRUE(fs::exists(out / m["samples"][0]["dir"].get<std::string>() / "sample.qsck")) << "prepared again";
+  EXPECT_EQ(slurp(out / "study.json"), slurp(ref.dir / "study.json")) << "the same prepared sample's hash";
+  for (const auto& [rel, t] : mtimes) {
+    EXPECT_EQ(fs::last_write_time(out / rel / "summary.json"), t) << rel << " was run again";
+    EXPECT_FALSE(fs::exists(out / rel / "run.log")) << rel << " was run again";
+  }
+  for (const auto& run : m["runs"]) {
+    const std::string rel = run["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(out / rel)) << rel;
+    EXPECT_EQ(slurp(out / rel), slurp(ref.dir / rel)) << rel;
+  }
+  EXPECT_EQ(analysis_tables(out), analysis_tables(ref.dir));
+
+  // Prepared again to another packing than the kept runs sheared (here: the recorded hash altered):
+  // refused, naming the sample, before any run.
+  const fs::path other = dir / "other";
+  fs::create_directories(other);
+  fs::copy_file(ref.dir / "study.toml", other / "study.toml");
+  auto altered = m;
+  altered["samples"][0]["compacted_fnv1a64"] = "0123456789abcdef";
+  write(other / "study.json", altered.dump(2) + "\n");
+  const Result refused = study(tiny_study, other, dir / "refused");
+  EXPECT_EQ(refused.code, 2) << refused.err;
+  EXPECT_NE(refused.err.find("the prepared sample"), std::string::npos) << refused.err;
+  EXPECT_NE(refused.err.find("0123456789abcdef"), std::string::npos) << refused.err;
+  EXPECT_FALSE(fs::exists(other / "runs")) << "no run sheared the other packing";
+  fs::remove_all(dir);
+}
+
 // A run that blows up is recorded in failures.json and reported; the others finish; exit code 3.
 TEST(Study, FailedRunIsRecordedAndTheOthersFinish) {
   const fs::path dir = fresh_dir("failed");

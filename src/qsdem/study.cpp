@@ -443,7 +443,9 @@ nlohmann::json recorded_manifest(const fs::path& out) {
 }
 
 // Refuses to continue a study whose case files or prepared samples changed since they were
-// recorded in study.json: its runs would mix two cases in one analysis.
+// recorded in study.json: its runs would mix two cases in one analysis. A sample that is gone with
+// its directory's prepared sample (a study kept without its samples) passes: it is prepared again,
+// and this check, run again after the preparation, compares the new packing with the recorded one.
 void check_recorded(const Study& study, const fs::path& out, const nlohmann::json& recorded) {
   if (!recorded.is_object() || !recorded.contains("samples")) return;
   for (const auto& old : recorded["samples"]) {
@@ -456,7 +458,7 @@ void check_recorded(const Study& study, const fs::path& out, const nlohmann::jso
           "its runs would mix two cases. Restore the file, or start the changed study in another --out",
           it->case_file.string(), it->name, (out / "study.json").string(), old["case_fnv1a64"].get<std::string>(),
           it->case_hash));
-    if (old.contains("compacted_fnv1a64")) {
+    if (old.contains("compacted_fnv1a64") && fs::exists(out / dir / prepared_sample_file)) {
       const fs::path file = out / dir / "compacted.packing";
       const std::string now = fs::exists(file) ? file_fnv1a64(file) : "none (the file is gone)";
       if (now != old["compacted_fnv1a64"])
