@@ -534,8 +534,11 @@ TEST(Study, ContinuesFromTheFilesARepositoryKeeps) {
   std::map<std::string, fs::file_time_type> mtimes;
   for (const auto& rel : kept) mtimes[rel] = fs::last_write_time(out / rel / "summary.json");
 
-  const Result r = study(tiny_study, out, dir / "continued");
+  const Result r = study(tiny_study, out, dir / "continued", false);
   EXPECT_TRUE(completed(r)) << r.err;
+  std::smatch first;
+  ASSERT_TRUE(std::regex_search(r.err, first, std::regex("runs[^\n]*? (\\d+)/8 done"))) << r.err;
+  EXPECT_EQ(first[1], "4") << "the progress counts the kept runs from the start (the ETA leaves them out)\n" << r.err;
   EXPECT_TRUE(fs::exists(out / m["samples"][0]["dir"].get<std::string>() / "sample.qsck")) << "prepared again";
   EXPECT_EQ(slurp(out / "study.json"), slurp(ref.dir / "study.json")) << "the same prepared sample's hash";
   for (const auto& [rel, t] : mtimes) {

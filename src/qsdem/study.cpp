@@ -273,6 +273,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
   std::size_t next = 0, done = 0;
   bool forwarded = false;
   const auto t0 = clock::now();
+  std::vector<char> done_before(jobs.size(), 0);  // finished before this pool: counted, timed, skipped
 
   const auto record_cost = [&](const Job& j) {
     if (j.kind != Job::Kind::run) return;
@@ -298,13 +299,15 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
       return it != cost.end() && it->second.second > 0 ? it->second.first / it->second.second : all_wall / all_steps;
     };
     double left = 0;
-    for (std::size_t k = next; k < jobs.size(); ++k) left += jobs[k].expected_steps * per_step(jobs[k].group);
+    std::size_t waiting = 0;
+    for (std::size_t k = next; k < jobs.size(); ++k)
+      if (!done_before[k]) left += jobs[k].expected_steps * per_step(jobs[k].group), ++waiting;
     const auto now = clock::now();
     for (const auto& r : running) {
       const double elapsed = std::chrono::duration<double>(now - r.start).count();
       left += std::max(0.0, jobs[r.job].expected_steps * per_step(jobs[r.job].group) - elapsed);
     }
-    const double width = double(std::min<std::size_t>(std::size_t(parallel), running.size() + jobs.size() - next));
+    const double width = double(std::min<std::size_t>(std::size_t(parallel), running.size() + waiting));
     return fmt::format(", ETA {}", format_duration(left / std::max(1.0, width)));
   };
   const auto show = [&]() {
@@ -315,6 +318,12 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
     progress.show(counts, fmt::format(", {} elapsed", format_duration(elapsed)) + (runs ? eta() : ""));
   };
 
+  for (std::size_t k = 0; k < jobs.size(); ++k)
+    if (finished(jobs[k])) {
+      done_before[k] = 1;
+      ++done;
+      record_cost(jobs[k]);
+    }
   for (;;) {
     if (stop_signal != 0 && !forwarded) {
       for (const auto& r : running) ::kill(r.pid, stop_signal);
@@ -323,11 +332,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
     while (stop_signal == 0 && running.size() < std::size_t(parallel) && next < jobs.size()) {
       const std::size_t k = next++;
       const Job& j = jobs[k];
-      if (finished(j)) {
-        ++done;
-        record_cost(j);
-        continue;
-      }
+      if (done_before[k]) continue;
       if (!j.needs.empty() && !fs::exists(j.needs / prepared_sample_file)) {
         fail(j, fmt::format("its sample {} was not prepared", j.needs.filename().string()), -1);
         continue;
