@@ -595,6 +595,11 @@ void write_damping_study(const fs::path& dir) {
     const double imom = r.model == "none" ? 0.02 : r.rate == 1e-7 ? 0.0005 : 0.005;
     spit(dir / rdir / "summary.json", json{{"mean_imom", imom}, {"mean_ufr", 2 * imom}, {"steps", 1000}}.dump());
   }
+  // A stage of listed runs, like the paper's Table 5 pair: nd 0.2 % and 0.8 % at 1e-7.
+  m["stages"] = json::array({{{"name", "pair"},
+                              {"samples", {"S"}},
+                              {"runs", {{{"model", "nd"}, {"xi", 0.002}, {"rate", 1e-7}},
+                                        {{"model", "nd"}, {"xi", 0.008}, {"rate", 1e-7}}}}}});
   spit(dir / "study.json", m.dump(2));
   spit(dir / "study.toml", "name = \"damping-test\"\n");
 }
@@ -659,7 +664,20 @@ TEST(StudyAnalysisDamping, QsdemAnalyzeGivesDeviationsAndVerdicts) {
   for (const json& f : a["figures"])
     if (f["name"] == "deviation_S") drawn = f["drawn"].get<bool>();
   EXPECT_TRUE(drawn);
+  // The listed stage's second run against its first, per seed: the offsets' difference at every strain.
+  const json& pairs = a["listed_pairs"];
+  ASSERT_EQ(pairs.size(), 2u) << pairs.dump(1);
+  for (const json& p : pairs) {
+    SCOPED_TRACE(p.dump());
+    const long seed = p["id"] == damping_id({"nd", 0.008, 1e-7, 1}) ? 1 : 2;
+    EXPECT_EQ(p["id"], damping_id({"nd", 0.008, 1e-7, seed}));
+    EXPECT_EQ(p["against"], damping_id({"nd", 0.002, 1e-7, seed}));
+    EXPECT_NEAR(p["phi_deg"]["rms"].get<double>(), 200 * 0.006, 1e-9);
+    EXPECT_NEAR(p["ev"]["rms"].get<double>(), 0.5 * 0.006, 1e-12);
+    EXPECT_NEAR(p["cn"]["rms"].get<double>(), 100 * 0.006, 1e-9);
+  }
   const std::string md = slurp(dir / "analysis" / "tables.md");
+  EXPECT_NE(md.find("Runs of a stage of listed runs against each other"), std::string::npos);
   EXPECT_NE(md.find("Damping dependence: deviation from the reference run"), std::string::npos);
   EXPECT_NE(md.find("Reference runs and the scatter between seeds"), std::string::npos);
   fs::remove_all(dir);

@@ -793,6 +793,25 @@ std::vector<SeedScatter> make_seed_scatter(const std::map<std::pair<std::string,
   return out;
 }
 
+// Each stage of listed runs: every finished run against the stage's first finished run of the same
+// sample and seed, in manifest order.
+std::vector<ListedPair> make_listed_pairs(const std::vector<DesignStage>& stages, const std::vector<Run>& runs) {
+  std::vector<ListedPair> out;
+  for (const DesignStage& st : stages) {
+    if (st.listed.size() < 2) continue;
+    std::map<std::pair<std::string, long>, const Run*> first;
+    for (const Run& r : runs) {
+      if (!r.finished || r.s.e1.empty() || !st.lists(r)) continue;
+      const auto [it, fresh] = first.try_emplace({r.sample, r.seed}, &r);
+      if (fresh) continue;
+      const Series& a = it->second->s;
+      out.push_back({&st, &r, it->second, deviation_of(a.e1, a.phi, r.s.e1, r.s.phi),
+                     deviation_of(a.e1, a.ev, r.s.e1, r.s.ev), deviation_of(a.e1, a.cn, r.s.e1, r.s.cn)});
+    }
+  }
+  return out;
+}
+
 // ---------------------------------------------------------------------------------------------
 // JSON and CSV
 // ---------------------------------------------------------------------------------------------
@@ -1053,6 +1072,18 @@ json damping_json(const Analysis& a) {
   return {{"strains", deviation_strains}, {"references", refs}, {"runs", devs}, {"seed_scatter", scatter}};
 }
 
+json listed_pairs_json(const Analysis& a) {
+  json out = json::array();
+  for (const ListedPair& p : a.pairs)
+    out.push_back({{"stage", p.stage->name},
+                   {"id", p.run->id},
+                   {"against", p.first->id},
+                   {"phi_deg", deviation_json(p.phi)},
+                   {"ev", deviation_json(p.ev)},
+                   {"cn", deviation_json(p.cn)}});
+  return out;
+}
+
 // The study's date for the report: the manifest's, else when study.json was written.
 std::string study_date(const fs::path& dir, const json& manifest) {
   for (const char* k : {"date", "created", "started"})
@@ -1098,6 +1129,7 @@ void build_analysis(Analysis& a, const fs::path& dir, const json& manifest) {
   a.devs = make_deviations(a.runs, a.refs, a.settings);
   a.scatter = make_seed_scatter(a.refs);
   a.controls = make_controls(a.runs);
+  a.pairs = make_listed_pairs(a.stages, a.runs);
 }
 
 }  // namespace
@@ -1190,6 +1222,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
   a["stages"] = stages_json(an);
   a["controlled_runs"] = controls_json(an.controls);
   a["damping_dependence"] = damping_json(an);
+  a["listed_pairs"] = listed_pairs_json(an);
   a["paper_reference"] = paper_reference_json();
 
   // Tables and CSVs first: they are useful even when gnuplot is missing.

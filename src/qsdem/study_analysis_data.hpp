@@ -181,6 +181,15 @@ struct ControlComparison {
   double mean_over_qs = nan, final_over_qs = nan;
 };
 
+// A run of a stage of listed runs against the stage's first finished run of the same sample and
+// seed (the paper's Table 5 pair, Figs. 10-11: two models, each at its own quasi-static rate).
+struct ListedPair {
+  const DesignStage* stage = nullptr;
+  const Run* run = nullptr;
+  const Run* first = nullptr;
+  CurveDeviation phi, ev, cn;  // run - first
+};
+
 // The scatter between seeds: for each sample with two or more finished reference runs, the
 // largest RMS deviation between two of them.
 struct SeedScatter {
@@ -208,6 +217,7 @@ struct Analysis {
   std::vector<Deviation> devs;
   std::vector<SeedScatter> scatter;
   std::vector<ControlComparison> controls;
+  std::vector<ListedPair> pairs;
 
   const Run* reference_of(const std::string& sample) const {  // the first seed's (for figures)
     for (const auto& [key, r] : refs)

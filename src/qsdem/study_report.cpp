@@ -296,6 +296,23 @@ Table table_references(const Analysis& a) {
   return t;
 }
 
+// The runs of a stage of listed runs against each other (the paper's Table 5 pair, Figs. 10-11).
+Table table_listed_pairs(const Analysis& a) {
+  Table t{"Runs of a stage of listed runs against each other",
+          "Each finished run of a stage that lists its runs (e.g. the paper's Table 5 pair, Figs. 10-11) against the "
+          "stage's first finished run of the same sample and seed. Δ = run − first; RMS over the common strain range "
+          "on the first run's strains, and at 2 / 5 / 10 % axial strain.",
+          {"stage", "run", "against", "mean IMom (%)", "peak φ (°)", "RMS Δφ (°)", "Δφ at 2 / 5 / 10 % (°)",
+           "RMS Δεv (%)", "Δεv at 2 / 5 / 10 % (%)", "RMS ΔCn", "ΔCn at 2 / 5 / 10 %"},
+          {}};
+  for (const ListedPair& p : a.pairs)
+    t.rows.push_back({p.stage->name, p.run->id, p.first->id,
+                      pct(p.run->mean_imom) + " / " + pct(p.first->mean_imom),
+                      sig(p.run->peak_phi, 4) + " / " + sig(p.first->peak_phi, 4), sig(p.phi.rms), trio(p.phi, 1),
+                      pct(p.ev.rms), trio(p.ev, 100), sig(p.cn.rms), trio(p.cn, 1)});
+  return t;
+}
+
 // Controlled runs against the constant-rate power law of the same sample, seed, model and ratio.
 Table table_controls(const Analysis& a) {
   Table t{"Controlled runs: the rate that holds the index at its target",
@@ -734,6 +751,7 @@ std::vector<Table> make_tables(const Analysis& a) {
     tables.push_back(table_references(a));
     tables.push_back(table_deviation(a));
   }
+  if (!a.pairs.empty()) tables.push_back(table_listed_pairs(a));
   tables.push_back(table_missing(a));
   return tables;
 }
