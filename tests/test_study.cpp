@@ -568,6 +568,22 @@ TEST(Study, ContinuesFromTheFilesARepositoryKeeps) {
   fs::remove_all(dir);
 }
 
+// A run that resumes from a checkpoint has only the steps after its last row left (the pool's
+// order and the ETA); one without a checkpoint starts afresh, whatever its partial series says.
+TEST(StudyCli, StepsLeftOfAResumedRun) {
+  const fs::path dir = fresh_dir("left");
+  EXPECT_EQ(qsdem::steps_left(dir, 7.8e6), 7.8e6) << "nothing there";
+  write(dir / "series.csv.partial", "step,time_s,e1\n31250,0.0039,0.0004\n2031250,0.25,0.026\n");
+  EXPECT_EQ(qsdem::steps_left(dir, 7.8e6), 7.8e6) << "no checkpoint: a fresh start";
+  write(dir / "checkpoint.qsck", "");
+  EXPECT_EQ(qsdem::steps_left(dir, 7.8e6), 7.8e6 - 2031250);
+  write(dir / "series.csv.partial", "step,time_s,e1\n");
+  EXPECT_EQ(qsdem::steps_left(dir, 7.8e6), 7.8e6) << "a checkpoint before the first row";
+  write(dir / "series.csv.partial", "step,time_s,e1\n7800001,1,0.1\n");
+  EXPECT_EQ(qsdem::steps_left(dir, 7.8e6), 1.0) << "never below one step";
+  fs::remove_all(dir);
+}
+
 // A run that blows up is recorded in failures.json and reported; the others finish; exit code 3.
 TEST(Study, FailedRunIsRecordedAndTheOthersFinish) {
   const fs::path dir = fresh_dir("failed");

@@ -163,7 +163,7 @@ struct Job {
   fs::path needs;       // runs: the prepared sample they shear
   std::vector<std::string> fresh;  // arguments of a fresh start
   int threads = 1;
-  double expected_steps = 0;  // runs: triaxial steps (ETA)
+  double expected_steps = 0;  // runs: triaxial steps left (order, ETA)
   std::size_t group = 0;      // runs of one sample share a time per step
 };
 
@@ -182,6 +182,26 @@ std::vector<std::string> command(const Job& j) {
     return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet"};
   return j.fresh;
 }
+
+}  // namespace
+
+double steps_left(const fs::path& run_dir, double expected) {
+  if (!fs::exists(run_dir / checkpoint_file) && !fs::exists(run_dir / "checkpoint.qsck.prev")) return expected;
+  std::ifstream in(run_dir / "series.csv.partial");
+  std::string line, last;
+  std::getline(in, line);  // the header
+  while (std::getline(in, line))
+    if (!line.empty()) last = line;
+  if (last.empty()) return expected;
+  try {
+    const double done = std::stod(last.substr(0, last.find(',')));  // the `step` column
+    return std::clamp(expected - done, 1.0, expected);
+  } catch (const std::exception&) {
+    return expected;
+  }
+}
+
+namespace {
 
 // Wall seconds per triaxial step of a finished run (for the ETA).
 std::optional<std::pair<double, double>> run_cost(const fs::path& dir) {
@@ -575,7 +595,7 @@ std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level) {
     j.fresh = {"run", smp.case_file.string(), "--set", "sample.from=" + j.needs.string()};
     for (const auto& s : run.sets) j.fresh.insert(j.fresh.end(), {"--set", s});
     j.fresh.insert(j.fresh.end(), {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force"});
-    j.expected_steps = run.expected_steps;
+    j.expected_steps = steps_left(j.dir, run.expected_steps);
     j.group = run.sample;
     jobs.push_back(std::move(j));
   }

@@ -133,6 +133,11 @@ std::string file_fnv1a64(const std::filesystem::path& file);
 // recorded pick has no ratios.
 void adopt_recorded_picks(Study& study, const nlohmann::json& manifest);
 
+// The triaxial steps a run still has to do: `expected` less the step of the last row of its
+// series.csv.partial when it holds a checkpoint (it resumes from there), else `expected` (it
+// starts afresh). Orders the pool and feeds the ETA.
+double steps_left(const std::filesystem::path& run_dir, double expected);
+
 // The manifest DIR/study.json (the contract with the analysis, docs/study.md); keys in the
 // documented order.
 nlohmann::ordered_json study_manifest(const Study& study);
