@@ -139,6 +139,30 @@ TEST(CheckpointProcess, SigtermResumesToTheSameSeries) { kill_and_resume(SIGTERM
 TEST(CheckpointProcess, SigkillBetweenCheckpointsResumesToTheSameSeries) { kill_and_resume(SIGKILL); }
 
 // SIGINT during compaction: compaction.csv continues from the checkpoint too.
+// A run begun by an engine that wrote no classes.csv (its checkpoint has rows, its directory no
+// classes.csv.partial) continues without it: the same series.csv, no classes.csv, and the summary
+// records the change.
+TEST(CheckpointProcess, RunBegunWithoutClassesCsvResumesWithoutIt) {
+  const fs::path ref = reference();
+  const fs::path d = scratch("no-classes");
+  const pid_t pid = spawn({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  ASSERT_TRUE(wait_rows(d, 14, pid)) << "the run ended before it could be stopped";
+  ::kill(pid, SIGTERM);
+  ASSERT_EQ(wait_exit(pid), 128 + SIGTERM) << read(d.string() + ".err");
+  ASSERT_GT(load_checkpoint(d / checkpoint_file).run.current().rows, 0);
+  ASSERT_TRUE(fs::remove(d / "classes.csv.partial"));
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0)
+      << read(d.string() + "-resume.err");
+  EXPECT_NE(read(d.string() + "-resume.err").find("continues without it"), std::string::npos)
+      << read(d.string() + "-resume.err");
+  EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
+  EXPECT_FALSE(fs::exists(d / "classes.csv"));
+  EXPECT_FALSE(fs::exists(d / "classes.csv.partial"));
+  const auto summary = nlohmann::json::parse(read(d / "summary.json"));
+  EXPECT_NE(summary.dump().find("output.classes=false (begun without classes.csv)"), std::string::npos)
+      << summary.dump();
+}
+
 TEST(CheckpointProcess, SigintDuringCompactionResumes) {
   const fs::path ref = reference();
   const fs::path d = scratch("sigint");

@@ -121,6 +121,17 @@ DirKind classify(const fs::path& dir) {
   return DirKind::empty;
 }
 
+// The sample points classes.csv holds when a run continues (-1: none begun, the file starts
+// anew): those of the phases this run has done and of the current one so far.
+long classes_rows_held(const RunProgress& run) {
+  const int first = run.first_step == 0 ? 0 : 1;
+  const int p = run.phase;
+  if (!(p > first || run.phase_started)) return -1;
+  long held = run.phase_started && p < static_cast<int>(run.phases.size()) ? run.phases[static_cast<std::size_t>(p)].rows : 0;
+  for (int q = first; q < p; ++q) held += run.phases[static_cast<std::size_t>(q)].rows;
+  return held;
+}
+
 // Locks `dir` for this process (DIR/.run.lock): a run, resume or prepare, one at a time.
 DirectoryLock lock_run_directory(const fs::path& dir) {
   return DirectoryLock(dir, run_lock_file,
@@ -442,13 +453,9 @@ class Execution {
   // classes.csv, one file over the phases this directory runs (a run of a prepared sample starts
   // after the first): continued after the rows of the phases before and this one's so far.
   void open_classes(std::optional<SeriesWriter>& classes) const {
-    const int first = run_.first_step == 0 ? 0 : 1;
-    const int p = run_.phase;
-    long held = run_.phase_started ? run_.phases[static_cast<std::size_t>(p)].rows : 0;
-    for (int q = first; q < p; ++q) held += run_.phases[static_cast<std::size_t>(q)].rows;
-    const bool begun = p > first || run_.phase_started;
+    const long held = classes_rows_held(run_);
     const long lines = held * static_cast<long>(size_classes_.size());
-    classes.emplace(dir_ / classes_file, begun ? lines : -1, CsvHeader{classes_header()});
+    classes.emplace(dir_ / classes_file, held > 0 ? lines : -1, CsvHeader{classes_header()});
   }
 
   int last_phase() const {
@@ -693,7 +700,20 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
                                    "phase); shear the run's compacted sample anew (sample.from = '{}')",
                                    set, fs::absolute(dir).string()));
   }
-  const Params params = parse_case(c.case_text, c.case_source, options.sets);
+  Params params = parse_case(c.case_text, c.case_source, options.sets);
+  // A run begun by an engine without classes.csv (rows written, no classes.csv.partial) continues
+  // without it rather than with a file that lacks its first rows.
+  if (params.output.classes && classes_rows_held(c.run) > 0 && !fs::exists(dir / "classes.csv.partial")) {
+    params.output.classes = false;
+    const std::string change = "output.classes=false (begun without classes.csv)";
+    if (c.run.changes.find(change) == std::string::npos)
+      c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(params, c.run.phase),
+                                   c.run.phase < static_cast<std::int32_t>(c.run.phases.size()) ? c.run.current().steps : 0,
+                                   change);
+    std::fprintf(stderr, "qsdem: '%s' holds no classes.csv.partial although the run has begun: it was begun "
+                         "without classes.csv and continues without it\n",
+                 dir.string().c_str());
+  }
   for (const std::string& set : options.sets) {
     if (set.rfind("time.step_ratio=", 0) == 0 && planned_end(params.protocol.front(), params.step_ratio) >= 0)
       throw InputError(fmt::format("resume --set '{}': the first phase ends at a fixed step number, so "
