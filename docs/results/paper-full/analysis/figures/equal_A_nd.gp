@@ -17,10 +17,12 @@ set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'equal_A_nd.dat' index 0 using 1:2 with lines lw 1.5 dt 2 lc 1 title "nd ε' = 1e-05, ξ = 0.05 %", \
      'equal_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'equal_A_nd.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc 2 title "nd ε' = 1e-05, ξ = 0.1 %", \
-     'equal_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 1 %", \
-     'equal_A_nd.dat' index 4 using 1:2 with lines lw 1.5 dt 2 lc 3 title "nd ε' = 1e-05, ξ = 0.2 %", \
-     'equal_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-06, ξ = 2 %"
+     'equal_A_nd.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc 2 title "nd ε' = 1e-06, ξ = 0.05 %", \
+     'equal_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'equal_A_nd.dat' index 4 using 1:2 with lines lw 1.5 dt 2 lc 3 title "nd ε' = 1e-05, ξ = 0.1 %", \
+     'equal_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-06, ξ = 1 %", \
+     'equal_A_nd.dat' index 6 using 1:2 with lines lw 1.5 dt 2 lc 4 title "nd ε' = 1e-05, ξ = 0.2 %", \
+     'equal_A_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-06, ξ = 2 %"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -30,12 +32,14 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 6 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 10 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 11 using 1:2 with lines lw 1.5 lc 3 notitle
+plot 'equal_A_nd.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 10 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 11 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 12 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 14 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 15 using 1:2 with lines lw 1.5 lc 4 notitle
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -45,30 +49,17 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 12 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 14 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 15 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 16 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 17 using 1:2 with lines lw 1.5 lc 3 notitle
+plot 'equal_A_nd.dat' index 16 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 17 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 18 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 19 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 20 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 21 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 22 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 23 using 1:2 with lines lw 1.5 lc 4 notitle
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
-unset logscale x
-set format x '%g'
-unset logscale y
-set format y '%g'
-set autoscale
-set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 18 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 19 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 20 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 21 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 22 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 23 using 1:2 with lines lw 1.5 lc 3 notitle
-set title "UFR"
-set xlabel "axial strain ε1 (%)"
-set ylabel "unbalanced force ratio UFR (%)"
 unset logscale x
 set format x '%g'
 unset logscale y
@@ -80,7 +71,26 @@ plot 'equal_A_nd.dat' index 24 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
      'equal_A_nd.dat' index 26 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
      'equal_A_nd.dat' index 27 using 1:2 with lines lw 1.5 lc 2 notitle, \
      'equal_A_nd.dat' index 28 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 29 using 1:2 with lines lw 1.5 lc 3 notitle
+     'equal_A_nd.dat' index 29 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 30 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 31 using 1:2 with lines lw 1.5 lc 4 notitle
+set title "UFR"
+set xlabel "axial strain ε1 (%)"
+set ylabel "unbalanced force ratio UFR (%)"
+unset logscale x
+set format x '%g'
+unset logscale y
+set format y '%g'
+set autoscale
+set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
+plot 'equal_A_nd.dat' index 32 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 33 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 34 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 35 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 36 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 37 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 38 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 39 using 1:2 with lines lw 1.5 lc 4 notitle
 set title "Ekin/ε'²"
 set xlabel "axial strain ε1 (%)"
 set ylabel "Ekin/ε'² (J)"
@@ -90,12 +100,14 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 30 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 31 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 32 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 33 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 34 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 35 using 1:2 with lines lw 1.5 lc 3 notitle
+plot 'equal_A_nd.dat' index 40 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 41 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 42 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 43 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 44 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 45 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 46 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 47 using 1:2 with lines lw 1.5 lc 4 notitle
 unset multiplot
 unset output
 set terminal pngcairo size 1100,1230 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -115,10 +127,12 @@ set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'equal_A_nd.dat' index 0 using 1:2 with lines lw 1.5 dt 2 lc 1 title "nd ε' = 1e-05, ξ = 0.05 %", \
      'equal_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'equal_A_nd.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc 2 title "nd ε' = 1e-05, ξ = 0.1 %", \
-     'equal_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 1 %", \
-     'equal_A_nd.dat' index 4 using 1:2 with lines lw 1.5 dt 2 lc 3 title "nd ε' = 1e-05, ξ = 0.2 %", \
-     'equal_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-06, ξ = 2 %"
+     'equal_A_nd.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc 2 title "nd ε' = 1e-06, ξ = 0.05 %", \
+     'equal_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'equal_A_nd.dat' index 4 using 1:2 with lines lw 1.5 dt 2 lc 3 title "nd ε' = 1e-05, ξ = 0.1 %", \
+     'equal_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-06, ξ = 1 %", \
+     'equal_A_nd.dat' index 6 using 1:2 with lines lw 1.5 dt 2 lc 4 title "nd ε' = 1e-05, ξ = 0.2 %", \
+     'equal_A_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-06, ξ = 2 %"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -128,12 +142,14 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 6 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 10 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 11 using 1:2 with lines lw 1.5 lc 3 notitle
+plot 'equal_A_nd.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 10 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 11 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 12 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 14 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 15 using 1:2 with lines lw 1.5 lc 4 notitle
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -143,30 +159,17 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 12 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 14 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 15 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 16 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 17 using 1:2 with lines lw 1.5 lc 3 notitle
+plot 'equal_A_nd.dat' index 16 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 17 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 18 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 19 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 20 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 21 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 22 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 23 using 1:2 with lines lw 1.5 lc 4 notitle
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
-unset logscale x
-set format x '%g'
-unset logscale y
-set format y '%g'
-set autoscale
-set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 18 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 19 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 20 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 21 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 22 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 23 using 1:2 with lines lw 1.5 lc 3 notitle
-set title "UFR"
-set xlabel "axial strain ε1 (%)"
-set ylabel "unbalanced force ratio UFR (%)"
 unset logscale x
 set format x '%g'
 unset logscale y
@@ -178,7 +181,26 @@ plot 'equal_A_nd.dat' index 24 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
      'equal_A_nd.dat' index 26 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
      'equal_A_nd.dat' index 27 using 1:2 with lines lw 1.5 lc 2 notitle, \
      'equal_A_nd.dat' index 28 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 29 using 1:2 with lines lw 1.5 lc 3 notitle
+     'equal_A_nd.dat' index 29 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 30 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 31 using 1:2 with lines lw 1.5 lc 4 notitle
+set title "UFR"
+set xlabel "axial strain ε1 (%)"
+set ylabel "unbalanced force ratio UFR (%)"
+unset logscale x
+set format x '%g'
+unset logscale y
+set format y '%g'
+set autoscale
+set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
+plot 'equal_A_nd.dat' index 32 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 33 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 34 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 35 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 36 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 37 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 38 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 39 using 1:2 with lines lw 1.5 lc 4 notitle
 set title "Ekin/ε'²"
 set xlabel "axial strain ε1 (%)"
 set ylabel "Ekin/ε'² (J)"
@@ -188,11 +210,13 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'equal_A_nd.dat' index 30 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
-     'equal_A_nd.dat' index 31 using 1:2 with lines lw 1.5 lc 1 notitle, \
-     'equal_A_nd.dat' index 32 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
-     'equal_A_nd.dat' index 33 using 1:2 with lines lw 1.5 lc 2 notitle, \
-     'equal_A_nd.dat' index 34 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
-     'equal_A_nd.dat' index 35 using 1:2 with lines lw 1.5 lc 3 notitle
+plot 'equal_A_nd.dat' index 40 using 1:2 with lines lw 1.5 dt 2 lc 1 notitle, \
+     'equal_A_nd.dat' index 41 using 1:2 with lines lw 1.5 lc 1 notitle, \
+     'equal_A_nd.dat' index 42 using 1:2 with lines lw 1.5 dt 2 lc 2 notitle, \
+     'equal_A_nd.dat' index 43 using 1:2 with lines lw 1.5 lc 2 notitle, \
+     'equal_A_nd.dat' index 44 using 1:2 with lines lw 1.5 dt 2 lc 3 notitle, \
+     'equal_A_nd.dat' index 45 using 1:2 with lines lw 1.5 lc 3 notitle, \
+     'equal_A_nd.dat' index 46 using 1:2 with lines lw 1.5 dt 2 lc 4 notitle, \
+     'equal_A_nd.dat' index 47 using 1:2 with lines lw 1.5 lc 4 notitle
 unset multiplot
 unset output
