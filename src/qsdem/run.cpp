@@ -701,15 +701,17 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
                                    set, fs::absolute(dir).string()));
   }
   Params params = parse_case(c.case_text, c.case_source, options.sets);
+  const auto record_change = [&](const std::string& change) {  // a line of summary.json's resume_changes
+    c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(params, c.run.phase),
+                                 c.run.phase < static_cast<std::int32_t>(c.run.phases.size()) ? c.run.current().steps : 0,
+                                 change);
+  };
   // A run begun by an engine without classes.csv (rows written, no classes.csv.partial) continues
   // without it rather than with a file that lacks its first rows.
   if (params.output.classes && classes_rows_held(c.run) > 0 && !fs::exists(dir / "classes.csv.partial")) {
     params.output.classes = false;
     const std::string change = "output.classes=false (begun without classes.csv)";
-    if (c.run.changes.find(change) == std::string::npos)
-      c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(params, c.run.phase),
-                                   c.run.phase < static_cast<std::int32_t>(c.run.phases.size()) ? c.run.current().steps : 0,
-                                   change);
+    if (c.run.changes.find(change) == std::string::npos) record_change(change);
     std::fprintf(stderr, "qsdem: '%s' holds no classes.csv.partial although the run has begun: it was begun "
                          "without classes.csv and continues without it\n",
                  dir.string().c_str());
@@ -719,9 +721,7 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
       throw InputError(fmt::format("resume --set '{}': the first phase ends at a fixed step number, so "
                                    "time.step_ratio cannot change in it; start the run anew",
                                    set));
-    c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(params, c.run.phase),
-                                 c.run.phase < static_cast<std::int32_t>(c.run.phases.size()) ? c.run.current().steps : 0,
-                                 set);
+    record_change(set);
   }
   RunOptions o = options;
   o.out = dir;

@@ -174,11 +174,16 @@ bool finished(const Job& j) {
   return fs::exists(j.dir / "summary.json") && !fs::exists(j.dir / checkpoint_file);
 }
 
+// A run directory that `qsdem resume` continues (its newest or its previous checkpoint).
+bool holds_checkpoint(const fs::path& dir) {
+  return fs::exists(dir / checkpoint_file) || fs::exists(dir / "checkpoint.qsck.prev");
+}
+
 // A run with a checkpoint resumes from it; anything else starts afresh (--force clears what an
 // unfinished start left). An interrupted `prepare` restarts (a prepared sample of checkpoint format
 // 4 or older would be sheared by `resume`).
 std::vector<std::string> command(const Job& j) {
-  if (j.kind == Job::Kind::run && (fs::exists(j.dir / checkpoint_file) || fs::exists(j.dir / "checkpoint.qsck.prev")))
+  if (j.kind == Job::Kind::run && holds_checkpoint(j.dir))
     return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet"};
   return j.fresh;
 }
@@ -186,7 +191,7 @@ std::vector<std::string> command(const Job& j) {
 }  // namespace
 
 double steps_left(const fs::path& run_dir, double expected) {
-  if (!fs::exists(run_dir / checkpoint_file) && !fs::exists(run_dir / "checkpoint.qsck.prev")) return expected;
+  if (!holds_checkpoint(run_dir)) return expected;
   std::ifstream in(run_dir / "series.csv.partial");
   std::string line, last;
   std::getline(in, line);  // the header

@@ -732,6 +732,18 @@ CurveDeviation deviation_of(const std::vector<double>& e1_ref, const std::vector
   return curve_deviation(e1_ref, y_ref, e1, y, deviation_strains);
 }
 
+// phi, ev and Cn of `run` against those of `ref` (finished, with rows); no verdict.
+Deviation curves_against(const Run& run, const Run& ref) {
+  Deviation d;
+  d.run = &run;
+  d.ref = &ref;
+  const Series& a = ref.s;
+  d.phi = deviation_of(a.e1, a.phi, run.s.e1, run.s.phi);
+  d.ev = deviation_of(a.e1, a.ev, run.s.e1, run.s.ev);
+  d.cn = deviation_of(a.e1, a.cn, run.s.e1, run.s.cn);
+  return d;
+}
+
 // Every finished run of a (sample, seed) that has a reference, with its verdict: quasi-static
 // only if its mean IMom is under the target AND its RMS deviations are within the tolerances.
 std::vector<Deviation> make_deviations(const std::vector<Run>& runs,
@@ -741,18 +753,16 @@ std::vector<Deviation> make_deviations(const std::vector<Run>& runs,
   for (const Run& r : runs) {
     const auto it = refs.find({r.sample, r.seed});
     if (!r.finished || it == refs.end()) continue;
-    Deviation d;
-    d.run = &r;
-    d.ref = it->second;
-    if (!d.ref->finished || d.ref->s.e1.empty()) {
+    const Run& ref = *it->second;
+    if (!ref.finished || ref.s.e1.empty()) {
+      Deviation d;
+      d.run = &r;
+      d.ref = &ref;
       d.verdict = "not decided: the reference run has not finished";
       out.push_back(d);
       continue;
     }
-    const Series& a = d.ref->s;
-    d.phi = deviation_of(a.e1, a.phi, r.s.e1, r.s.phi);
-    d.ev = deviation_of(a.e1, a.ev, r.s.e1, r.s.ev);
-    d.cn = deviation_of(a.e1, a.cn, r.s.e1, r.s.cn);
+    Deviation d = curves_against(r, ref);
     std::vector<std::string> why;
     if (!(r.mean_imom < st.imom_target))
       why.push_back(fmt::format("mean IMom {} % ≥ {} %", pct(r.mean_imom), pct(st.imom_target)));
@@ -804,9 +814,8 @@ std::vector<ListedPair> make_listed_pairs(const std::vector<DesignStage>& stages
       if (!r.finished || r.s.e1.empty() || !st.lists(r)) continue;
       const auto [it, fresh] = first.try_emplace({r.sample, r.seed}, &r);
       if (fresh) continue;
-      const Series& a = it->second->s;
-      out.push_back({&st, &r, it->second, deviation_of(a.e1, a.phi, r.s.e1, r.s.phi),
-                     deviation_of(a.e1, a.ev, r.s.e1, r.s.ev), deviation_of(a.e1, a.cn, r.s.e1, r.s.cn)});
+      const Deviation c = curves_against(r, *it->second);
+      out.push_back({&st, &r, it->second, c.phi, c.ev, c.cn});
     }
   }
   return out;
@@ -980,6 +989,11 @@ json deviation_json(const CurveDeviation& c) {
   return {{"rms", c.rms}, {"at", c.at}, {"n", c.n}, {"e1_lo", c.e1_lo}, {"e1_hi", c.e1_hi}};
 }
 
+// The deviations of phi, ev and Cn, keyed as in analysis.json.
+json curves_json(const CurveDeviation& phi, const CurveDeviation& ev, const CurveDeviation& cn) {
+  return {{"phi_deg", deviation_json(phi)}, {"ev", deviation_json(ev)}, {"cn", deviation_json(cn)}};
+}
+
 json groups_json(const std::vector<Group>& groups) {
   json out = json::array();
   for (const Group& g : groups) {
@@ -1058,15 +1072,15 @@ json damping_json(const Analysis& a) {
   json refs = json::array(), devs = json::array(), scatter = json::array();
   for (const auto& [key, r] : a.refs)
     refs.push_back({{"sample", key.first}, {"seed", key.second}, {"run", r->id}, {"finished", r->finished}});
-  for (const Deviation& d : a.devs)
-    devs.push_back({{"id", d.run->id},
-                    {"reference", d.ref->id},
-                    {"mean_imom", d.run->mean_imom},
-                    {"phi_deg", deviation_json(d.phi)},
-                    {"ev", deviation_json(d.ev)},
-                    {"cn", deviation_json(d.cn)},
-                    {"quasi_static", d.quasi_static < 0 ? json(nullptr) : json(d.quasi_static == 1)},
-                    {"verdict", d.verdict}});
+  for (const Deviation& d : a.devs) {
+    json j = {{"id", d.run->id},
+              {"reference", d.ref->id},
+              {"mean_imom", d.run->mean_imom},
+              {"quasi_static", d.quasi_static < 0 ? json(nullptr) : json(d.quasi_static == 1)},
+              {"verdict", d.verdict}};
+    j.update(curves_json(d.phi, d.ev, d.cn));
+    devs.push_back(std::move(j));
+  }
   for (const SeedScatter& s : a.scatter)
     scatter.push_back({{"sample", s.sample}, {"seeds", s.seeds}, {"phi_deg", s.phi}, {"ev", s.ev}, {"cn", s.cn}});
   return {{"strains", deviation_strains}, {"references", refs}, {"runs", devs}, {"seed_scatter", scatter}};
@@ -1074,13 +1088,11 @@ json damping_json(const Analysis& a) {
 
 json listed_pairs_json(const Analysis& a) {
   json out = json::array();
-  for (const ListedPair& p : a.pairs)
-    out.push_back({{"stage", p.stage->name},
-                   {"id", p.run->id},
-                   {"against", p.first->id},
-                   {"phi_deg", deviation_json(p.phi)},
-                   {"ev", deviation_json(p.ev)},
-                   {"cn", deviation_json(p.cn)}});
+  for (const ListedPair& p : a.pairs) {
+    json j = {{"stage", p.stage->name}, {"id", p.run->id}, {"against", p.first->id}};
+    j.update(curves_json(p.phi, p.ev, p.cn));
+    out.push_back(std::move(j));
+  }
   return out;
 }
 
