@@ -744,6 +744,63 @@ TEST(StudyAnalysisResults, CommittedFullStudyReanalysesFromItsRuns) {
   fs::remove_all(dir);
 }
 
+// --- runs of constant indices, for studies whose analysis has a closed form -------------------
+
+namespace {
+
+// One finished run in study.json `m` and DIR/runs/ID: 10 rows, mean IMom `imom`, UFR 2 imom.
+void add_constant_run(const fs::path& dir, json& m, const std::string& id, const std::string& sample,
+                      const std::string& model, double xi, double rate, double imom) {
+  m["runs"].push_back({{"id", id}, {"sample", sample}, {"seed", 1}, {"model", model}, {"xi", xi}, {"rate", rate},
+                       {"dir", "runs/" + id}});
+  std::string csv = "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
+                    "ekin_trans_J,ekin_rot_J\n";
+  for (int i = 1; i <= 10; ++i)
+    csv += fmt::format("{},0,{},0,1,1,1,1,1,30,0.6,4,{},{},{},1e-6,5e-7,5e-7\n", i, 0.01 * i, 2 * imom, 2 * imom, imom);
+  spit(dir / "runs" / id / "series.csv", csv);
+  const json summary = {{"mean_imom", imom}, {"mean_ufr", 2 * imom}, {"mean_iuf", 2 * imom}, {"steps", 1000}, {"wall_s", 7.0}};
+  spit(dir / "runs" / id / "summary.json", summary.dump());
+}
+
+}  // namespace
+
+// Sample S, od: a sweep of five ratios at 1e-6 and 1e-5 whose IMom is the log-log bowl of
+// synthetic_imom around 0.2 % (the parabola's vertex is exact), and one run at 1e-7 at 0.6 %,
+// a stage's single ratio. The 1e-7 run enters the power law with its index, but Table 4's
+// xi_opt is the mean of the two optima only: 0.2 %, not (0.2 * 0.2 * 0.6)^(1/3) %.
+TEST(StudyAnalysisFit, ARateRunAtOneRatioIsInTheFitNotInXiOpt) {
+  const fs::path dir = fresh_temp_dir("analysis-single");
+  const Truth t{500, 0.9, 0.002};
+  json m = {{"name", "single-test"}, {"study_file", "study.toml"}};
+  m["samples"] = json::array({{{"name", "S"}, {"seed", 1}, {"dir", "samples/S-seed1"}}});
+  m["runs"] = json::array();
+  for (double rate : {1e-6, 1e-5})
+    for (double xi : {0.0005, 0.001, 0.002, 0.004, 0.008})
+      add_constant_run(dir, m, run_id("S", "od", xi, rate), "S", "od", xi, rate, synthetic_imom(t, xi, rate));
+  const double single_imom = synthetic_imom(t, 0.006, 1e-7);
+  add_constant_run(dir, m, run_id("S", "od", 0.006, 1e-7), "S", "od", 0.006, 1e-7, single_imom);
+  spit(dir / "study.json", m.dump(2));
+  spit(dir / "study.toml", "name = \"single-test\"\n");
+
+  const json r = qsdem::analyze_study(dir);
+  ASSERT_EQ(r["power_laws"].size(), 1u);
+  const json& law = r["power_laws"][0];
+  EXPECT_EQ(law["n_rates"], 3);
+  EXPECT_EQ(law["n_single_ratio"], 1);
+  EXPECT_NEAR(law["xi_opt_geomean"].get<double>(), t.xi0, 1e-9 * t.xi0);
+  EXPECT_NEAR(law["xi_opt_min"].get<double>(), t.xi0, 1e-9 * t.xi0);
+  EXPECT_NEAR(law["xi_opt_max"].get<double>(), t.xi0, 1e-9 * t.xi0);
+  // The single run's index is a point of the fit: with it the three points are off the line.
+  const auto rates = law["rates"].get<std::vector<double>>();
+  const auto at = std::find(rates.begin(), rates.end(), 1e-7);
+  ASSERT_NE(at, rates.end());
+  EXPECT_NEAR(law["imom_at_opt"][at - rates.begin()].get<double>(), single_imom, 1e-12 * single_imom);
+  EXPECT_LT(law["r2"].get<double>(), 1.0 - 1e-6);
+  const std::string tables = slurp(dir / "analysis" / "tables.md");
+  EXPECT_NE(tables.find("(over 2 of 3 rates: 1 run at one ratio)"), std::string::npos);
+  fs::remove_all(dir);
+}
+
 // --- controlled runs (rate_control stages) against the constant-rate power law ---------------
 
 // Sample S, nd 0.5 %: constant-rate runs at 1e-6, 1e-5 and 1e-4 whose mean IMom is exactly
@@ -757,28 +814,21 @@ TEST(StudyAnalysisControl, ControlledRunIsComparedNotFitted) {
   m["samples"] = json::array({{{"name", "S"}, {"seed", 1}, {"dir", "samples/S-seed1"}}});
   m["runs"] = json::array();
   const auto add = [&](const std::string& id, double rate, double imom, const json& extra) {
-    json run = {{"id", id}, {"sample", "S"}, {"seed", 1}, {"model", "nd"}, {"xi", 0.005}, {"rate", rate},
-                {"dir", "runs/" + id}};
-    if (!extra.is_null()) run["rate_control"] = extra;
-    m["runs"].push_back(run);
-    std::string csv = "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
-                      "ekin_trans_J,ekin_rot_J\n";
-    for (int i = 1; i <= 10; ++i)
-      csv += fmt::format("{},0,{},0,1,1,1,1,1,30,0.6,4,{},{},{},1e-6,5e-7,5e-7\n", i, 0.01 * i, 2 * imom, 2 * imom, imom);
-    spit(dir / "runs" / id / "series.csv", csv);
-    json summary = {{"mean_imom", imom}, {"mean_ufr", 2 * imom}, {"mean_iuf", 2 * imom}, {"steps", 1000}, {"wall_s", 7.0}};
-    if (!extra.is_null())
-      summary["triaxial"]["controller"] = {{"index", "imom"},
-                                           {"target", target},
-                                           {"band_factor", 1.5},
-                                           {"mean_strain_rate", 2.5e-6},
-                                           {"final_strain_rate", 2e-6},
-                                           {"min_strain_rate", 1.5e-6},
-                                           {"max_strain_rate", 1e-5},
-                                           {"share_within_band", 0.75},
-                                           {"rows", 10},
-                                           {"constant_rate_steps_at_final", 156250},
-                                           {"constant_rate_steps_at_mean", 125000}};
+    add_constant_run(dir, m, id, "S", "nd", 0.005, rate, imom);
+    if (extra.is_null()) return;
+    m["runs"].back()["rate_control"] = extra;
+    json summary = json::parse(slurp(dir / "runs" / id / "summary.json"));
+    summary["triaxial"]["controller"] = {{"index", "imom"},
+                                         {"target", target},
+                                         {"band_factor", 1.5},
+                                         {"mean_strain_rate", 2.5e-6},
+                                         {"final_strain_rate", 2e-6},
+                                         {"min_strain_rate", 1.5e-6},
+                                         {"max_strain_rate", 1e-5},
+                                         {"share_within_band", 0.75},
+                                         {"rows", 10},
+                                         {"constant_rate_steps_at_final", 156250},
+                                         {"constant_rate_steps_at_mean", 125000}};
     spit(dir / "runs" / id / "summary.json", summary.dump());
   };
   for (double rate : {1e-6, 1e-5, 1e-4})

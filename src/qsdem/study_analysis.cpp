@@ -495,7 +495,7 @@ std::vector<Law> make_laws(const std::vector<Group>& groups, double imom_target)
     auto it = std::find_if(laws.begin(), laws.end(),
                            [&](const Law& l) { return l.sample == g.sample && l.model == g.model; });
     if (it == laws.end()) {
-      laws.push_back(Law{g.sample, g.model, {}, nan, {}, {}, {}, 0, nan, nan, nan});
+      laws.push_back(Law{g.sample, g.model, {}, nan, {}, {}, {}, 0, 0, nan, nan, nan});
       it = laws.end() - 1;
     }
     if (!std::isfinite(g.opt_imom.index_at_opt)) continue;
@@ -503,16 +503,23 @@ std::vector<Law> make_laws(const std::vector<Group>& groups, double imom_target)
     it->imom_at_opt.push_back(g.opt_imom.index_at_opt);
     it->xi_opt.push_back(g.opt_imom.xi_opt);
     if (g.opt_imom.method != "parabola") ++it->n_flagged;
+    if (g.opt_imom.method == "single") ++it->n_single;
   }
   for (Law& l : laws) {
     l.fit = fit_power_law(l.rates, l.imom_at_opt);
     l.eps_qs = quasi_static_rate(l.fit, imom_target);
-    if (!l.xi_opt.empty()) {
+    // A rate run at one ratio has that ratio's index, not a minimum: in the fit, not in xi_opt.
+    std::vector<double> optima;
+    for (const Group& g : groups)
+      if (g.sample == l.sample && g.model == l.model && std::isfinite(g.opt_imom.index_at_opt) &&
+          g.opt_imom.method != "single")
+        optima.push_back(g.opt_imom.xi_opt);
+    if (!optima.empty()) {
       double s = 0;
-      for (double x : l.xi_opt) s += std::log10(x);
-      l.xi_opt_geomean = std::pow(10.0, s / static_cast<double>(l.xi_opt.size()));
-      l.xi_opt_lo = *std::min_element(l.xi_opt.begin(), l.xi_opt.end());
-      l.xi_opt_hi = *std::max_element(l.xi_opt.begin(), l.xi_opt.end());
+      for (double x : optima) s += std::log10(x);
+      l.xi_opt_geomean = std::pow(10.0, s / static_cast<double>(optima.size()));
+      l.xi_opt_lo = *std::min_element(optima.begin(), optima.end());
+      l.xi_opt_hi = *std::max_element(optima.begin(), optima.end());
     }
   }
   return laws;
@@ -1035,6 +1042,7 @@ json power_laws_json(const Analysis& a) {
                    {"imom_at_opt", l.imom_at_opt},
                    {"xi_opt", l.xi_opt},
                    {"n_flagged_optima", l.n_flagged},
+                   {"n_single_ratio", l.n_single},
                    {"xi_opt_geomean", l.xi_opt_geomean},
                    {"xi_opt_min", l.xi_opt_lo},
                    {"xi_opt_max", l.xi_opt_hi},

@@ -91,6 +91,7 @@ struct Law {
   double eps_qs = nan;
   std::vector<double> rates, imom_at_opt, xi_opt;  // the points of the fit (Fig. 9) and Fig. 7
   int n_flagged = 0;
+  int n_single = 0;  // rates run at one ratio: in the fit, not in xi_opt_geomean/lo/hi
   double xi_opt_geomean = nan, xi_opt_lo = nan, xi_opt_hi = nan;
 };
 

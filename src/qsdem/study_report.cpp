@@ -108,7 +108,8 @@ std::string trio(const CurveDeviation& c, double scale, int digits = 3) {
 // Table 4 of the paper, one row per (sample, model).
 Table table_power_law(const Analysis& a) {
   Table t{"Optimum damping ratio, power law and quasi-static rate (paper Table 4, Fig. 9)",
-          fmt::format("ξopt: geometric mean over the rates of the IMom optimum [range]; IMom at ξopt: at the "
+          fmt::format("ξopt: geometric mean over the rates of the IMom optimum [range], rates run at one ratio "
+                      "left out; IMom at ξopt: at the "
                       "lowest and highest rate; fit IMom = a ε'^b over the rates (log-log least squares); "
                       "ε'QS where the fit gives IMom = {} %; improvement = ε'QS(model)/ε'QS({}). Paper columns "
                       "only for samples named A*/B* and models od/nd.",
@@ -128,9 +129,12 @@ Table table_power_law(const Analysis& a) {
     if (l.n_flagged) r2 += fmt::format(" [{} of {} optima not from the parabola]", l.n_flagged, l.rates.size());
     const Improvement* im = find_improvement(a.imps, l.sample, l.model);
     t.rows.push_back({l.sample, l.model,
-                      std::isfinite(l.xi_opt_geomean)
-                          ? fmt::format("{} [{}–{}]", pct(l.xi_opt_geomean), pct(l.xi_opt_lo), pct(l.xi_opt_hi))
-                          : "—",
+                      (std::isfinite(l.xi_opt_geomean)
+                           ? fmt::format("{} [{}–{}]", pct(l.xi_opt_geomean), pct(l.xi_opt_lo), pct(l.xi_opt_hi))
+                           : "—") +
+                          (l.n_single ? fmt::format(" (over {} of {} rates: {} run at one ratio)",
+                                                    l.rates.size() - l.n_single, l.rates.size(), l.n_single)
+                                      : ""),
                       ref ? pct(ref->xi_opt) : "", imr, sig(l.fit.a, 5), sig(l.fit.b, 4), r2,
                       ref ? fmt::format("{}, R² = {}", fit_text(ref->a, ref->b), sig(ref->r2, 4)) : "",
                       sig(l.eps_qs), ref ? sig(ref->eps_qs) : "", im ? sig(im->ratio) : "—",
@@ -432,7 +436,8 @@ Figure xiopt_vs_rate_figure(const Analysis& a, const std::string& s) {
     Curve ci{l.model + " (IMom)", {}, {}, "linespoints pt 7 dt 1 " + lc(k)};
     Curve cu{l.model + " (UFR)", {}, {}, "linespoints pt 4 dt 2 " + lc(k)};
     for (const Group& g : a.groups) {
-      if (g.sample != s || g.model != l.model) continue;
+      // A rate run at one ratio has no optimum of its own.
+      if (g.sample != s || g.model != l.model || g.opt_imom.method == "single") continue;
       ci.x.push_back(g.rate), ci.y.push_back(100 * g.opt_imom.xi_opt);
       cu.x.push_back(g.rate), cu.y.push_back(100 * g.opt_ufr.xi_opt);
     }
