@@ -14,8 +14,9 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_B_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-06, ξ = 0.4 %", \
-     'ekin_B_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-05, ξ = 0.5 %"
+plot 'ekin_B_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-07, ξ = 0.45 %", \
+     'ekin_B_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-06, ξ = 0.4 %", \
+     'ekin_B_od.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-05, ξ = 0.5 %"
 unset output
 set terminal pngcairo size 820,560 noenhanced font 'DejaVu Sans,10' background '#ffffff'
 set output 'ekin_B_od.png'
@@ -31,6 +32,7 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_B_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-06, ξ = 0.4 %", \
-     'ekin_B_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-05, ξ = 0.5 %"
+plot 'ekin_B_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-07, ξ = 0.45 %", \
+     'ekin_B_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-06, ξ = 0.4 %", \
+     'ekin_B_od.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-05, ξ = 0.5 %"
 unset output
