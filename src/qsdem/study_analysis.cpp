@@ -489,6 +489,13 @@ std::vector<Group> make_groups(const std::vector<Run>& runs) {
   return out;
 }
 
+// Table 4's one value from the per-rate optima (analysis.md section 3).
+double geometric_mean(const std::vector<double>& xs) {
+  double s = 0;
+  for (double x : xs) s += std::log10(x);
+  return std::pow(10.0, s / static_cast<double>(xs.size()));
+}
+
 std::vector<Law> make_laws(const std::vector<Group>& groups, double imom_target) {
   std::vector<Law> laws;
   for (const Group& g : groups) {
@@ -515,9 +522,7 @@ std::vector<Law> make_laws(const std::vector<Group>& groups, double imom_target)
           g.opt_imom.method != "single")
         optima.push_back(g.opt_imom.xi_opt);
     if (!optima.empty()) {
-      double s = 0;
-      for (double x : optima) s += std::log10(x);
-      l.xi_opt_geomean = std::pow(10.0, s / static_cast<double>(optima.size()));
+      l.xi_opt_geomean = geometric_mean(optima);
       l.xi_opt_lo = *std::min_element(optima.begin(), optima.end());
       l.xi_opt_hi = *std::max_element(optima.begin(), optima.end());
     }
@@ -673,10 +678,7 @@ std::vector<StageOptimum> optima_of(const std::vector<Run>& runs, double at_rate
       xs.push_back(g.opt_imom.xi_opt);
     }
     if (!std::isfinite(at_rate) && !xs.empty()) {
-      // The Table 4 value: the geometric mean of the per-rate optima (section 3).
-      double sum = 0;
-      for (double x : xs) sum += std::log10(x);
-      o.xi_opt = std::pow(10.0, sum / static_cast<double>(xs.size()));
+      o.xi_opt = geometric_mean(xs);
       o.method = fmt::format("geometric mean over {} rate{}", xs.size(), xs.size() == 1 ? "" : "s");
     }
   }
