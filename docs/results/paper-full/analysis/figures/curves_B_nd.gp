@@ -15,9 +15,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %", \
-     'curves_B_nd.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %", \
+     'curves_B_nd.dat' index 3 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -27,9 +28,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %", \
-     'curves_B_nd.dat' index 5 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_B_nd.dat' index 4 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %", \
+     'curves_B_nd.dat' index 7 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -39,9 +41,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %", \
-     'curves_B_nd.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_B_nd.dat' index 8 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %", \
+     'curves_B_nd.dat' index 11 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -51,8 +54,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %"
+plot 'curves_B_nd.dat' index 12 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 14 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %"
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -70,9 +74,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %", \
-     'curves_B_nd.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %", \
+     'curves_B_nd.dat' index 3 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -82,9 +87,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %", \
-     'curves_B_nd.dat' index 5 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_B_nd.dat' index 4 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %", \
+     'curves_B_nd.dat' index 7 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -94,9 +100,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %", \
-     'curves_B_nd.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_B_nd.dat' index 8 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %", \
+     'curves_B_nd.dat' index 11 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -106,7 +113,8 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_B_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.5 %", \
-     'curves_B_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-05, ξ = 0.6 %"
+plot 'curves_B_nd.dat' index 12 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.55 %", \
+     'curves_B_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.5 %", \
+     'curves_B_nd.dat' index 14 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.6 %"
 unset multiplot
 unset output

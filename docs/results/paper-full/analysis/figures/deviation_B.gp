@@ -63,8 +63,9 @@ set yrange [0:*]
 plot 'deviation_B.dat' index 14 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "od ε' = 1e-07", \
      'deviation_B.dat' index 15 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "od ε' = 1e-06", \
      'deviation_B.dat' index 16 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "od ε' = 1e-05", \
-     'deviation_B.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-06", \
-     'deviation_B.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-05"
+     'deviation_B.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "nd ε' = 1e-07", \
+     'deviation_B.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-06", \
+     'deviation_B.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-05"
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -130,7 +131,8 @@ set yrange [0:*]
 plot 'deviation_B.dat' index 14 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "od ε' = 1e-07", \
      'deviation_B.dat' index 15 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "od ε' = 1e-06", \
      'deviation_B.dat' index 16 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "od ε' = 1e-05", \
-     'deviation_B.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-06", \
-     'deviation_B.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-05"
+     'deviation_B.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "nd ε' = 1e-07", \
+     'deviation_B.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-06", \
+     'deviation_B.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-05"
 unset multiplot
 unset output

@@ -14,8 +14,9 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-06, ξ = 0.5 %", \
-     'ekin_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-05, ξ = 0.6 %"
+plot 'ekin_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-07, ξ = 0.55 %", \
+     'ekin_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-06, ξ = 0.5 %", \
+     'ekin_B_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-05, ξ = 0.6 %"
 unset output
 set terminal pngcairo size 820,560 noenhanced font 'DejaVu Sans,10' background '#ffffff'
 set output 'ekin_B_nd.png'
@@ -31,6 +32,7 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-06, ξ = 0.5 %", \
-     'ekin_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-05, ξ = 0.6 %"
+plot 'ekin_B_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-07, ξ = 0.55 %", \
+     'ekin_B_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-06, ξ = 0.5 %", \
+     'ekin_B_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-05, ξ = 0.6 %"
 unset output

@@ -18,10 +18,9 @@ plot 'imom_opt_vs_rate_B.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 1 tit
      'imom_opt_vs_rate_B.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 949.1 ε'^0.948, R² = 0.9999", \
      'imom_opt_vs_rate_B.dat' index 2 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 1124.1 ε'^0.9661", \
      'imom_opt_vs_rate_B.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
-     'imom_opt_vs_rate_B.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 796.2 ε'^0.934, R² = 1", \
-     'imom_opt_vs_rate_B.dat' index 5 using 1:2 with lines dt 2 lw 1.5 lc 2 notitle, \
-     'imom_opt_vs_rate_B.dat' index 6 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 1047.3 ε'^0.9607", \
-     'imom_opt_vs_rate_B.dat' index 7 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
+     'imom_opt_vs_rate_B.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 949.4 ε'^0.949, R² = 0.9999", \
+     'imom_opt_vs_rate_B.dat' index 5 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 1047.3 ε'^0.9607", \
+     'imom_opt_vs_rate_B.dat' index 6 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
 unset output
 set terminal pngcairo size 820,560 noenhanced font 'DejaVu Sans,10' background '#ffffff'
 set output 'imom_opt_vs_rate_B.png'
@@ -41,8 +40,7 @@ plot 'imom_opt_vs_rate_B.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 1 tit
      'imom_opt_vs_rate_B.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 949.1 ε'^0.948, R² = 0.9999", \
      'imom_opt_vs_rate_B.dat' index 2 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 1124.1 ε'^0.9661", \
      'imom_opt_vs_rate_B.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
-     'imom_opt_vs_rate_B.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 796.2 ε'^0.934, R² = 1", \
-     'imom_opt_vs_rate_B.dat' index 5 using 1:2 with lines dt 2 lw 1.5 lc 2 notitle, \
-     'imom_opt_vs_rate_B.dat' index 6 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 1047.3 ε'^0.9607", \
-     'imom_opt_vs_rate_B.dat' index 7 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
+     'imom_opt_vs_rate_B.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 949.4 ε'^0.949, R² = 0.9999", \
+     'imom_opt_vs_rate_B.dat' index 5 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 1047.3 ε'^0.9607", \
+     'imom_opt_vs_rate_B.dat' index 6 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
 unset output
