@@ -60,12 +60,13 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 set yrange [0:*]
-plot 'deviation_A.dat' index 14 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "od ε' = 1e-07", \
-     'deviation_A.dat' index 15 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "od ε' = 1e-06", \
-     'deviation_A.dat' index 16 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "od ε' = 1e-05", \
-     'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-07", \
-     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-06", \
-     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 7 title "nd ε' = 1e-05"
+plot 'deviation_A.dat' index 14 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "od ε' = 4e-08", \
+     'deviation_A.dat' index 15 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "od ε' = 1e-07", \
+     'deviation_A.dat' index 16 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "od ε' = 1e-06", \
+     'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "od ε' = 1e-05", \
+     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-07", \
+     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-06", \
+     'deviation_A.dat' index 20 using 1:2 with linespoints pt 7 ps 0.8 lc 7 title "nd ε' = 1e-05"
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -128,11 +129,12 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 set yrange [0:*]
-plot 'deviation_A.dat' index 14 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "od ε' = 1e-07", \
-     'deviation_A.dat' index 15 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "od ε' = 1e-06", \
-     'deviation_A.dat' index 16 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "od ε' = 1e-05", \
-     'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-07", \
-     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-06", \
-     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 7 title "nd ε' = 1e-05"
+plot 'deviation_A.dat' index 14 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "od ε' = 4e-08", \
+     'deviation_A.dat' index 15 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "od ε' = 1e-07", \
+     'deviation_A.dat' index 16 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "od ε' = 1e-06", \
+     'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "od ε' = 1e-05", \
+     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 5 title "nd ε' = 1e-07", \
+     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 6 title "nd ε' = 1e-06", \
+     'deviation_A.dat' index 20 using 1:2 with linespoints pt 7 ps 0.8 lc 7 title "nd ε' = 1e-05"
 unset multiplot
 unset output

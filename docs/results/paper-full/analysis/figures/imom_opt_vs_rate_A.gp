@@ -15,13 +15,12 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'imom_opt_vs_rate_A.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 1 title "od", \
-     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 653.5 ε'^0.806, R² = 0.9992", \
-     'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 2 lw 1.5 lc 1 notitle, \
-     'imom_opt_vs_rate_A.dat' index 3 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 336.46 ε'^0.7511", \
-     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
-     'imom_opt_vs_rate_A.dat' index 5 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 753.4 ε'^0.84, R² = 0.9985", \
-     'imom_opt_vs_rate_A.dat' index 6 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 629.92 ε'^0.83", \
-     'imom_opt_vs_rate_A.dat' index 7 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
+     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 424.9 ε'^0.772, R² = 0.9969", \
+     'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 336.46 ε'^0.7511", \
+     'imom_opt_vs_rate_A.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
+     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 753.4 ε'^0.84, R² = 0.9985", \
+     'imom_opt_vs_rate_A.dat' index 5 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 629.92 ε'^0.83", \
+     'imom_opt_vs_rate_A.dat' index 6 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
 unset output
 set terminal pngcairo size 820,560 noenhanced font 'DejaVu Sans,10' background '#ffffff'
 set output 'imom_opt_vs_rate_A.png'
@@ -38,11 +37,10 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'imom_opt_vs_rate_A.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 1 title "od", \
-     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 653.5 ε'^0.806, R² = 0.9992", \
-     'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 2 lw 1.5 lc 1 notitle, \
-     'imom_opt_vs_rate_A.dat' index 3 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 336.46 ε'^0.7511", \
-     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
-     'imom_opt_vs_rate_A.dat' index 5 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 753.4 ε'^0.84, R² = 0.9985", \
-     'imom_opt_vs_rate_A.dat' index 6 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 629.92 ε'^0.83", \
-     'imom_opt_vs_rate_A.dat' index 7 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
+     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 424.9 ε'^0.772, R² = 0.9969", \
+     'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 336.46 ε'^0.7511", \
+     'imom_opt_vs_rate_A.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
+     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 753.4 ε'^0.84, R² = 0.9985", \
+     'imom_opt_vs_rate_A.dat' index 5 using 1:2 with lines dt 3 lw 1.5 lc 2 title "paper nd: 629.92 ε'^0.83", \
+     'imom_opt_vs_rate_A.dat' index 6 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
 unset output

@@ -15,8 +15,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %", \
-     'stage_table5_A.dat' index 1 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'stage_table5_A.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'stage_table5_A.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -26,8 +27,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 2 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %", \
-     'stage_table5_A.dat' index 3 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'stage_table5_A.dat' index 3 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'stage_table5_A.dat' index 5 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -37,8 +39,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 4 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %", \
-     'stage_table5_A.dat' index 5 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'stage_table5_A.dat' index 6 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 7 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'stage_table5_A.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -48,7 +51,8 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 6 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %"
+plot 'stage_table5_A.dat' index 9 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 10 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %"
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -66,8 +70,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %", \
-     'stage_table5_A.dat' index 1 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'stage_table5_A.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'stage_table5_A.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -77,8 +82,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 2 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %", \
-     'stage_table5_A.dat' index 3 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'stage_table5_A.dat' index 3 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'stage_table5_A.dat' index 5 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -88,8 +94,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 4 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %", \
-     'stage_table5_A.dat' index 5 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'stage_table5_A.dat' index 6 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 7 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %", \
+     'stage_table5_A.dat' index 8 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -99,6 +106,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'stage_table5_A.dat' index 6 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-07, ξ = 0.5 %"
+plot 'stage_table5_A.dat' index 9 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+     'stage_table5_A.dat' index 10 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-07, ξ = 0.5 %"
 unset multiplot
 unset output
