@@ -15,7 +15,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %", \
@@ -29,7 +29,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 5 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 5 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 6 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 7 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 8 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %", \
@@ -43,7 +43,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 10 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 10 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 11 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 12 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 13 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %", \
@@ -57,7 +57,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 15 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 15 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 16 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 17 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 18 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %"
@@ -78,7 +78,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %", \
@@ -92,7 +92,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 5 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 5 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 6 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 7 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 8 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %", \
@@ -106,7 +106,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 10 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 10 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 11 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 12 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 13 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %", \
@@ -120,7 +120,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_od.dat' index 15 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.25 %", \
+plot 'curves_A_od.dat' index 15 using 1:2 with lines lw 1.5 lc 1 title "od ε' = 4e-08, ξ = 0.14 %", \
      'curves_A_od.dat' index 16 using 1:2 with lines lw 1.5 lc 2 title "od ε' = 1e-07, ξ = 0.14 %", \
      'curves_A_od.dat' index 17 using 1:2 with lines lw 1.5 lc 3 title "od ε' = 1e-06, ξ = 0.12 %", \
      'curves_A_od.dat' index 18 using 1:2 with lines lw 1.5 lc 4 title "od ε' = 1e-05, ξ = 0.15 %"

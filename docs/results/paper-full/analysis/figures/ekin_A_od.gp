@@ -14,7 +14,7 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 4e-08, ξ = 0.25 %", \
+plot 'ekin_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 4e-08, ξ = 0.14 %", \
      'ekin_A_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-07, ξ = 0.14 %", \
      'ekin_A_od.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06, ξ = 0.12 %", \
      'ekin_A_od.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "ε' = 1e-05, ξ = 0.15 %"
@@ -33,7 +33,7 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 4e-08, ξ = 0.25 %", \
+plot 'ekin_A_od.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 4e-08, ξ = 0.14 %", \
      'ekin_A_od.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-07, ξ = 0.14 %", \
      'ekin_A_od.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06, ξ = 0.12 %", \
      'ekin_A_od.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "ε' = 1e-05, ξ = 0.15 %"

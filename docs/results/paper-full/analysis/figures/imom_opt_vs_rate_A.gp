@@ -15,7 +15,7 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'imom_opt_vs_rate_A.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 1 title "od", \
-     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 424.9 ε'^0.772, R² = 0.9969", \
+     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 862.2 ε'^0.828, R² = 0.9986", \
      'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 336.46 ε'^0.7511", \
      'imom_opt_vs_rate_A.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
      'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 753.4 ε'^0.84, R² = 0.9985", \
@@ -37,7 +37,7 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'imom_opt_vs_rate_A.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 1 title "od", \
-     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 424.9 ε'^0.772, R² = 0.9969", \
+     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 1 title "od fit: 862.2 ε'^0.828, R² = 0.9986", \
      'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 3 lw 1.5 lc 1 title "paper od: 336.46 ε'^0.7511", \
      'imom_opt_vs_rate_A.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 2 title "nd", \
      'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 2 title "nd fit: 753.4 ε'^0.84, R² = 0.9985", \
