@@ -41,12 +41,11 @@ State fcc_state(int n, double r) {
 Model bench_model(const State& st) {
   Model m;
   m.material = paper_material();
-  m.friction = 0.5;
+  m.contact_law = make_contact_law(m.material, 0.5);
   m.r_min = smallest_equiv_radius(st.particles);
   m.critical_time = critical_time(m.material, m.r_min);
   m.dt = 0.32 * m.critical_time;
-  m.damping = DampingModel::nd;
-  m.damping_ratio = 0.005;
+  m.damping = resolve_damping("nd", {0.005, m.material.wave_speed(), m.r_min});
   m.skin = 0.2 * m.r_min;
   return m;
 }

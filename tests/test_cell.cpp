@@ -28,7 +28,7 @@ constexpr double kEstar = kE / (2 * (1 - kNu * kNu));  // SPEC 4: E* = E / (2 (1
 Model test_model(double skin, double dt) {
   Model m;
   m.material = {kRho, kE, kNu};
-  m.friction = 0.5;
+  m.contact_law = make_contact_law(m.material, 0.5);
   m.dt = dt;
   m.skin = skin;
   return m;

@@ -257,7 +257,7 @@ TEST(CheckpointFile, UnknownContactHistoryIsRefused) {
   static constexpr HistoryLayout unknown{"rolling_spring", 6, {}, {}};
   const Params params = parse_case(small_case, "small.toml");
   State st = generate_loose_sample(params);
-  const Model model = base_model(params, st.particles);
+  const Model model = compaction_model(params, st);
   evaluate_forces(model, st);
   ASSERT_GT(st.pairs.size(), 0u);
   st.pairs.history.layout = &unknown;

@@ -59,7 +59,7 @@ TEST(ClassMeasures, TwoSizesInAKnownArrangement) {
     st.particles.angmom[k] = 0.4 * st.particles.mass[k] * b.r * b.r * b.w;
   }
   Model model;
-  model.friction = 0.5;
+  model.contact_law = make_contact_law(model.material, 0.5);
   model.r_min = r;
   model.critical_time = critical_time(model.material, r);
   model.dt = 0.32 * model.critical_time;

@@ -40,8 +40,7 @@ HertzMindlinDashpot make_law(const ContactSettings& s, double friction) {
 std::pair<double, int> rebound(double e, double r1, double r2, double speed, double step_ratio) {
   Model m;
   m.material = {kRho, kE, kNu};
-  m.contact = dashpot_settings("restitution", e);
-  m.friction = 0;
+  m.contact_law = make_contact_law(m.material, 0, dashpot_settings("restitution", e));
   m.r_min = std::min(r1, r2);
   m.critical_time = 2 * m.r_min * std::sqrt(kRho / kE);
   m.dt = step_ratio * m.critical_time;

@@ -52,12 +52,10 @@ using qsdem_test::SingleThread;
 Model paper_model(double r_min, double mu) {
   Model m;
   m.material = {kRho, kE, kNu};
-  m.friction = mu;
+  m.contact_law = make_contact_law(m.material, mu);
   m.r_min = r_min;
   m.critical_time = 2 * r_min * std::sqrt(kRho / kE);
   m.dt = 0.32 * m.critical_time;
-  m.damping = DampingModel::none;
-  m.damping_ratio = 0;
   m.skin = 0.2 * r_min;  // every control axis defaults to `fixed`: L = 0
   return m;
 }
@@ -130,6 +128,17 @@ TEST(ContactLaw, HertzNormalForceThroughPipeline) {
     EXPECT_EQ(st.particles.force[0].norm(), 0.0);
     EXPECT_EQ(st.particles.force[1].norm(), 0.0);
   }
+}
+
+// A Model carries its contact law made (phase_model, or make_contact_law by hand): the force
+// stages refuse one without, rather than step with a default law.
+TEST(ContactLaw, ModelWithoutALawIsRefused) {
+  const double r1 = 1.0e-3, r2 = 2.3e-3;
+  Model model = paper_model(r1, 0.5);
+  model.contact_law.reset();
+  State st = two_spheres(r1, r2, (r1 + r2 - 1e-6) * Vec3::UnitX());
+  EXPECT_THROW(evaluate_forces(model, st), std::logic_error);
+  EXPECT_THROW(step(model, st), std::logic_error);
 }
 
 // SPEC 4 tangential law: F_t <- F_t - k_t du_t with k_t = 8 G* sqrt(R_e delta), capped at

@@ -10,7 +10,7 @@
 #include <vector>
 
 #include "qsdem/config.hpp"
-#include "qsdem/damping.hpp"
+#include "qsdem/damping/stage.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/step.hpp"
@@ -41,9 +41,7 @@ Model local_model(double alpha, double dt, DampedMotion acts_on = DampedMotion::
   Model m;
   m.material = {kRho, kE, kNu};
   m.dt = dt;
-  m.damping = DampingModel::local;
-  m.damping_ratio = alpha;
-  m.damping_acts_on = acts_on;
+  m.damping = resolve_damping("local", {alpha, m.material.wave_speed(), 0}, acts_on);
   return m;
 }
 
@@ -106,7 +104,7 @@ namespace {
 // local damping alpha; stepped until apart. Returns the normal relative speed after over before.
 double local_rebound(double alpha, double r1, double r2, double speed, double step_ratio) {
   Model m = local_model(alpha, 0);
-  m.friction = 0;
+  m.contact_law = make_contact_law(m.material, 0);
   m.r_min = std::min(r1, r2);
   m.critical_time = 2 * m.r_min * std::sqrt(kRho / kE);
   m.dt = step_ratio * m.critical_time;
@@ -214,9 +212,9 @@ TEST(LocalDamping, CaseKeys) {
   const Params p = parse_case(base + "[damping]\nmodel = \"local\"\nratio = 0.1\n[compaction]\ndamping_model = "
                                      "\"local\"\ndamping_ratio = 0.7\n",
                               "case.toml");
-  EXPECT_EQ(p.damping.model, DampingModel::local);
+  EXPECT_EQ(p.damping.model, "local");
   EXPECT_EQ(p.damping.ratio, 0.1);
-  EXPECT_EQ(p.compaction.damping_model, DampingModel::local);
+  EXPECT_EQ(p.compaction.damping_model, "local");
   EXPECT_EQ(p.compaction.damping_ratio, 0.7);
   for (const char* bad : {"[damping]\nmodel = \"local\"\nratio = 1\n",
                           "[compaction]\ndamping_model = \"local\"\ndamping_ratio = \"120 %\"\n"}) {
@@ -243,19 +241,17 @@ struct Ring {
   double spacing;
 };
 
-Ring preloaded_ring(DampingModel damping, double ratio, DampedMotion acts_on, double delta0_ratio) {
+Ring preloaded_ring(const char* damping, double ratio, DampedMotion acts_on, double delta0_ratio) {
   constexpr double r = 1e-3;
   Ring ring;
   Model& m = ring.model;
   m.material = {kRho, kE, kNu};
-  m.friction = 0;
+  m.contact_law = make_contact_law(m.material, 0);
   m.r_min = r;
   m.critical_time = 2 * r * std::sqrt(kRho / kE);
   m.dt = 0.32 * m.critical_time;
   m.skin = 0.2 * r;
-  m.damping = damping;
-  m.damping_ratio = ratio;
-  m.damping_acts_on = acts_on;
+  m.damping = resolve_damping(damping, {ratio, m.material.wave_speed(), r}, acts_on);
   ring.spacing = 2 * r - delta0_ratio * r;
   Mat3 h = Mat3::Identity() * 10 * r;
   h(0, 0) = 4 * ring.spacing;
@@ -287,7 +283,7 @@ TEST(StiffnessDamping, RingModesGetTheirClosedFormRatios) {
   constexpr double delta0 = 1e-3;  // of R
   for (const double xi0 : {0.01, 0.05}) {
     for (const int mode : {1, 2}) {
-      Ring ring = preloaded_ring(DampingModel::stiffness, xi0, DampedMotion::both, delta0);
+      Ring ring = preloaded_ring("stiffness", xi0, DampedMotion::both, delta0);
       const double u = 0.01 * delta0 * 1e-3;
       displace(ring, mode == 1 ? std::array<double, 4>{u, 0, -u, 0} : std::array<double, 4>{u, -u, u, -u});
       const double x0 = ring.state.particles.s[0].x() - u / ring.state.cell.h(0, 0);
@@ -322,7 +318,7 @@ TEST(StiffnessDamping, ActsOnAndRattlers) {
   const qsdem_test::SingleThread one_thread;
   constexpr double delta0 = 1e-3, xi0 = 0.05;
   for (const DampedMotion acts_on : {DampedMotion::translation, DampedMotion::rotation, DampedMotion::both}) {
-    Ring ring = preloaded_ring(DampingModel::stiffness, xi0, acts_on, delta0);
+    Ring ring = preloaded_ring("stiffness", xi0, acts_on, delta0);
     Particles& p = ring.state.particles;
     p.add(4, ShapeKind::sphere, Vec3::Constant(1e-3), kRho, Vec3(0.5, 0.1, 0.1), Quat::Identity());  // a rattler
     p.v[4] = Vec3(1e-4, -2e-4, 0);
@@ -353,7 +349,7 @@ TEST(StiffnessDamping, ActsOnAndRattlers) {
     }
   }
   // Rotation only: the ring's translation oscillates undamped.
-  Ring ring = preloaded_ring(DampingModel::stiffness, xi0, DampedMotion::rotation, delta0);
+  Ring ring = preloaded_ring("stiffness", xi0, DampedMotion::rotation, delta0);
   const double u = 1e-2 * delta0 * 1e-3;
   displace(ring, {u, 0, -u, 0});
   const double x0 = ring.state.particles.s[0].x() - u / ring.state.cell.h(0, 0);
@@ -375,13 +371,12 @@ TEST(ContactDampingModel, ImpactReboundsWithTheRestitutionOfItsRatio) {
   for (const double zeta : {0.05, 0.2, 0.45}) {
     Model m;
     m.material = {kRho, kE, kNu};
-    m.friction = 0.5;
-    m.damping = DampingModel::contact;
-    m.damping_ratio = zeta;
-    const ContactSettings law = contact_settings(m);
+    const ContactSettings law = phase_contact_settings("contact", zeta, {});
     EXPECT_EQ(law.law, "hertz_mindlin_dashpot");
     EXPECT_EQ(law.value("damping_ratio"), zeta);
-    EXPECT_EQ(contact_settings(Model{}).law, "hertz_mindlin") << "other models keep the case's law";
+    EXPECT_EQ(phase_contact_settings("nd", zeta, {}).law, "hertz_mindlin") << "other models keep the case's law";
+    m.contact_law = make_contact_law(m.material, 0.5, law);
+    m.damping = resolve_damping("contact", {zeta, m.material.wave_speed(), 1e-3});
     const double r1 = 1e-3, r2 = 1.6e-3;
     m.r_min = r1;
     m.critical_time = 2 * r1 * std::sqrt(kRho / kE);
@@ -420,7 +415,7 @@ TEST(ContactDampingModel, CaseKeys) {
       "[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\npoisson_ratio = 0.3\n"
       "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 100\n";
   const Params p = parse_case(base + "[damping]\nmodel = \"contact\"\nratio = \"20 %\"\n", "case.toml");
-  EXPECT_EQ(p.damping.model, DampingModel::contact);
+  EXPECT_EQ(p.damping.model, "contact");
   EXPECT_EQ(p.damping.ratio, 0.2);
   const auto error_of = [&](const std::string& extra) {
     try {

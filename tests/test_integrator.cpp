@@ -20,7 +20,7 @@
 #include <cmath>
 #include <vector>
 
-#include "qsdem/damping.hpp"
+#include "qsdem/damping/stage.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
@@ -39,6 +39,23 @@ constexpr double kRelTol = 1e-3;     // see the header comment
 
 Material paper_material() { return {kRho, kE, kNu}; }
 double wave_speed() { return std::sqrt(kE / kRho); }  // by hand, not Material::wave_speed()
+
+// The Model of damping model `name` at ratio xi0 on Sample A's smallest radius (the registry's).
+Model damped_model(const char* name, double xi0, DampedMotion acts_on = DampedMotion::both) {
+  Model model;
+  model.material = paper_material();
+  model.r_min = kRmin;
+  model.damping = resolve_damping(name, {xi0, model.material.wave_speed(), kRmin}, acts_on);
+  return model;
+}
+
+// A_i that the damping stage gives a sphere of `radius` under damping model `name` at ratio xi0.
+double engine_factor(const char* name, double xi0, double radius) {
+  Particles p;
+  p.add(0, ShapeKind::sphere, Vec3::Constant(radius), kRho, Vec3::Zero(), Quat::Identity());
+  assign_damping(damped_model(name, xi0), p);
+  return p.damping_translation[0];
+}
 
 // The systems here have 1-5 particles: OpenMP fork/join per stage costs far more than the work
 // and, on a loaded 2-core machine, a second thread waiting for a time slice can make 10^4 steps
@@ -141,7 +158,7 @@ TEST(Integrator, DampedKickGivesRatioAOverTwoOmega) {
 TEST(Integrator, NoDampingKeepsAmplitude) {
   const SingleThread one_thread;
   for (double radius : {kRmin, 7.5 * kRmin}) {
-    const double a = damping_factor(DampingModel::none, 0.05, radius, kRmin, paper_material());
+    const double a = engine_factor("none", 0.05, radius);
     EXPECT_EQ(a, 0.0);
     const double w = wave_speed() / radius;
     const Traces t = particle_oscillator(radius, a, w, 0.02, 50);
@@ -160,7 +177,7 @@ TEST(Integrator, NdGivesNominalRatioForEverySize) {
   const SingleThread one_thread;
   for (double xi0 : {0.005, 0.05}) {
     for (double radius : {kRmin, 7.5 * kRmin}) {
-      const double a = damping_factor(DampingModel::nd, xi0, radius, kRmin, paper_material());
+      const double a = engine_factor("nd", xi0, radius);
       const double w = wave_speed() / radius;  // omega#_i, Eq. 17
       EXPECT_NEAR(a / (2 * w), xi0, 1e-12 * xi0) << "Eq. 19: A_i = 2 xi0 omega#_i";
       const Traces t = particle_oscillator(radius, a, w, 0.02, 30);
@@ -178,8 +195,9 @@ TEST(Integrator, OdOverdampsLargeParticles) {
   for (double xi0 : {0.005, 0.05}) {
     for (double size_ratio : {1.0, 7.5}) {
       const double radius = size_ratio * kRmin;
-      const double a = damping_factor(DampingModel::od, xi0, radius, kRmin, paper_material());
+      const double a = engine_factor("od", xi0, radius);
       const double w = wave_speed() / radius;
+      EXPECT_NEAR(a, 2 * xi0 * wave_speed() / kRmin, 1e-12 * a) << "Eq. 15: A = 2 xi0 omega_max";
       const double expected = xi0 * size_ratio;
       const Traces t = particle_oscillator(radius, a, w, 0.02, 30);
       EXPECT_NEAR(measured_ratio(t.x), expected, kRelTol * expected) << "translation, R/Rmin = " << size_ratio;
@@ -188,33 +206,29 @@ TEST(Integrator, OdOverdampsLargeParticles) {
   }
 }
 
-// assign_damping fills A_i = B_i per particle with the model's law (SPEC 6), so the pipeline
-// uses the same factor as damping_factor() for each size.
+// assign_damping fills A_i = B_i per particle with the model's law (SPEC 6): Eq. 19 for nd,
+// Eq. 15 for od, 0 without damping.
 TEST(Integrator, AssignDampingPerParticle) {
   Particles p;
   p.add(0, ShapeKind::sphere, Vec3::Constant(kRmin), kRho, Vec3::Zero(), Quat::Identity());
   p.add(1, ShapeKind::sphere, Vec3::Constant(7.5 * kRmin), kRho, Vec3::Zero(), Quat::Identity());
-  Model model;
-  model.material = paper_material();
-  model.r_min = kRmin;
-  model.damping_ratio = 0.005;
-  model.damping = DampingModel::nd;
+  Model model = damped_model("nd", 0.005);
   assign_damping(model, p);
   EXPECT_NEAR(p.damping_translation[0], 2 * 0.005 * wave_speed() / kRmin, 1e-12 * p.damping_translation[0]);
   EXPECT_NEAR(p.damping_translation[1], 2 * 0.005 * wave_speed() / (7.5 * kRmin), 1e-12 * p.damping_translation[1]);
-  model.damping = DampingModel::od;
+  model = damped_model("od", 0.005);
   assign_damping(model, p);
   EXPECT_NEAR(p.damping_translation[0], 2 * 0.005 * wave_speed() / kRmin, 1e-12 * p.damping_translation[0]);
   EXPECT_NEAR(p.damping_translation[1], p.damping_translation[0], 1e-12 * p.damping_translation[0])
       << "od: one factor for all sizes";
-  EXPECT_EQ(p.damping_rotation, p.damping_translation) << "B_i = A_i (damping_acts_on both)";
-  model.damping = DampingModel::none;
+  EXPECT_EQ(p.damping_rotation, p.damping_translation) << "B_i = A_i (acts on both)";
+  model = damped_model("none", 0.005);
   assign_damping(model, p);
   EXPECT_EQ(p.damping_translation[0], 0.0);
   EXPECT_EQ(p.damping_translation[1], 0.0);
 }
 
-// What is damped is data of the phase (Model::damping_acts_on, the case key damping.acts_on): a
+// What is damped is data of the phase (ResolvedDamping::acts_on, the case key damping.acts_on): a
 // sphere and a spheroid, free (no contact), moving and spinning, stepped through the engine with
 // nd damping: with only translation damped each keeps its angular momentum to the bit, with only
 // rotation its velocity; damped, either decays by the kick's factor (1 - A dt/2) / (1 + A dt/2)
@@ -234,21 +248,17 @@ TEST(Integrator, DampingActsOnTranslationRotationOrBoth) {
       p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
     }
     const std::vector<Vec3> v0 = p.v, l0 = p.angmom;
-    Model model;
-    model.material = paper_material();
-    model.r_min = kRmin;
+    Model model = damped_model("nd", 0.05, acts_on);
+    model.contact_law = make_contact_law(model.material, 0.5);
     model.dt = 0.32 * 2 * kRmin * std::sqrt(kRho / paper_material().young_modulus);
     model.skin = 0.2 * kRmin;
-    model.damping = DampingModel::nd;
-    model.damping_ratio = 0.05;
-    model.damping_acts_on = acts_on;
     assign_damping(model, p);
     constexpr int steps = 200;
     for (int n = 0; n < steps; ++n) step(model, st);
     ASSERT_EQ(st.pairs.size(), 0u) << "free particles";
     const bool translation = acts_on != DampedMotion::rotation, rotation = acts_on != DampedMotion::translation;
     for (std::size_t k = 0; k < 2; ++k) {
-      const double a = damping_factor(DampingModel::nd, 0.05, p.equiv_radius[k], kRmin, paper_material());
+      const double a = 2 * 0.05 * wave_speed() / p.equiv_radius[k];  // Eq. 19
       const double decay = std::pow((1 - 0.5 * a * model.dt) / (1 + 0.5 * a * model.dt), steps);
       ASSERT_LT(decay, 0.9) << "a visible decay";
       if (translation)

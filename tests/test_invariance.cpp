@@ -27,12 +27,11 @@ Vec3 stored_shear(const State& st, std::size_t k) { return HertzMindlin::tangent
 Model invariance_model(const State& st) {
   Model m;
   m.material = {2650, 7.8e10, 0.3};
-  m.friction = 0.5;
+  m.contact_law = make_contact_law(m.material, 0.5);
   m.r_min = smallest_equiv_radius(st.particles);
   m.critical_time = critical_time(m.material, m.r_min);
   m.dt = 0.32 * m.critical_time;
-  m.damping = DampingModel::nd;
-  m.damping_ratio = 0.005;
+  m.damping = resolve_damping("nd", {0.005, m.material.wave_speed(), m.r_min});
   m.skin = 0.2 * m.r_min;
   return m;
 }

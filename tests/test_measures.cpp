@@ -30,10 +30,12 @@ struct Sphere {
   Vec3 w = Vec3::Zero();       // angular velocity (rad/s)
 };
 
+constexpr double kFriction = 0.5;
+
 // Material of SPEC 9 (E = 78 GPa, nu = 0.3, rho = 2650 kg/m^3), no damping, fixed cell.
 Model make_model(double r_min) {
   Model m;
-  m.friction = 0.5;
+  m.contact_law = make_contact_law(m.material, kFriction);
   m.r_min = r_min;
   m.critical_time = critical_time(m.material, r_min);
   m.dt = 0.32 * m.critical_time;
@@ -114,7 +116,7 @@ Expected by_hand(const Model& model, const Vec3& box, const std::vector<Sphere>&
             const Vec3 vt = vrel - vrel.dot(n) * n;
             const double kt = 8 * mat.effective_shear_modulus() * std::sqrt(re * delta);
             const Vec3 ft = -kt * model.dt * vt;
-            e.max_tangential_ratio = std::max(e.max_tangential_ratio, ft.norm() / (model.friction * fn));
+            e.max_tangential_ratio = std::max(e.max_tangential_ratio, ft.norm() / (kFriction * fn));
             const Vec3 f = fn * n + ft;
             sum += f * l.transpose();
             e.f[j] += f;

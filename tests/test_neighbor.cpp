@@ -40,7 +40,7 @@ constexpr double kSkin = 0.2 * kR0;                    // the default skin ratio
 Model test_model(double skin, double dt) {
   Model m;
   m.material = {kRho, kE, kNu};
-  m.friction = 0.5;
+  m.contact_law = make_contact_law(m.material, 0.5);
   m.dt = dt;
   m.skin = skin;
   return m;

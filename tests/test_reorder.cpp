@@ -41,7 +41,7 @@ State random_sample(std::uint64_t seed) {
 Model model_for(const State& st) {
   Model m;
   m.material = {2650, 7.8e10, 0.3};
-  m.friction = 0.5;
+  m.contact_law = make_contact_law(m.material, 0.5);
   m.r_min = smallest_equiv_radius(st.particles);
   m.critical_time = critical_time(m.material, m.r_min);
   m.dt = 0.32 * m.critical_time;

@@ -19,7 +19,7 @@
 #include <vector>
 
 #include "qsdem/cell.hpp"
-#include "qsdem/damping.hpp"
+#include "qsdem/damping/stage.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/particles.hpp"
@@ -349,9 +349,8 @@ TEST(Rotation, TorsionalOscillatorNdDampingRatio) {
       const double big_omega = std::sqrt(kE / kRho) / radius;  // omega#_i, Eq. 17
       Body b(c.axes, kQ0, Vec3::Zero(), 0);
       b.model.dt = 0.02 / big_omega;
-      b.model.damping = DampingModel::nd;
-      b.model.damping_ratio = xi0;
       b.model.r_min = radius;
+      b.model.damping = resolve_damping("nd", {xi0, b.model.material.wave_speed(), radius});
       assign_damping(b.model, b.p);
       ASSERT_NEAR(b.p.damping_rotation[0], 2 * xi0 * big_omega, 1e-12 * b.p.damping_rotation[0])
           << "Eq. 19 with R_i = (abc)^1/3";

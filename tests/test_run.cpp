@@ -90,10 +90,9 @@ std::pair<State, Model> large_packing() {
                                    {"sample.particles.0.count=2500", "sample.particles.1.count=2500"});
   State start = generate_loose_sample(params);
   set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);
-  Model model = base_model(params, start.particles);
-  model.friction = 0.5;
-  model.damping = DampingModel::nd;
-  model.damping_ratio = 0.005;
+  Model model = triaxial_model(params, start);  // friction 0.5, nd 0.5 %, in a fixed cell:
+  model.control = {};
+  model.shear_control = {};
   assign_damping(model, start.particles);
   return {start, model};
 }

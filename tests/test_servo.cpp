@@ -34,6 +34,7 @@ constexpr double mm = 1e-3;
 
 Model sphere_model(double r_min) {
   Model m;
+  m.contact_law = make_contact_law(m.material, 0.5);
   m.r_min = r_min;
   m.critical_time = critical_time(m.material, r_min);
   m.dt = 0.32 * m.critical_time;
@@ -226,7 +227,7 @@ namespace {
 // 3e-4: allowed 2e-3 relative. Returns the largest relative difference of the shears.
 double check_affine_stiffness(State base, bool check_shears) {
   Model model = sphere_model(smallest_equiv_radius(base.particles));
-  model.friction = 1e6;
+  model.contact_law = make_contact_law(model.material, 1e6);
   for (std::size_t i = 0; i < base.particles.size(); ++i) {
     base.particles.v[i].setZero();
     base.particles.angmom[i].setZero();

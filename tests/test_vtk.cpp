@@ -264,6 +264,7 @@ State make_state(Model& model) {
   model.critical_time = critical_time(model.material, model.r_min);
   model.dt = 0.3 * model.critical_time;
   model.skin = 0.2 * mm;
+  model.contact_law = make_contact_law(model.material, 0.5);
   return st;
 }
 

@@ -510,7 +510,7 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   io_run(r, c.run, version);
   io_state(r, c.state, version);
   c.state.particles.derive_inverses();
-  // The rotation's damping factors are not kept: a phase sets both when it starts (damping.hpp).
+  // The rotation's damping factors are not kept: a phase sets both when it starts (damping/stage.hpp).
   c.state.particles.damping_rotation = c.state.particles.damping_translation;
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);

@@ -22,6 +22,7 @@
 
 #include "qsdem/contact/laws.hpp"
 #include "qsdem/controller.hpp"
+#include "qsdem/damping/models.hpp"
 #include "qsdem/rate_control.hpp"
 #include "qsdem/units.hpp"
 
@@ -334,31 +335,18 @@ class Reader {
 const auto positive = [](double v) { return v > 0; };
 const auto non_negative = [](double v) { return v >= 0; };
 
-// A phase's damping model and ratio; for `local` the ratio is Cundall's alpha, in [0, 1); for
-// `stiffness` at most 0.5, so that A_i dt / 2 = xi_0 omega_i dt < 1 wherever the undamped leapfrog
-// is stable (omega_i dt < 2); for `contact` the dashpots' damping ratio, in [0, 1), on the elastic
-// law hertz_mindlin (`contact` makes it hertz_mindlin_dashpot for the phase).
-std::pair<DampingModel, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key,
-                                              const ContactSettings& contact) {
-  const std::string m = r.text(model_key, std::string("nd"), {"none", "od", "nd", "local", "stiffness", "contact"});
-  const DampingModel model = m == "none"        ? DampingModel::none
-                             : m == "od"        ? DampingModel::od
-                             : m == "local"     ? DampingModel::local
-                             : m == "stiffness" ? DampingModel::stiffness
-                             : m == "contact"   ? DampingModel::contact
-                                                : DampingModel::nd;
-  if (model == DampingModel::contact && contact.law != "hertz_mindlin")
-    r.fail(model_key, r.find(model_key),
-           fmt::format("\"contact\" adds the dashpots to contact.law = \"hertz_mindlin\", not to \"{}\": give the "
-                       "dashpots either by this model and its ratio or by the law's keys, not both",
-                       contact.law));
+// A phase's damping model and ratio: the model's name, its ratio's range and its check on the case's
+// contact law from its declaration (damping/models.hpp).
+std::pair<std::string, double> damping_model(Reader& r, const std::string& model_key, const std::string& ratio_key,
+                                             const ContactSettings& contact) {
+  const std::vector<std::string_view> names = damping_names();
+  const std::string model = r.text(model_key, std::string("nd"), std::vector<std::string>(names.begin(), names.end()));
   const double ratio = r.quantity(ratio_key, Dimension::ratio, 0.005, non_negative, "must be >= 0");
-  if (model == DampingModel::local && ratio >= 1)
-    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"local\" it is Cundall's alpha, in [0, 1)");
-  if (model == DampingModel::stiffness && ratio > 0.5)
-    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"stiffness\" it must be in [0, 50 %]");
-  if (model == DampingModel::contact && ratio >= 1)
-    r.fail(ratio_key, r.find(ratio_key), "out of range: with model \"contact\" it is the dashpots' damping ratio, in [0, 1)");
+  bool on_ratio = false;
+  if (const std::string why = check_damping(model, ratio, contact, on_ratio); !why.empty()) {
+    const std::string& key = on_ratio ? ratio_key : model_key;
+    r.fail(key, r.find(key), why);
+  }
   return {model, ratio};
 }
 
@@ -1018,7 +1006,7 @@ nlohmann::json to_json(const Phase& ph) {
   if (ph.controls.rate_factor > 0) servo["rate_factor"] = ph.controls.rate_factor;
   nlohmann::json j = {{"name", ph.name},
                       {"friction", ph.friction},
-                      {"damping", {{"model", to_string(ph.damping.model)}, {"ratio", ph.damping.ratio},
+                      {"damping", {{"model", ph.damping.model}, {"ratio", ph.damping.ratio},
                                    {"acts_on", to_string(ph.damping.acts_on)}}},
                       {"control", controls},
                       {"servo", servo},
@@ -1049,11 +1037,11 @@ nlohmann::json to_json(const Params& p) {
                   {"total_particles", p.sample.total_particles}, {"particles", table}, {"from", p.sample.from}}},
       {"time", {{"step_ratio", p.step_ratio}}},
       {"contact", contact},
-      {"damping", {{"model", to_string(p.damping.model)}, {"ratio", p.damping.ratio},
+      {"damping", {{"model", p.damping.model}, {"ratio", p.damping.ratio},
                    {"acts_on", to_string(p.damping.acts_on)}}},
       {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
                       {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},
-                      {"damping_model", to_string(c.damping_model)}, {"damping_ratio", c.damping_ratio},
+                      {"damping_model", c.damping_model}, {"damping_ratio", c.damping_ratio},
                       {"max_steps", c.max_steps}, {"check_interval", c.check_interval},
                       {"zero_shear_stress", c.zero_shear_stress}}},
       {"triaxial", {{"friction", t.friction}, {"confining_stress_Pa", t.confining_stress},

@@ -48,7 +48,7 @@ struct Params {
   ContactSettings contact;
 
   struct Damping {
-    DampingModel model = DampingModel::nd;
+    std::string model = "nd";  // a damping model's name (damping/models.hpp)
     double ratio = 0.005;  // xi_0
     DampedMotion acts_on = DampedMotion::both;
   } damping;
@@ -59,7 +59,7 @@ struct Params {
     double max_strain_rate = 2e-5;      // dimensionless, per t_c
     double stress_tolerance = 0.01;     // relative
     double ufr_tolerance = 0.01;
-    DampingModel damping_model = DampingModel::nd;
+    std::string damping_model = "nd";
     double damping_ratio = 0.005;
     long max_steps = 2'000'000;
     long check_interval = 200;

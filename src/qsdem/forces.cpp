@@ -9,7 +9,6 @@
 
 #include "qsdem/clones.hpp"
 #include "qsdem/contact/laws.hpp"
-#include "qsdem/damping.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
@@ -540,7 +539,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   pairs.contact_force.resize(np);
   pairs.contact_torque_j.resize(np);
   // The per-particle contact stiffnesses, only for a damping that reads them.
-  const bool stiffness_sums = needs_contact_stiffness(model);
+  const bool stiffness_sums = model.damping.needs_contact_stiffness;
   if (stiffness_sums) {
     pairs.contact_stiffness_j.resize(np);
     state.contact_stiffness.resize(n);
@@ -579,10 +578,6 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
   assign_owners(schedule, pairs, n, owners, nthreads);
   const bool skip_apart = model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np;
-  // The law of the phase, chosen here once for the whole stage.
-  const ContactLaw contact_law = make_contact_law({model.material.effective_modulus(),
-                                                   model.material.effective_shear_modulus(), model.friction,
-                                                   contact_settings(model)});
   std::visit(
       [&]<class Law>(const Law& law) {
         const auto run = [&]<bool Stiffness, bool Energy>() {
@@ -598,7 +593,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
         else if (model.track_energy) run.template operator()<false, true>();
         else run.template operator()<false, false>();
       },
-      contact_law);
+      contact_law_of(model));
   schedule.timed_build = ns.builds;
   state.contacts_build = ns.builds;
   pairs.overlap_known = true;

@@ -5,7 +5,6 @@
 #include <cstdint>
 
 #include "qsdem/clones.hpp"
-#include "qsdem/damping.hpp"
 
 namespace qsdem {
 
@@ -26,9 +25,9 @@ namespace {
 // rotation), else the viscous factors alone (the code of the viscous models, unchanged). Track:
 // also each particle's dissipation and kinetic energy (KickEnergy).
 template <bool Local, bool Track>
-double kick_particles(const Model& model, Particles& p, std::size_t lo, std::size_t hi, LocalDampingCoefficients alpha,
-                      KickEnergy energy) {
+double kick_particles(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
   const double dt = model.dt;
+  const double alpha = model.damping.cundall_translation, alpha_rot = model.damping.cundall_rotation;
   hi = std::min(hi, p.size());
   double v2max = 0;
   // The factors of the last damping seen, for translation and rotation (one value each in most runs).
@@ -55,9 +54,9 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
       // The sign of the fluctuating velocity at t predicted from t - dt/2 (YADE's cundallDamp2nd);
       // a sphere's omega has the signs of L; an ellipsoid's moment is damped by omega at q(t) from
       // L(t - dt/2) (YADE's cundallDamp1st for aspherical bodies).
-      accel = cundall_damped(accel, vel[i] + 0.5 * dt * accel, alpha.translation);
+      accel = cundall_damped(accel, vel[i] + 0.5 * dt * accel, alpha);
       moment = cundall_damped(moment, shape[i] == ShapeKind::sphere ? Vec3(angmom[i] + 0.5 * dt * moment) : omega[i],
-                              alpha.rotation);
+                              alpha_rot);
     }
     const Vec3 v = kick(vel[i], accel);
     const Vec3 v_old = vel[i], l_old = angmom[i];
@@ -88,13 +87,14 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
 }  // namespace
 
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
-  const bool local = model.damping == DampingModel::local;
+  // Cundall's damping only where it acts: alpha = 0 would change no bit, but costs the signs.
+  const bool local = model.damping.cundall_translation > 0 || model.damping.cundall_rotation > 0;
   if (energy.dissipated) {
-    if (local) return kick_particles<true, true>(model, p, lo, hi, local_damping(model), energy);
-    return kick_particles<false, true>(model, p, lo, hi, {}, energy);
+    if (local) return kick_particles<true, true>(model, p, lo, hi, energy);
+    return kick_particles<false, true>(model, p, lo, hi, energy);
   }
-  if (local) return kick_particles<true, false>(model, p, lo, hi, local_damping(model), energy);
-  return kick_particles<false, false>(model, p, lo, hi, {}, energy);
+  if (local) return kick_particles<true, false>(model, p, lo, hi, energy);
+  return kick_particles<false, false>(model, p, lo, hi, energy);
 }
 
 // Orientation scheme (SPEC 5; notes-ellipsoid-algorithms 3). The kick above moves L with the

@@ -1,9 +1,12 @@
-// The immutable parameters of a step (MuJoCo-style model): material, contact law constants, time
-// step, damping model and the control of the cell. The phase loop (protocol.hpp) builds one per
-// phase and a new one when a controller changes a control value.
+// The immutable parameters of a step (MuJoCo-style model): material, the resolved contact law and
+// damping, time step and the control of the cell; numbers and made laws only, no names. A phase
+// becomes one in phase_model (phase_model.hpp), again when a controller changes a control value.
 #pragma once
 #include <array>
+#include <optional>
 
+#include "qsdem/contact/laws.hpp"
+#include "qsdem/damping/models.hpp"
 #include "qsdem/particles.hpp"
 #include "qsdem/types.hpp"
 
@@ -38,14 +41,13 @@ struct Servo {
 
 struct Model {
   Material material;
-  ContactSettings contact;      // the contact law and its keys (contact/laws.hpp)
-  double friction = 0.5;        // Coulomb mu
+  // The contact law made with its constants and the friction (contact/laws.hpp); the force stages
+  // refuse a Model without one.
+  std::optional<ContactLaw> contact_law;
   double r_min = 0;             // equal-volume radius of the smallest particle (m)
   double critical_time = 0;     // t_c = 2 R_min sqrt(rho/E), SPEC 5
   double dt = 0;                // c_t t_c
-  DampingModel damping = DampingModel::none;  // the damping stage's model (damping.hpp)
-  double damping_ratio = 0;     // xi_0
-  DampedMotion damping_acts_on = DampedMotion::both;
+  ResolvedDamping damping;      // the particle damping and what it asks of the stages (damping/)
   std::array<AxisControl, 3> control{};        // the normal components 11, 22, 33
   std::array<AxisControl, 3> shear_control{};  // the shear components 12, 13, 23
   Servo servo;
@@ -56,6 +58,14 @@ struct Model {
   bool skip_apart_pairs = false;  // skip ellipsoid pairs while provably apart (neighbor.hpp); needs
                                   // every move to go through step(); the protocols turn it on
 };
+
+// The contact law `settings` names, made for `material` with Coulomb friction mu (InputError for an
+// unknown law or bad keys).
+ContactLaw make_contact_law(const Material& material, double friction, const ContactSettings& settings = {});
+
+// The contact law of a Model, or std::logic_error when it has none: a Model is made by
+// phase_model, or by hand with make_contact_law.
+const ContactLaw& contact_law_of(const Model& model);
 
 // t_c = 2 R_min sqrt(rho / E) (SPEC 5, paper section 4).
 double critical_time(const Material& mat, double r_min);

@@ -23,7 +23,7 @@ struct Particles {
   std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2)
   std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
   std::vector<Vec3> inv_inertia;       // (the integrator multiplies instead of dividing)
-  std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping.hpp), SPEC 6
+  std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping/stage.hpp), SPEC 6
   std::vector<double> damping_rotation;     // B_i (1/s)
 
   // Dynamic state.

@@ -45,7 +45,7 @@ struct PhaseControls {
 };
 
 struct PhaseDamping {
-  DampingModel model = DampingModel::nd;
+  std::string model = "nd";  // a damping model's name (damping/models.hpp)
   double ratio = 0.005;  // xi_0
   DampedMotion acts_on = DampedMotion::both;
 };

@@ -9,7 +9,7 @@
 #include <memory>
 
 #include "qsdem/controller.hpp"
-#include "qsdem/damping.hpp"
+#include "qsdem/damping/stage.hpp"
 #include "qsdem/schedule.hpp"
 #include "qsdem/step.hpp"
 
@@ -204,61 +204,6 @@ void BlowUpWatch::check(const State& st, const Params& params, const char* phase
         phase, phase, step, pair(), 100 * now, 100 * params.limits.max_overlap));
   recent_[static_cast<std::size_t>(seen_ % window)] = now;
   ++seen_;
-}
-
-Model base_model(const Params& params, const Particles& particles) {
-  Model m;
-  m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
-  m.contact = params.contact;
-  m.r_min = smallest_equiv_radius(particles);
-  m.critical_time = critical_time(m.material, m.r_min);
-  m.dt = params.step_ratio * m.critical_time;
-  m.servo.proportional_gain = params.servo.proportional_gain;
-  m.servo.integral_gain = params.servo.integral_gain;
-  m.skin = params.neighbor.skin_ratio * m.r_min;
-  m.sort_particles = true;
-  m.skip_apart_pairs = true;
-  m.track_energy = params.output.energy;
-  return m;
-}
-
-Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
-                  const Mat3& h0) {
-  Model m = base_model(params, particles);
-  m.contact = phase.contact;
-  m.friction = phase.friction;
-  m.damping = phase.damping.model;
-  m.damping_ratio = phase.damping.ratio;
-  m.damping_acts_on = phase.damping.acts_on;
-  double fastest = 0;  // the fastest strain-rate component (1/s)
-  for (int c = 0; c < component_count; ++c) {
-    const ComponentControl& cc = controls.component[static_cast<std::size_t>(c)];
-    AxisControl& axis = is_normal(c) ? m.control[static_cast<std::size_t>(c)] : m.shear_control[static_cast<std::size_t>(c - 3)];
-    switch (cc.kind) {
-      case Kind::fixed: axis = {}; break;
-      case Kind::strain_rate: {
-        const double rate = cc.value / m.critical_time;  // eps' = rate t_c (SPEC 8)
-        axis = {AxisControl::Kind::strain_rate, rate, is_normal(c) ? h0(c, c) : 0.0};
-        fastest = std::max(fastest, std::abs(rate));
-        break;
-      }
-      case Kind::stress: axis = {AxisControl::Kind::stress, cc.value, 0.0}; break;
-      case Kind::constant_volume: axis = {AxisControl::Kind::constant_volume, 0.0, 0.0}; break;
-    }
-  }
-  m.servo.max_strain_rate =
-      controls.rate_factor > 0 ? controls.rate_factor * fastest : controls.max_strain_rate / m.critical_time;
-  return m;
-}
-
-Model compaction_model(const Params& params, const State& state) {
-  const Phase& p = params.protocol.front();
-  return phase_model(params, p, p.controls, state.particles, state.cell.h);
-}
-
-Model triaxial_model(const Params& params, const State& state) {
-  const Phase& p = params.protocol.back();
-  return phase_model(params, p, p.controls, state.particles, state.cell.h);
 }
 
 std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0) {

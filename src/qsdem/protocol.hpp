@@ -15,6 +15,7 @@
 #include "qsdem/model.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/phase.hpp"
+#include "qsdem/phase_model.hpp"
 #include "qsdem/progress.hpp"
 #include "qsdem/state.hpp"
 
@@ -109,16 +110,6 @@ struct RowSink {
   SeriesWriter* classes = nullptr;
   const std::vector<double>* size_classes = nullptr;
 };
-
-// The model of every phase: material, contact law, time step, servo gains, skin (SPEC 3, 5).
-Model base_model(const Params& params, const Particles& particles);
-// The model of a phase with the given control values; strain-rate axes measured from h0.
-Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
-                  const Mat3& h0);
-// The first and the last phase's model in the current cell (of the default protocol: compaction
-// and triaxial test), for tools that step a state.
-Model compaction_model(const Params& params, const State& state);
-Model triaxial_model(const Params& params, const State& state);
 
 // The strain components of the cell h against the cell h0 (StopCriteria): e_kk = 1 - h_kk/h0_kk,
 // gamma_ab = F_ab + F_ba with F = h h0^-1.

@@ -4,7 +4,6 @@
 #include <variant>
 
 #include "qsdem/contact/laws.hpp"
-#include "qsdem/damping.hpp"
 #include "qsdem/ellipsoid_contact.hpp"
 
 namespace qsdem {
@@ -94,9 +93,7 @@ ReferenceForces run(const Law& law, const Model& model, const State& state) {
 }  // namespace
 
 ReferenceForces reference_contact_forces(const Model& model, const State& state) {
-  const ContactLaw law = make_contact_law({model.material.effective_modulus(),
-                                           model.material.effective_shear_modulus(), model.friction, contact_settings(model)});
-  return std::visit([&](const auto& l) { return run(l, model, state); }, law);
+  return std::visit([&](const auto& l) { return run(l, model, state); }, contact_law_of(model));
 }
 
 }  // namespace qsdem

@@ -501,7 +501,9 @@ class Execution {
 
   nlohmann::json summary(const std::string& note) const {
     const double wall = wall_before_ + process_s();
-    const Model m0 = base_model(params_, st_.particles);
+    const double r_min = smallest_equiv_radius(st_.particles);
+    const double t_c =
+        critical_time({params_.material.density, params_.material.young_modulus, params_.material.poisson_ratio}, r_min);
     const long own_steps = st_.step - run_.first_step;  // steps this run took (not a prepared sample's)
     const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st_.particles.size());
     nlohmann::json s;
@@ -511,12 +513,12 @@ class Execution {
     s["derived"] = {{"particles", st_.particles.size()},
                     {"size_table", params_.sample.from.empty() ? size_table_json(params_) : nlohmann::json()},
                     {"sample_from", params_.sample.from},
-                    {"r_min_m", m0.r_min},
-                    {"critical_time_s", m0.critical_time},
-                    {"dt_s", m0.dt},
+                    {"r_min_m", r_min},
+                    {"critical_time_s", t_c},
+                    {"dt_s", params_.step_ratio * t_c},
                     {"threads", omp_get_max_threads()}};
     if (!params_.phase_list)
-      s["derived"]["triaxial_strain_rate_per_s"] = params_.triaxial.strain_rate / m0.critical_time;
+      s["derived"]["triaxial_strain_rate_per_s"] = params_.triaxial.strain_rate / t_c;
     if (!note.empty()) s["note"] = note;
     if (!run_.changes.empty()) {
       nlohmann::json changes = nlohmann::json::array();
@@ -914,9 +916,9 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
           {"density_kg_m3", model.material.density},
           {"young_modulus_Pa", model.material.young_modulus},
           {"poisson_ratio", model.material.poisson_ratio},
-          {"friction", model.friction},
-          {"damping_model", to_string(model.damping)},
-          {"damping_ratio", model.damping_ratio},
+          {"friction", phase.friction},
+          {"damping_model", phase.damping.model},
+          {"damping_ratio", phase.damping.ratio},
           {"neighbor_builds", st.neighbor.builds - builds_before},
           {"stages", stage_json(st.timers, steps)}};
 }

@@ -74,7 +74,7 @@ struct State {
   std::size_t max_overlap_pair = 0;     // the pair where it is
   long narrow_tests = 0;                // pairs tested by the narrow phase in the last step
   long pw_iterations = 0;               // their Perram-Wertheim iterations
-  // Per particle, only when the phase's damping reads them (`stiffness`, damping.hpp), else empty:
+  // Per particle, only when the phase's damping reads them (`stiffness`, damping/stiffness.hpp), else empty:
   // sum over its contacts of k_n and of k_t |x_c - x_i|^2 (N/m, N m).
   std::vector<double> contact_stiffness, contact_rotational_stiffness;
   EnergyLedger energy;

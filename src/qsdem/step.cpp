@@ -8,7 +8,7 @@
 #include <array>
 #include <cmath>
 
-#include "qsdem/damping.hpp"
+#include "qsdem/damping/stage.hpp"
 #include "qsdem/forces.hpp"
 #include "qsdem/integrator.hpp"
 #include "qsdem/reorder.hpp"
@@ -70,7 +70,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       gather_resultants(s.pairs, schedule, p, static_cast<std::size_t>(r));
       if (!s.contact_stiffness.empty()) gather_contact_stiffness(s.pairs, schedule, s, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
-      update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping.hpp)
+      update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping/stage.hpp)
       m = std::max(m, integrate_velocities(model, p, lo, hi, kick_energy));
       const double t2 = omp_get_wtime();
       advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);

@@ -1,6 +1,6 @@
 // One time step, as a pipeline of named, timed stages that reads top to bottom.
 #pragma once
-#include "qsdem/damping.hpp"
+#include "qsdem/damping/stage.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/schedule.hpp"
 #include "qsdem/state.hpp"
@@ -13,7 +13,7 @@ namespace qsdem {
 //   3. servo           velocity gradient L of the cell for this step (SPEC 3); deform the cell
 //   then, in one pass over the particles (each thread its own range, step.cpp):
 //   4. gather          per-particle contact resultants f_p, M_p (SPEC 7)
-//   5. integrate       the damping stage's factors (damping.hpp), then the damped leapfrog kick
+//   5. integrate       the damping stage's factors (damping/stage.hpp), then the damped leapfrog kick
 //                      to t + dt/2 (SPEC 5, 6)
 //   6. advance         drift positions and orientations to t + dt in the deformed cell
 // `schedule` shares the work among the threads (no result depends on it); a run keeps one from

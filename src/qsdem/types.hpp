@@ -29,23 +29,8 @@ struct RunError : std::runtime_error {
 inline constexpr double pi = 3.14159265358979323846;
 
 enum class ShapeKind : std::uint8_t { sphere = 0, ellipsoid = 1 };
-// The particle damping law of a phase (SPEC 6).
-enum class DampingModel : std::uint8_t { none, od, nd, local, stiffness, contact };
-
 inline const char* to_string(ShapeKind k) { return k == ShapeKind::sphere ? "sphere" : "ellipsoid"; }
-inline const char* to_string(DampingModel m) {
-  switch (m) {
-    case DampingModel::none: return "none";
-    case DampingModel::od: return "od";
-    case DampingModel::nd: return "nd";
-    case DampingModel::local: return "local";
-    case DampingModel::stiffness: return "stiffness";
-    case DampingModel::contact: return "contact";
-  }
-  return "?";
-}
-
-// What the particle damping acts on (damping.hpp).
+// What the particle damping acts on (damping/models.hpp).
 enum class DampedMotion : std::uint8_t { both, translation, rotation };
 inline const char* to_string(DampedMotion m) {
   switch (m) {
