@@ -282,6 +282,33 @@ TEST(Docs, EveryRelativeLinkPointsToAFile) {
   EXPECT_GE(checked, 10u);
 }
 
+// The README's layout table names the units of src/qsdem/ as they are: each name in backticks is a
+// source file (`name.hpp`, `name.cpp` or `name.hpp.in`) or a folder (`name/`), and every source
+// unit is named.
+TEST(Docs, LayoutTableNamesTheLibrarysUnits) {
+  std::string row;
+  for (const std::string& line : lines_of(read_text(source_dir / "README.md")))
+    if (line.rfind("| `src/qsdem/` |", 0) == 0) row = line.substr(std::string("| `src/qsdem/` |").size());
+  ASSERT_FALSE(row.empty()) << "README.md has no layout row for src/qsdem/";
+  const fs::path lib = source_dir / "src/qsdem";
+  std::set<std::string> named;
+  const std::regex name(R"(`([a-z_]+/?)`)");
+  for (std::sregex_iterator it(row.begin(), row.end(), name), end; it != end; ++it) {
+    const std::string n = (*it)[1];
+    named.insert(n);
+    const bool exists = n.back() == '/' ? fs::is_directory(lib / n)
+                                        : fs::exists(lib / (n + ".hpp")) || fs::exists(lib / (n + ".cpp"));
+    EXPECT_TRUE(exists) << "README.md names src/qsdem/" << n << ", which does not exist";
+  }
+  for (const auto& e : fs::directory_iterator(lib)) {
+    std::string n = e.path().filename().string();
+    if (e.is_directory()) n += "/";
+    else n = n.substr(0, n.find('.'));
+    if (n == "default_case") continue;  // generated from the annotated example at build time
+    EXPECT_TRUE(named.count(n)) << "README.md's layout table does not name src/qsdem/" << n;
+  }
+}
+
 // The [[phase]] list of docs/config.md that writes the default protocol as phases reads as the
 // protocol the parser makes of [compaction] and [triaxial].
 TEST(Docs, DefaultProtocolWrittenAsPhasesIsTheDefaultProtocol) {

@@ -149,7 +149,7 @@ TEST(RateControl, HoldsTheIndexInItsBandWithinBoundsAndResumesToTheSameBits) {
   EXPECT_EQ(summary(ref)["triaxial"]["controller"], summary(stopped)["triaxial"]["controller"]);
 
   const Csv s = read_csv(ref / "series.csv");
-  ASSERT_EQ(s.header.back(), "strain_rate");
+  ASSERT_TRUE(s.has("strain_rate"));
   ASSERT_EQ(s.rows.size(), 60u);
   const std::vector<double> imom = s.column("imom"), rate = s.column("strain_rate"), e1 = s.column("e1");
   const double target = 0.03, band = 1.5;
@@ -245,11 +245,12 @@ controller = {{ kind = "rate", component = "33", target = "1 %", min_rate = 1e-7
       both);
   // The file has a phase column: its rows of load2.
   const Csv s = read_csv(both / "series.csv");
-  ASSERT_EQ(s.header.back(), "phase");
-  ASSERT_EQ(s.header[s.header.size() - 2], "strain_rate");
+  ASSERT_TRUE(s.has("phase"));
+  ASSERT_TRUE(s.has("strain_rate"));
+  const std::size_t phase = s.col("phase");
   std::vector<double> rate, imom;
   for (std::size_t k = 0; k < s.rows.size(); ++k) {
-    if (s.rows[k].back() != "load2") continue;
+    if (s.rows[k].at(phase) != "load2") continue;
     rate.push_back(s.at(k, "strain_rate"));
     imom.push_back(s.at(k, "imom"));
   }
@@ -347,7 +348,7 @@ TEST(RateControl, DrivesAShearStrainRate) {
   const fs::path ref = run_and_resume("shear", controlled_shear(), 15).first;
 
   const Csv s = read_csv(ref / "series.csv");
-  ASSERT_EQ(s.header.back(), "strain_rate");
+  ASSERT_TRUE(s.has("strain_rate"));
   const std::vector<double> g13 = s.column("g13"), rate = s.column("strain_rate"), s33 = s.column("s33_Pa");
   ASSERT_EQ(g13.size(), 40u);
   expect_rates_within_bounds(rate, 1e-6, 1e-3);

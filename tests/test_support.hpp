@@ -81,6 +81,12 @@ inline long lines(const std::filesystem::path& p) {
 struct Csv {
   std::vector<std::string> header;
   std::vector<std::vector<std::string>> rows;
+  // Whether the header has column `name` (columns may be appended: never test a position).
+  bool has(const std::string& name) const {
+    for (const auto& h : header)
+      if (h == name) return true;
+    return false;
+  }
   // The index of column `name`; a test failure (and 0) when there is none.
   std::size_t col(const std::string& name) const {
     for (std::size_t k = 0; k < header.size(); ++k)
