@@ -1,0 +1,230 @@
+// qsdem_peer_step: qsdem's steps on a state taken from another code (bench/yade/step_check.py),
+// for a contact-by-contact comparison of the forces and a particle-by-particle one of the kick.
+//
+//   qsdem_peer_step --case CASE [--set KEY=VALUE ...] --packing FILE --contacts FILE
+//                   [--motion FILE] [--velocity-gradient "L11 L12 ... L33"] [--steps N] --out DIR
+//
+// The packing's particles keep their order (ids = lines) and its centres as given; the contacts
+// file (bench/yade/peer.py, write_contacts: id1 id2 c1 c2 c3 nx ny nz overlap fn ft) gives the
+// tangential history, the stored tangential force on id2, which every listed contact starts with;
+// the motion file gives each particle's velocity and angular velocity (total, as YADE keeps them:
+// the fluctuation velocity is v - L x, with L the velocity gradient). The cell's velocity gradient
+// L is held for every step (no servo). It writes, for the last step:
+//   DIR/forces.txt   per contact of the force evaluation, its key i j c1 c2 c3 (i < j) and the
+//                    force on j split into its normal and tangential parts
+//   DIR/motion.txt   per particle, the fluctuation velocity and the angular velocity after the kick
+#include <fmt/format.h>
+
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <sstream>
+#include <string>
+#include <tuple>
+#include <variant>
+#include <vector>
+
+#include "qsdem/config.hpp"
+#include "qsdem/contact/hertz_mindlin.hpp"
+#include "qsdem/damping/stage.hpp"
+#include "qsdem/forces.hpp"
+#include "qsdem/neighbor.hpp"
+#include "qsdem/packing_io.hpp"
+#include "qsdem/protocol.hpp"
+#include "qsdem/step.hpp"
+
+using namespace qsdem;
+
+namespace {
+
+struct Contact {
+  std::uint32_t id1, id2;
+  Vec3i cell_dist;
+  Vec3 shear;  // stored tangential force on id2 (N)
+};
+
+std::vector<Contact> read_contacts(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw InputError(fmt::format("cannot read contacts file '{}'", path));
+  std::vector<Contact> out;
+  std::string line;
+  int lineno = 0;
+  while (std::getline(in, line)) {
+    ++lineno;
+    if (line.empty() || line[0] == '#') continue;
+    std::istringstream s(line);
+    Contact c;
+    double n[3], overlap, fn[3];
+    if (!(s >> c.id1 >> c.id2 >> c.cell_dist.x() >> c.cell_dist.y() >> c.cell_dist.z() >> n[0] >> n[1] >> n[2] >>
+          overlap >> fn[0] >> fn[1] >> fn[2] >> c.shear.x() >> c.shear.y() >> c.shear.z()))
+      throw InputError(fmt::format("{}:{}: expected id1 id2 c1 c2 c3 nx ny nz overlap fnx fny fnz ftx fty ftz", path,
+                                   lineno));
+    out.push_back(c);
+  }
+  return out;
+}
+
+void read_motion(const std::string& path, Particles& p, const Mat3& L, const Cell& cell) {
+  std::ifstream in(path);
+  if (!in) throw InputError(fmt::format("cannot read motion file '{}'", path));
+  std::string line;
+  std::size_t i = 0;
+  int lineno = 0;
+  while (std::getline(in, line)) {
+    ++lineno;
+    if (line.empty() || line[0] == '#') continue;
+    if (i >= p.size()) throw InputError(fmt::format("{}:{}: more lines than particles ({})", path, lineno, p.size()));
+    std::istringstream s(line);
+    Vec3 v, w;
+    if (!(s >> v.x() >> v.y() >> v.z() >> w.x() >> w.y() >> w.z()))
+      throw InputError(fmt::format("{}:{}: expected vx vy vz wx wy wz", path, lineno));
+    const Vec3 x = cell.h * p.s[i];
+    p.v[i] = v - L * x;  // the fluctuation velocity (SPEC 3.2)
+    p.omega[i] = w;
+    p.angmom[i] = w.cwiseProduct(p.inertia[i]);  // spheres: L = I w
+    ++i;
+  }
+  if (i != p.size()) throw InputError(fmt::format("{}: {} lines for {} particles", path, i, p.size()));
+}
+
+Mat3 parse_matrix(const std::string& text) {
+  std::istringstream s(text);
+  Mat3 m;
+  for (int a = 0; a < 3; ++a)
+    for (int b = 0; b < 3; ++b)
+      if (!(s >> m(a, b))) throw InputError("--velocity-gradient: expected 9 numbers, row by row");
+  return m;
+}
+
+using Key = std::tuple<std::uint32_t, std::uint32_t, int, int, int>;
+
+std::map<Key, std::size_t> pair_index(const PairList& pairs) {
+  std::map<Key, std::size_t> index;
+  for (std::size_t k = 0; k < pairs.size(); ++k)
+    index[{pairs.i[k], pairs.j[k], pairs.image[k].x(), pairs.image[k].y(), pairs.image[k].z()}] = k;
+  return index;
+}
+
+// The key of the YADE contact in qsdem's list (i < j) and the sign of the force on id2 in terms of
+// the force on j.
+std::pair<Key, double> key_of(std::uint32_t id1, std::uint32_t id2, const Vec3i& c) {
+  if (id1 < id2) return {{id1, id2, c.x(), c.y(), c.z()}, 1.0};
+  return {{id2, id1, -c.x(), -c.y(), -c.z()}, -1.0};
+}
+
+int run(int argc, char** argv) {
+  std::string case_path, packing, contacts_path, motion_path, out_dir, gradient;
+  std::vector<std::string> overrides;
+  long steps = 1;
+  for (int a = 1; a < argc; ++a) {
+    const std::string arg = argv[a];
+    const auto value = [&]() -> std::string {
+      if (a + 1 >= argc) throw InputError(fmt::format("{} needs a value", arg));
+      return argv[++a];
+    };
+    if (arg == "--case") case_path = value();
+    else if (arg == "--set") overrides.push_back(value());
+    else if (arg == "--packing") packing = value();
+    else if (arg == "--contacts") contacts_path = value();
+    else if (arg == "--motion") motion_path = value();
+    else if (arg == "--velocity-gradient") gradient = value();
+    else if (arg == "--steps") steps = std::stol(value());
+    else if (arg == "--out") out_dir = value();
+    else throw InputError(fmt::format("unknown argument '{}'", arg));
+  }
+  if (case_path.empty() || packing.empty() || contacts_path.empty() || out_dir.empty())
+    throw InputError("usage: qsdem_peer_step --case CASE --packing FILE --contacts FILE --out DIR [--motion FILE] "
+                     "[--velocity-gradient \"9 numbers\"] [--steps N] [--set KEY=VALUE]");
+  const Params params = load_case(case_path, overrides);
+  State st = read_packing(packing, params.material.density);
+  Model model = triaxial_model(params, st);
+  if (!std::holds_alternative<HertzMindlin>(contact_law_of(model)))
+    throw InputError(fmt::format("contact.law must be {} (the law of the contacts file's history)", HertzMindlin::name));
+  model.sort_particles = false;  // particle k stays the file's line k (YADE's body id)
+  model.skip_apart_pairs = false;
+  const Mat3 L = gradient.empty() ? Mat3::Zero() : parse_matrix(gradient);
+  st.cell.L = L;
+  if (!motion_path.empty()) read_motion(motion_path, st.particles, L, st.cell);
+  assign_damping(model, st.particles);
+
+  build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
+  adopt_history(st.pairs, HertzMindlin::history);
+  const std::vector<Contact> contacts = read_contacts(contacts_path);
+  {
+    const auto index = pair_index(st.pairs);
+    long missing = 0;
+    for (const Contact& c : contacts) {
+      const auto [key, sign] = key_of(c.id1, c.id2, c.cell_dist);
+      const auto found = index.find(key);
+      if (found == index.end()) {
+        ++missing;
+        continue;
+      }
+      const auto h = st.pairs.history.of(found->second);
+      for (int m = 0; m < 3; ++m) h[static_cast<std::size_t>(m)] = sign * c.shear[m];
+    }
+    if (missing) throw RunError(fmt::format("{} of the {} contacts are not in qsdem's pair list", missing, contacts.size()));
+  }
+
+  // The last step's contacts at its force evaluation: force on j and the unit normal from i to j.
+  std::vector<std::tuple<std::size_t, Vec3, Vec3>> last;
+  for (long n = 0; n < steps; ++n) {
+    Schedule schedule;
+    if (needs_rebuild(st.neighbor, st.particles, st.cell, false))
+      build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
+    compute_contact_forces(model, st, schedule);
+    if (n + 1 == steps) {
+      const std::vector<Vec3> forces = contact_forces_by_pair(st);
+      const PairList& pairs = st.pairs;
+      for (std::size_t k = 0; k < pairs.size(); ++k) {
+        if (!(pairs.overlap[k] > 0)) continue;
+        const Vec3 l = st.cell.h * (st.particles.s[pairs.j[k]] - st.particles.s[pairs.i[k]] +
+                                    pairs.image[k].cast<double>());
+        last.emplace_back(k, forces[k], l.normalized());
+      }
+    }
+    st.cell.L = L;
+    deform(st.cell, model.dt);
+    update_particles(model, st, schedule);
+  }
+
+  const std::filesystem::path out(out_dir);
+  std::filesystem::create_directories(out);
+  {
+    std::ofstream f(out / "forces.txt");
+    f << "# i j c1 c2 c3 fnx fny fnz ftx fty ftz: qsdem's key (i < j, image c of j) and the force on j (N), "
+         "normal and tangential parts\n";
+    for (const auto& [k, force, n] : last) {
+      const Vec3 fn = force.dot(n) * n, ft = force - fn;
+      const Vec3i& c = st.pairs.image[k];
+      f << fmt::format("{} {} {} {} {} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g}\n", st.pairs.i[k], st.pairs.j[k],
+                       c.x(), c.y(), c.z(), fn.x(), fn.y(), fn.z(), ft.x(), ft.y(), ft.z());
+    }
+  }
+  {
+    std::ofstream f(out / "motion.txt");
+    f << "# vx vy vz wx wy wz (fluctuation velocity, m/s; angular velocity, 1/s)\n";
+    const Particles& p = st.particles;
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      const Vec3& v = p.v[i];
+      f << fmt::format("{:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g}\n", v.x(), v.y(), v.z(), p.omega[i].x(),
+                       p.omega[i].y(), p.omega[i].z());
+    }
+  }
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return run(argc, argv);
+  } catch (const InputError& e) {
+    std::cerr << "qsdem_peer_step: " << e.what() << "\n";
+    return 2;
+  } catch (const std::exception& e) {
+    std::cerr << "qsdem_peer_step: " << e.what() << "\n";
+    return 3;
+  }
+}
