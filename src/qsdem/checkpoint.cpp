@@ -11,6 +11,7 @@
 #include <type_traits>
 
 #include "qsdem/contact/laws.hpp"
+#include "qsdem/files.hpp"
 
 namespace qsdem {
 namespace {
@@ -438,7 +439,7 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
 
   std::filesystem::path tmp = path;
   tmp += ".tmp";
-  const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  const int fd = create_file(tmp);  // a new file, never one reached through a link planted under the name
   const bool has_previous = std::filesystem::exists(path);
   const char* kept = has_previous ? "the previous checkpoint is kept" : "there is no earlier checkpoint";
   if (fd < 0)

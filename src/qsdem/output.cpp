@@ -7,9 +7,9 @@
 
 #include <cerrno>
 #include <cstring>
-#include <fstream>
 #include <iterator>
 
+#include "qsdem/files.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {
@@ -131,25 +131,48 @@ SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const Csv
   partial_ = path_;
   partial_ += ".partial";
   if (keep_rows < 0) {
-    file_ = std::fopen(partial_.c_str(), "w");
-    if (!file_) throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), std::strerror(errno)));
+    const int fd = create_file(partial_);
+    if (fd >= 0) file_ = ::fdopen(fd, "w");
+    if (!file_) {
+      const int err = errno;
+      if (fd >= 0) ::close(fd);
+      throw RunError(fmt::format("cannot write '{}': {}", partial_.string(), file_error(err)));
+    }
     write(header.text);
     return;
   }
-  std::ifstream in(partial_);
-  std::string kept, line;
+  // The rows a resumed run keeps: the file is cut after them in place (never rewritten through a
+  // link planted under its name, which is refused).
+  const int fd = open_regular_file(partial_, O_RDWR);
+  if (fd < 0 && errno != ENOENT)
+    throw InputError(fmt::format("cannot resume: '{}': {}", partial_.string(), file_error(errno)));
   long lines = 0;
-  while (lines < keep_rows + 1 && std::getline(in, line)) {
-    kept += line + '\n';
-    ++lines;
+  off_t kept = 0, size = 0;
+  bool ends_in_newline = true;
+  if (fd >= 0) {
+    char buf[1 << 16];
+    for (ssize_t n; lines < keep_rows + 1 && (n = ::read(fd, buf, sizeof buf)) > 0;) {
+      for (ssize_t k = 0; k < n && lines < keep_rows + 1; ++k)
+        if (buf[k] == '\n') ++lines, kept = size + k + 1;
+      size += n;
+      ends_in_newline = buf[n - 1] == '\n';
+    }
+    // A last kept line without its newline (the end of the file) is kept whole.
+    if (lines == keep_rows && !ends_in_newline && kept < size) ++lines, kept = size;
   }
-  if (lines < keep_rows + 1)
+  if (lines < keep_rows + 1) {
+    if (fd >= 0) ::close(fd);
     throw InputError(fmt::format("cannot resume: '{}' holds {} rows, the checkpoint expects {}", partial_.string(),
                                  std::max(0L, lines - 1), keep_rows));
-  in.close();
-  file_ = std::fopen(partial_.c_str(), "w");
-  if (!file_ || std::fputs(kept.c_str(), file_) < 0 || std::fflush(file_) != 0)
-    throw RunError(fmt::format("cannot rewrite '{}': {}", partial_.string(), std::strerror(errno)));
+  }
+  const bool add_newline = kept == size && !ends_in_newline;
+  if (::ftruncate(fd, kept) != 0 || ::lseek(fd, 0, SEEK_END) < 0 || !(file_ = ::fdopen(fd, "w")) ||
+      (add_newline && std::fputc('\n', file_) == EOF) || std::fflush(file_) != 0) {
+    const int err = errno;
+    if (file_) std::fclose(file_), file_ = nullptr;
+    else ::close(fd);
+    throw RunError(fmt::format("cannot rewrite '{}': {}", partial_.string(), std::strerror(err)));
+  }
 }
 
 SeriesWriter::~SeriesWriter() {
@@ -178,6 +201,12 @@ void commit_partial(const std::filesystem::path& path) {
   std::filesystem::path partial = path;
   partial += ".partial";
   std::error_code ec;
+  // What is renamed into a result is a file of the run's, never a link planted under its name.
+  if (!std::filesystem::is_regular_file(std::filesystem::symlink_status(partial, ec)))
+    throw InputError(fmt::format("cannot rename '{}' to '{}': {}", partial.string(), path.string(),
+                                 file_error(std::filesystem::is_symlink(std::filesystem::symlink_status(partial, ec))
+                                                ? ELOOP
+                                                : EINVAL)));
   std::filesystem::rename(partial, path, ec);
   if (ec) throw RunError(fmt::format("renaming '{}' to '{}' failed: {}", partial.string(), path.string(), ec.message()));
 }
@@ -185,12 +214,18 @@ void commit_partial(const std::filesystem::path& path) {
 void write_file_atomic(const std::filesystem::path& path, const std::string& text) {
   std::filesystem::path tmp = path;
   tmp += ".tmp";
-  std::FILE* f = std::fopen(tmp.c_str(), "w");
-  if (!f) throw RunError(fmt::format("cannot write '{}': {}", tmp.string(), std::strerror(errno)));
-  bool ok = std::fwrite(text.data(), 1, text.size(), f) == text.size() && std::fflush(f) == 0 &&
-            ::fsync(fileno(f)) == 0;
+  const int fd = create_file(tmp);
+  if (fd < 0) throw RunError(fmt::format("cannot write '{}': {}", tmp.string(), file_error(errno)));
+  bool ok = true;
+  for (std::size_t done = 0; ok && done < text.size();) {
+    const ssize_t n = ::write(fd, text.data() + done, text.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    ok = n > 0;
+    if (ok) done += static_cast<std::size_t>(n);
+  }
+  ok = ok && ::fsync(fd) == 0;
   int err = errno;
-  if (std::fclose(f) != 0 && ok) ok = false, err = errno;
+  if (::close(fd) != 0 && ok) ok = false, err = errno;
   if (!ok) {
     std::filesystem::remove(tmp);
     throw RunError(fmt::format("write to '{}' failed: {}", tmp.string(), std::strerror(err)));
@@ -202,8 +237,8 @@ void write_file_atomic(const std::filesystem::path& path, const std::string& tex
 
 DirectoryLock::DirectoryLock(const std::filesystem::path& dir, const char* name, const std::string& held_message) {
   const std::filesystem::path file = dir / name;
-  fd_ = ::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
-  if (fd_ < 0) throw InputError(fmt::format("cannot create the lock file '{}': {}", file.string(), std::strerror(errno)));
+  fd_ = open_file(file, O_RDWR);  // a link planted under the name is replaced, not followed
+  if (fd_ < 0) throw InputError(fmt::format("cannot create the lock file '{}': {}", file.string(), file_error(errno)));
   if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) {
     ::close(fd_);
     throw InputError(held_message);

@@ -18,6 +18,7 @@
 #include <sstream>
 
 #include "qsdem/checkpoint.hpp"
+#include "qsdem/files.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/neighbor.hpp"
@@ -105,6 +106,12 @@ std::vector<PhaseFile> phase_files(const Protocol& protocol) {
 const PhaseFile& file_of(const std::vector<PhaseFile>& files, const Protocol& protocol, int phase) {
   const std::string& name = protocol[static_cast<std::size_t>(phase)].output.file;
   return *std::find_if(files.begin(), files.end(), [&](const PhaseFile& f) { return f.name == name; });
+}
+
+// A name in the directory, whatever it is (a link too, which commit_partial refuses to rename).
+bool present(const fs::path& p) {
+  std::error_code ec;
+  return fs::symlink_status(p, ec).type() != fs::file_type::not_found && !ec;
 }
 
 // What `dir` holds, for the checks before a run writes into it.
@@ -228,7 +235,7 @@ const std::string& phase_name(const Params& params, std::int32_t p) {
 void write_snapshot(const std::filesystem::path& dir, const Params& params, const State& st, long k) {
   namespace fs = std::filesystem;
   const fs::path vtk = dir / "vtk";
-  fs::create_directories(vtk);
+  make_directories(dir, "vtk");
   write_vtu(vtk / fmt::format("snapshot-{:04}.vtu", k), st);
   std::vector<std::pair<long, fs::path>> files;
   for (const auto& e : fs::directory_iterator(vtk)) {
@@ -470,12 +477,12 @@ class Execution {
     const PhaseFile& file = file_of(files_, params_.protocol, p);
     if (file.phases.back() == p) {
       if (writer) writer->commit();
-      else if (fs::exists(dir_ / (file.name + ".partial"))) commit_partial(dir_ / file.name);
+      else if (present(dir_ / (file.name + ".partial"))) commit_partial(dir_ / file.name);
       done(file.name + " renamed");
     }
     if (p == last_phase() && params_.output.classes) {
       if (classes) classes->commit();
-      else if (fs::exists(dir_ / "classes.csv.partial")) commit_partial(dir_ / classes_file);
+      else if (present(dir_ / "classes.csv.partial")) commit_partial(dir_ / classes_file);
       done("classes.csv renamed");
     }
     if (p == 0 && run_.first_step == 0) {  // a run of a prepared sample did not run its first phase
@@ -710,7 +717,7 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
   };
   // A run begun by an engine without classes.csv (rows written, no classes.csv.partial) continues
   // without it rather than with a file that lacks its first rows.
-  if (params.output.classes && classes_rows_held(c.run) > 0 && !fs::exists(dir / "classes.csv.partial")) {
+  if (params.output.classes && classes_rows_held(c.run) > 0 && !present(dir / "classes.csv.partial")) {
     params.output.classes = false;
     const std::string change = "output.classes=false (begun without classes.csv)";
     if (c.run.changes.find(change) == std::string::npos) record_change(change);

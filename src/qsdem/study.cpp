@@ -17,11 +17,11 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-#include <fstream>
 #include <map>
 #include <optional>
 #include <sstream>
 
+#include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/study_analysis.hpp"
@@ -34,13 +34,12 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// A file's bytes.
+// The bytes of a file of the study directory (never read through a link).
 std::string read_bytes(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  if (!in) throw std::runtime_error("cannot read " + p.string());
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
+  int err = 0;
+  std::optional<std::string> text = read_regular_file(p, &err);
+  if (!text) throw std::runtime_error(fmt::format("cannot read {}: {}", p.string(), file_error(err)));
+  return std::move(*text);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -103,8 +102,8 @@ pid_t spawn_child(const Launcher& l, const std::vector<std::string>& args, const
   for (const auto& e : l.env) envp.push_back(const_cast<char*>(e.c_str()));
   envp.push_back(nullptr);
 
-  const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
-  if (fd < 0) throw RunError(fmt::format("cannot open log '{}': {}", log.string(), std::strerror(errno)));
+  const int fd = open_file(log, O_WRONLY | O_APPEND);
+  if (fd < 0) throw RunError(fmt::format("cannot open log '{}': {}", log.string(), file_error(errno)));
   const int null_fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC);
   std::string header = "=== qsdem";
   for (const auto& a : args) header += " '" + a + "'";
@@ -144,7 +143,7 @@ pid_t spawn_child(const Launcher& l, const std::vector<std::string>& args, const
 
 // The last lines of a log, for the failure report.
 std::string log_tail(const fs::path& log, std::size_t lines) {
-  std::ifstream in(log);
+  std::istringstream in(read_regular_file(log).value_or(""));
   std::vector<std::string> all;
   for (std::string l; std::getline(in, l);)
     if (!l.empty() && l.rfind("===", 0) != 0) all.push_back(l);
@@ -159,7 +158,8 @@ struct Job {
   enum class Kind { prepare, run } kind = Kind::run;
   std::string id;       // the sample dir name or the run id
   std::string rel_dir;  // relative to the study directory
-  fs::path dir;         // absolute
+  fs::path study_dir;   // absolute
+  fs::path dir;         // absolute: study_dir / rel_dir
   fs::path needs;       // runs: the prepared sample they shear
   std::vector<std::string> fresh;  // arguments of a fresh start
   int threads = 1;
@@ -169,9 +169,15 @@ struct Job {
 
 fs::path log_of(const Job& j) { return j.dir / (j.kind == Job::Kind::prepare ? "prepare.log" : "run.log"); }
 
+// A result is a regular file: a link planted under its name does not make a job finished.
+bool regular(const fs::path& p) {
+  std::error_code ec;
+  return fs::is_regular_file(fs::symlink_status(p, ec));
+}
+
 bool finished(const Job& j) {
-  if (j.kind == Job::Kind::prepare) return fs::exists(j.dir / prepared_sample_file) && fs::exists(j.dir / "summary.json");
-  return fs::exists(j.dir / "summary.json") && !fs::exists(j.dir / checkpoint_file);
+  if (j.kind == Job::Kind::prepare) return regular(j.dir / prepared_sample_file) && regular(j.dir / "summary.json");
+  return regular(j.dir / "summary.json") && !fs::exists(j.dir / checkpoint_file);
 }
 
 // A run directory that `qsdem resume` continues (its newest or its previous checkpoint).
@@ -192,7 +198,7 @@ std::vector<std::string> command(const Job& j) {
 
 double steps_left(const fs::path& run_dir, double expected) {
   if (!holds_checkpoint(run_dir)) return expected;
-  std::ifstream in(run_dir / "series.csv.partial");
+  std::istringstream in(read_regular_file(run_dir / "series.csv.partial").value_or(""));
   std::string line, last;
   std::getline(in, line);  // the header
   while (std::getline(in, line))
@@ -211,8 +217,7 @@ namespace {
 // Wall seconds per triaxial step of a finished run (for the ETA).
 std::optional<std::pair<double, double>> run_cost(const fs::path& dir) {
   try {
-    std::ifstream in(dir / "summary.json");
-    const auto s = nlohmann::json::parse(in);
+    const auto s = nlohmann::json::parse(read_bytes(dir / "summary.json"));
     const auto& t = s.at("triaxial");
     return std::make_pair(t.at("wall_s").get<double>(), t.at("steps").get<double>());
   } catch (const std::exception&) {
@@ -363,7 +368,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
         continue;
       }
       try {
-        fs::create_directories(j.dir);
+        make_directories(j.study_dir, j.rel_dir);
         running.push_back({k, spawn_child(launcher, command(j), log_of(j)), clock::now()});
       } catch (const std::exception& e) {
         fail(j, e.what(), -1);
@@ -574,6 +579,7 @@ std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
     j.kind = Job::Kind::prepare;
     j.id = fs::path(smp.dir).filename().string();
     j.rel_dir = smp.dir;
+    j.study_dir = out;
     j.dir = out / smp.dir;
     j.threads = study.threads_per_run;
     j.fresh = {"prepare", smp.case_file.string()};
@@ -594,6 +600,7 @@ std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level) {
     Job j;
     j.id = run.id;
     j.rel_dir = run.dir;
+    j.study_dir = out;
     j.dir = out / run.dir;
     j.needs = out / smp.dir;
     j.threads = study.threads_per_run;

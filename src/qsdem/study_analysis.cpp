@@ -21,6 +21,7 @@
 
 #include <fmt/format.h>
 
+#include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/version.hpp"
 
@@ -251,11 +252,10 @@ double num(const json& j, const char* key) {
 }
 
 std::string read_text(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  if (!in) throw std::runtime_error("cannot read " + p.string());
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
+  int err = 0;
+  std::optional<std::string> text = read_regular_file(p, &err);
+  if (!text) throw std::runtime_error(fmt::format("cannot read {}: {}", p.string(), file_error(err)));
+  return std::move(*text);
 }
 
 // Numbers in tables: NaN shown as a dash (md/html) or empty (CSV).
@@ -288,8 +288,7 @@ double log_distance(double a, double b) { return std::abs(std::log10(a) - std::l
 
 // series.csv by header name (SPEC 10; more columns may follow, order is not assumed).
 Series read_series(const fs::path& p) {
-  std::ifstream in(p);
-  if (!in) throw std::runtime_error("cannot read " + p.string());
+  std::istringstream in(read_text(p));
   std::string line;
   if (!std::getline(in, line)) throw std::runtime_error(p.string() + ": empty");
   std::map<std::string, std::size_t> col;
@@ -1198,7 +1197,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
   const std::vector<Table> tables = make_tables(an);
 
   const fs::path adir = dir / "analysis", figdir = adir / "figures";
-  fs::create_directories(figdir);
+  make_directories(dir, "analysis/figures");
 
   json a;
   a["study"] = {{"name", manifest.value("name", std::string("(unnamed)"))},

@@ -2,28 +2,25 @@
 // figures drawn by gnuplot (paper Figs. 3-19), and the one-page HTML report. docs/analysis.md.
 #include <algorithm>
 #include <cctype>
+#include <cerrno>
 #include <cmath>
 #include <cstdlib>
-#include <fstream>
+#include <cstring>
 #include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
 #include <fmt/format.h>
+#include <stdlib.h>
 
+#include "qsdem/output.hpp"
 #include "qsdem/study_analysis_data.hpp"
 #include "qsdem/version.hpp"
 
 namespace qsdem::analysis {
 
 namespace {
-
-void write_plain(const fs::path& p, const std::string& text) {
-  std::ofstream out(p, std::ios::binary);
-  out << text;
-  if (!out) throw std::runtime_error("cannot write " + p.string());
-}
 
 std::string html_escape(const std::string& s) {
   std::string r;
@@ -771,7 +768,22 @@ bool render(const fs::path& figdir, Figure& f) {
       for (std::size_t i = 0; i < c.x.size(); ++i) dat += fmt::format("{:.9g} {:.9g}\n", c.x[i], c.y[i]);
       dat += "\n\n";  // two blank lines: a new gnuplot `index`
     }
-  write_plain(figdir / (f.name + ".dat"), dat);
+  // gnuplot writes its figures, and the shell its log, by name: in a directory of their own, made
+  // afresh (mkdtemp, mode 0700: no name there can have been planted), whence they are renamed
+  // into figdir.
+  std::string work_name = (figdir / ".render-XXXXXX").string();
+  if (!::mkdtemp(work_name.data()))
+    throw std::runtime_error(fmt::format("cannot create a directory in {}: {}", figdir.string(), std::strerror(errno)));
+  const fs::path work = work_name;
+  struct RemoveAll {
+    fs::path dir;
+    ~RemoveAll() {
+      std::error_code ec;
+      fs::remove_all(dir, ec);
+    }
+  } remove_work{work};
+  const auto move_out = [&](const std::string& name) { fs::rename(work / name, figdir / name); };
+  write_file_atomic(work / (f.name + ".dat"), dat);
   const bool multi = f.panels.size() > 1;
   const std::size_t rows = (f.panels.size() + 1) / 2;
   std::string body = "reset\nset grid\nset key top left Left reverse samplen 2 font ',9'\n";
@@ -785,21 +797,22 @@ bool render(const fs::path& figdir, Figure& f) {
   gp += "set output '" + f.name + ".svg'\n" + body + "unset output\n";
   gp += "set terminal pngcairo size " + size + " noenhanced font 'DejaVu Sans,10' background '#ffffff'\n";
   gp += "set output '" + f.name + ".png'\n" + body + "unset output\n";
-  write_plain(figdir / (f.name + ".gp"), gp);
-  const std::string cmd = fmt::format("cd {} && gnuplot {} > {} 2>&1", shell_quote(figdir.string()),
+  write_file_atomic(work / (f.name + ".gp"), gp);
+  const std::string cmd = fmt::format("cd {} && gnuplot {} > {} 2>&1", shell_quote(work.string()),
                                       shell_quote(f.name + ".gp"), shell_quote(f.name + ".log"));
   if (std::system(cmd.c_str()) != 0) {
     std::string log;
     try {
-      log = read_text(figdir / (f.name + ".log"));
+      log = read_text(work / (f.name + ".log"));
     } catch (...) {
     }
+    for (const char* ext : {".dat", ".gp"}) move_out(f.name + ext);
     throw std::runtime_error(fmt::format("gnuplot failed on {}: {}", (figdir / (f.name + ".gp")).string(), log));
   }
   for (const char* ext : {".svg", ".png"})
-    if (!fs::exists(figdir / (f.name + ext)) || fs::file_size(figdir / (f.name + ext)) == 0)
+    if (!fs::is_regular_file(fs::symlink_status(work / (f.name + ext))) || fs::file_size(work / (f.name + ext)) == 0)
       throw std::runtime_error("gnuplot wrote no " + (figdir / (f.name + ext)).string());
-  fs::remove(figdir / (f.name + ".log"));
+  for (const char* ext : {".dat", ".gp", ".svg", ".png"}) move_out(f.name + ext);
   return true;
 }
 

@@ -1,0 +1,354 @@
+// The files a run and a study write (files.hpp; docs/runs.md, docs/study.md): never through a
+// symbolic link planted under a name they use. The helpers, then real processes in directories
+// whose every name is a planted link.
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "qsdem/files.hpp"
+#include "qsdem/output.hpp"
+#include "qsdem/run.hpp"
+#include "test_support.hpp"
+
+using namespace qsdem;
+namespace fs = std::filesystem;
+using qsdem_test::slurp;
+
+namespace {
+
+const fs::path root = fs::temp_directory_path() / ("qsdem_files_" + std::to_string(::getpid()));
+const fs::path source_dir = QSDEM_SOURCE_DIR;
+
+fs::path fresh(const std::string& name) {
+  const fs::path d = root / name;
+  fs::remove_all(d);
+  fs::create_directories(d);
+  return d;
+}
+
+void write(const fs::path& p, const std::string& text) { std::ofstream(p, std::ios::binary) << text; }
+
+struct Cli {
+  int code = -1;
+  std::string out, err;
+};
+
+pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
+  std::vector<std::string> all{QSDEM_BINARY};
+  all.insert(all.end(), args.begin(), args.end());
+  return qsdem_test::spawn_logged(all, log);
+}
+
+Cli finish(pid_t pid, const fs::path& log) {
+  Cli c;
+  c.code = qsdem_test::wait_exit(pid);
+  c.out = slurp(log.string() + ".out");
+  c.err = slurp(log.string() + ".err");
+  return c;
+}
+
+Cli cli(const std::vector<std::string>& args, const std::string& log_name) {
+  fs::create_directories(root / "logs");
+  const fs::path log = root / "logs" / log_name;
+  return finish(spawn(args, log), log);
+}
+
+// The files under `dir` (not the directories), relative to it.
+std::vector<fs::path> files_under(const fs::path& dir) {
+  std::vector<fs::path> files;
+  for (const auto& e : fs::recursive_directory_iterator(dir))
+    if (!e.is_directory()) files.push_back(fs::relative(e.path(), dir));
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+bool is_regular_not_link(const fs::path& p) { return fs::symlink_status(p).type() == fs::file_type::regular; }
+
+// Symbolic links planted in a directory, each pointing out of it into `outside`: at a file of its
+// own (whose bytes must stay as they are) or at a name that must never come to exist.
+class Planted {
+ public:
+  explicit Planted(fs::path outside) : outside_(std::move(outside)) { fs::create_directories(outside_); }
+  void to_file(const fs::path& link) {
+    const fs::path target = outside_ / ("target-" + std::to_string(targets_.size()));
+    const std::string text = "outside file " + std::to_string(targets_.size()) + ", planted as " + link.string() + "\n";
+    write(target, text);
+    targets_[target] = text;
+    plant(target, link);
+  }
+  void to_nothing(const fs::path& link) {
+    const fs::path target = outside_ / ("absent-" + std::to_string(absent_.size()));
+    absent_.push_back(target);
+    plant(target, link);
+  }
+  std::size_t size() const { return targets_.size() + absent_.size(); }
+  // Every target as planted, and nothing else in `outside`.
+  void expect_untouched() const {
+    for (const auto& [target, text] : targets_) EXPECT_EQ(slurp(target), text) << target << " was written through a link";
+    for (const fs::path& a : absent_) EXPECT_FALSE(fs::exists(fs::symlink_status(a))) << a << " was created through a link";
+    EXPECT_EQ(files_under(outside_).size(), targets_.size()) << "files appeared in " << outside_;
+  }
+
+ private:
+  void plant(const fs::path& target, const fs::path& link) {
+    fs::create_directories(link.parent_path());
+    fs::remove(link);
+    fs::create_symlink(target, link);
+  }
+  fs::path outside_;
+  std::map<fs::path, std::string> targets_;
+  std::vector<fs::path> absent_;
+};
+
+// The tiny case (test_support.hpp) with a checkpoint every 2 sample points and a VTK snapshot
+// every 2 rows; `rate`: its eps' (1.25e-4: 250 triaxial steps).
+std::string tiny_case(const std::string& rate = "1.25e-4") {
+  std::string text = qsdem_test::tiny_case("files");
+  const std::string from = "strain_rate = 1.25e-4";
+  text.replace(text.find(from), from.size(), "strain_rate = " + rate);
+  return text + "[checkpoint]\nevery_sample_points = 2\n[output]\nvtk_every = 2\n";
+}
+
+}  // namespace
+
+// The helpers each writer uses: a link under the name is never followed, a FIFO never blocks.
+TEST(Files, NoFileIsOpenedThroughALink) {
+  const fs::path d = fresh("helpers");
+  Planted planted(d / "outside");
+  const fs::path in = d / "in";
+  fs::create_directories(in);
+
+  planted.to_file(in / "a.tmp");
+  int fd = create_file(in / "a.tmp");
+  ASSERT_GE(fd, 0) << std::strerror(errno);
+  ASSERT_EQ(::write(fd, "new", 3), 3);
+  ::close(fd);
+  EXPECT_TRUE(is_regular_not_link(in / "a.tmp"));
+  EXPECT_EQ(slurp(in / "a.tmp"), "new");
+
+  planted.to_nothing(in / "b.tmp");
+  fd = create_file(in / "b.tmp");
+  ASSERT_GE(fd, 0);
+  ::close(fd);
+  EXPECT_TRUE(is_regular_not_link(in / "b.tmp"));
+
+  fs::create_directories(in / "dir");
+  EXPECT_LT(create_file(in / "dir"), 0) << "a directory is not removed";
+  EXPECT_TRUE(fs::is_directory(in / "dir"));
+
+  planted.to_file(in / "file.json");
+  write_file_atomic(in / "file.json", "{}\n");  // through file.json.tmp, then renamed over the link
+  planted.to_file(in / "file.json.tmp");
+  write_file_atomic(in / "file.json", "{}\n");
+  EXPECT_TRUE(is_regular_not_link(in / "file.json"));
+  EXPECT_EQ(slurp(in / "file.json"), "{}\n");
+
+  // Kept in place when it is a regular file (a log), replaced when it is a link (a lock).
+  write(in / "run.log", "earlier lines\n");
+  fd = open_file(in / "run.log", O_WRONLY | O_APPEND);
+  ASSERT_GE(fd, 0);
+  ASSERT_EQ(::write(fd, "more\n", 5), 5);
+  ::close(fd);
+  EXPECT_EQ(slurp(in / "run.log"), "earlier lines\nmore\n");
+  planted.to_file(in / ".run.lock");
+  fd = open_file(in / ".run.lock", O_RDWR);
+  ASSERT_GE(fd, 0);
+  ::close(fd);
+  EXPECT_TRUE(is_regular_not_link(in / ".run.lock"));
+
+  planted.to_file(in / "series.csv.partial");
+  EXPECT_LT(open_regular_file(in / "series.csv.partial", O_RDWR), 0);
+  EXPECT_EQ(errno, ELOOP);
+  ASSERT_EQ(::mkfifo((in / "fifo").c_str(), 0644), 0);
+  EXPECT_LT(open_regular_file(in / "fifo", O_RDONLY), 0) << "refused without blocking";
+  EXPECT_EQ(errno, EINVAL);
+  EXPECT_FALSE(read_regular_file(in / "fifo"));
+  EXPECT_LT(open_file(in / "fifo", O_WRONLY | O_APPEND), 0);
+  EXPECT_FALSE(read_regular_file(in / "series.csv.partial"));
+  EXPECT_EQ(read_regular_file(in / "run.log").value_or(""), "earlier lines\nmore\n");
+
+  // A directory on the way that is a link: refused, nothing made at its target.
+  fs::create_directories(d / "outside-dir");
+  fs::create_symlink(d / "outside-dir", in / "runs");
+  EXPECT_THROW(make_directories(in, "runs/a/b"), InputError);
+  EXPECT_TRUE(fs::is_empty(d / "outside-dir"));
+  make_directories(in, "samples/a-seed1");
+  EXPECT_TRUE(fs::is_directory(fs::symlink_status(in / "samples/a-seed1")));
+  EXPECT_THROW(make_directories(in, "../escape"), InputError);
+  planted.expect_untouched();
+  fs::remove_all(d);
+}
+
+// A fresh run (--force) in a directory where every name it writes, and the temporary name of
+// each, is a link to outside it: nothing outside is written or created, and every result is a
+// regular file with the bytes of a run in an empty directory.
+TEST(LinkSafety, RunWritesNothingThroughAPlantedLink) {
+  const fs::path d = fresh("run");
+  write(d / "case.toml", tiny_case());
+  const Cli ref = cli({"run", (d / "case.toml").string(), "--out", (d / "ref").string(), "--quiet", "--threads", "1"},
+                      "run-ref");
+  ASSERT_EQ(ref.code, 0) << ref.err;
+  std::vector<fs::path> names = files_under(d / "ref");
+  ASSERT_TRUE(std::find(names.begin(), names.end(), "summary.json") != names.end());
+  // The names a finished run no longer holds: its checkpoints and the rows before each rename.
+  std::vector<fs::path> written = names;
+  for (const char* f : {"checkpoint.qsck", "checkpoint.qsck.prev", "series.csv.partial", "compaction.csv.partial",
+                        "classes.csv.partial"})
+    written.emplace_back(f);
+  const fs::path out = d / "out";
+  Planted planted(d / "outside");
+  for (const fs::path& f : written) {
+    if (*f.begin() == "vtk") continue;  // --force removes vtk/ first (its names: the resume test)
+    planted.to_file(out / (f.string() + ".tmp"));
+    if (f == run_lock_file) planted.to_file(out / f);  // opened in place
+    else if (!fs::exists(fs::symlink_status(out / f))) planted.to_nothing(out / f);
+  }
+  ASSERT_GT(planted.size(), 20u);
+  const Cli c = cli({"run", (d / "case.toml").string(), "--out", out.string(), "--quiet", "--threads", "1", "--force"},
+                    "run-links");
+  ASSERT_EQ(c.code, 0) << c.err;
+  planted.expect_untouched();
+  for (const fs::path& f : names) EXPECT_TRUE(is_regular_not_link(out / f)) << f;
+  for (const char* f : {"series.csv", "compaction.csv", "classes.csv", "final.packing"})
+    EXPECT_EQ(slurp(out / f), slurp(d / "ref" / f)) << f;
+  fs::remove_all(d);
+}
+
+// A resumed run (stopped by SIGTERM in its triaxial test, with rows and VTK snapshots written)
+// in a directory where every name it has yet to write, and the temporary name of every file, is a
+// link to outside: nothing outside is touched and the results are those of the uninterrupted run.
+// A link in place of the series.csv.partial it continues, or of vtk/, is refused, and the file
+// outside is left as it was.
+TEST(LinkSafety, ResumeWritesNothingThroughAPlantedLink) {
+  const fs::path d = fresh("resume");
+  write(d / "case.toml", tiny_case("1.25e-6"));  // 25000 triaxial steps, a row every 2500
+  const Cli ref = cli({"run", (d / "case.toml").string(), "--out", (d / "ref").string(), "--quiet", "--threads", "1"},
+                      "resume-ref");
+  ASSERT_EQ(ref.code, 0) << ref.err;
+  const std::vector<fs::path> names = files_under(d / "ref");
+  ASSERT_TRUE(std::find(names.begin(), names.end(), "vtk/series.pvd") != names.end());
+
+  const fs::path stopped = d / "stopped";
+  const pid_t pid = spawn({"run", (d / "case.toml").string(), "--out", stopped.string(), "--quiet", "--threads", "1"},
+                          root / "logs" / "resume-stopped");
+  ASSERT_GT(pid, 0);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(2);
+  while (std::chrono::steady_clock::now() < deadline && qsdem_test::lines(stopped / "series.csv.partial") < 4)
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  ::kill(pid, SIGTERM);
+  ASSERT_EQ(qsdem_test::wait_exit(pid), 143) << "stopped with a checkpoint after its second row";
+  ASSERT_TRUE(fs::exists(stopped / "checkpoint.qsck"));
+  ASSERT_TRUE(fs::exists(stopped / "vtk"));
+
+  const fs::path out = d / "out";
+  fs::copy(stopped, out, fs::copy_options::recursive);
+  Planted planted(d / "outside");
+  std::vector<fs::path> written = names;
+  for (const char* f : {"checkpoint.qsck", "checkpoint.qsck.prev", "series.csv.partial", "classes.csv.partial"})
+    written.emplace_back(f);
+  for (const fs::path& f : written) {
+    planted.to_file(out / (f.string() + ".tmp"));
+    if (f == run_lock_file) planted.to_file(out / f);
+    else if (!fs::exists(fs::symlink_status(out / f))) planted.to_nothing(out / f);
+  }
+  const Cli c = cli({"resume", out.string(), "--quiet", "--threads", "1"}, "resume-links");
+  ASSERT_EQ(c.code, 0) << c.err;
+  planted.expect_untouched();
+  for (const fs::path& f : names) EXPECT_TRUE(is_regular_not_link(out / f)) << f;
+  for (const char* f : {"series.csv", "compaction.csv", "classes.csv", "final.packing"})
+    EXPECT_EQ(slurp(out / f), slurp(d / "ref" / f)) << f;
+
+  // The file it continues, a link: refused (exit 2), the file outside as it was.
+  const fs::path partial = d / "partial";
+  fs::copy(stopped, partial, fs::copy_options::recursive);
+  fs::create_directories(d / "outside-partial");
+  fs::rename(partial / "series.csv.partial", d / "outside-partial" / "rows");
+  const std::string rows = slurp(d / "outside-partial" / "rows");
+  fs::create_symlink(d / "outside-partial" / "rows", partial / "series.csv.partial");
+  const Cli p = cli({"resume", partial.string(), "--quiet", "--threads", "1"}, "resume-partial");
+  EXPECT_EQ(p.code, 2) << p.err;
+  EXPECT_NE(p.err.find("symbolic link"), std::string::npos) << p.err;
+  EXPECT_EQ(slurp(d / "outside-partial" / "rows"), rows);
+
+  // vtk/ a link: the run stops at its next snapshot (exit 3) with its checkpoint; nothing outside.
+  const fs::path vtk = d / "vtk-link";
+  fs::copy(stopped, vtk, fs::copy_options::recursive);
+  fs::remove_all(vtk / "vtk");
+  fs::create_directories(d / "outside-vtk");
+  fs::create_symlink(d / "outside-vtk", vtk / "vtk");
+  const Cli v = cli({"resume", vtk.string(), "--quiet", "--threads", "1"}, "resume-vtk");
+  EXPECT_EQ(v.code, 3) << v.err;
+  EXPECT_NE(v.err.find("symbolic link"), std::string::npos) << v.err;
+  EXPECT_TRUE(fs::is_empty(d / "outside-vtk"));
+  EXPECT_TRUE(fs::exists(vtk / "checkpoint.qsck"));
+  fs::remove_all(d);
+}
+
+// A study in a directory holding its study.toml and, for every file the study writes (its
+// manifest, the case copies, the samples' and runs' files and logs, the analysis and its gnuplot
+// figures, the report, the locks), a link under the name or its temporary name pointing outside:
+// nothing outside is touched, the results are regular files, and the run's series is that of
+// the study in an empty directory. A link in place of runs/ stops its runs, not the study.
+TEST(LinkSafety, StudyWritesNothingThroughAPlantedLink) {
+  const fs::path d = fresh("study");
+  write(d / "case.toml", slurp(source_dir / "examples" / "spheres-A-small.toml"));
+  write(d / "study.toml",
+        "[[sample]]\nname = \"tiny\"\ncase = \"case.toml\"\nset = ['sample.particles=[{shape=\"sphere\", "
+        "diameter=\"2.4 mm\", count=60}, {shape=\"sphere\", diameter=\"2.0 mm\", count=60}]', "
+        "\"sample.total_particles=0\", \"sample.initial_solid_fraction=0.2\", \"compaction.max_strain_rate=1e-3\"]\n"
+        "[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"1 %\"]\nstrain_rates = [5e-5]\n"
+        "set = [\"triaxial.final_axial_strain=1 %\", \"triaxial.sample_points=10\"]\n"
+        "[execution]\nparallel_runs = 1\n");
+  const Cli ref = cli({"study", (d / "study.toml").string(), "--out", (d / "ref").string(), "--quiet"}, "study-ref");
+  ASSERT_EQ(ref.code, 0) << ref.err;
+  const std::vector<fs::path> names = files_under(d / "ref");
+  for (const char* f : {"study.json", "report.html", "analysis/analysis.json"})
+    ASSERT_TRUE(std::find(names.begin(), names.end(), f) != names.end()) << f;
+  ASSERT_TRUE(std::any_of(names.begin(), names.end(), [](const fs::path& f) { return f.extension() == ".svg"; }));
+  ASSERT_TRUE(std::any_of(names.begin(), names.end(), [](const fs::path& f) { return f.filename() == "run.log"; }));
+
+  const fs::path out = d / "out";
+  fs::create_directories(out);
+  write(out / "study.toml", slurp(d / "study.toml"));  // the study it continues
+  Planted planted(d / "outside");
+  for (const fs::path& f : names) {
+    if (f == "study.toml") continue;
+    planted.to_file(out / (f.string() + ".tmp"));
+    const std::string name = f.filename().string();
+    if (name == "run.log" || name == "prepare.log" || name == ".run.lock" || name == ".study.lock")
+      planted.to_file(out / f);  // opened in place
+    else
+      planted.to_nothing(out / f);
+  }
+  const Cli c = cli({"study", (d / "study.toml").string(), "--out", out.string(), "--quiet"}, "study-links");
+  ASSERT_EQ(c.code, 0) << c.err;
+  planted.expect_untouched();
+  for (const fs::path& f : names) EXPECT_TRUE(is_regular_not_link(out / f)) << f;
+  for (const fs::path& f : names) {
+    if (f.filename() == "series.csv") {
+      EXPECT_EQ(slurp(out / f), slurp(d / "ref" / f)) << f;
+    }
+  }
+
+  const fs::path linked = d / "runs-link";
+  fs::create_directories(linked);
+  write(linked / "study.toml", slurp(d / "study.toml"));
+  fs::create_directories(d / "outside-runs");
+  fs::create_symlink(d / "outside-runs", linked / "runs");
+  const Cli r = cli({"study", (d / "study.toml").string(), "--out", linked.string(), "--quiet"}, "study-runs-link");
+  EXPECT_EQ(r.code, 3) << r.err;
+  EXPECT_TRUE(fs::is_empty(d / "outside-runs"));
+  EXPECT_NE(slurp(linked / "failures.json").find("symbolic link"), std::string::npos);
+  fs::remove_all(d);
+}
