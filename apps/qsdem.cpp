@@ -13,6 +13,7 @@
 
 #include "qsdem/config.hpp"
 #include "qsdem/default_case.hpp"
+#include "qsdem/files.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/study_analysis.hpp"
@@ -196,6 +197,7 @@ int main(int argc, char** argv) {
     if (dry_run) {
       namespace fs = std::filesystem;
       std::string checked;
+      if (*run || *prepare || *study) qsdem::require_utf8(out_dir, "--out");
       if ((*run || *prepare) && case_path.empty()) {
         qsdem::parse_case(qsdem::default_case_toml, qsdem::default_case_name, overrides);
         checked = "the built-in case";
@@ -235,7 +237,7 @@ int main(int argc, char** argv) {
       qsdem::analyze_study(analyze_dir);
       std::cout << "Analysis written to " << analyze_dir << "/analysis/\n";
     } else if (*bench) {
-      std::cout << qsdem::bench_packing(bench_source, case_path, overrides, steps, as_spheres).dump() << std::endl;
+      std::cout << qsdem::json_text(qsdem::bench_packing(bench_source, case_path, overrides, steps, as_spheres), -1) << std::endl;
     }
   } catch (const qsdem::Interrupted& e) {
     std::fprintf(stderr, "\nqsdem: %s\n", e.what());

@@ -1,6 +1,7 @@
 // The files a run and a study write (files.hpp; docs/runs.md, docs/study.md): never through a
-// symbolic link planted under a name they use. The helpers, then real processes in directories
-// whose every name is a planted link.
+// symbolic link planted under a name they use, and no text outside UTF-8 in their JSON files. The
+// helpers against closed cases and a plain decoder, then real processes in directories whose every
+// name is a planted link.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/stat.h>
@@ -11,11 +12,13 @@
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <random>
 #include <set>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "qsdem/config.hpp"
 #include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/run.hpp"
@@ -111,6 +114,32 @@ class Planted {
   std::vector<fs::path> absent_;
 };
 
+// Plain UTF-8 decoding: a sequence's length from its lead byte's high bits, continuation bytes
+// 10xxxxxx, then the code point refused when overlong, a surrogate or above U+10FFFF.
+std::size_t invalid_utf8_plain(const std::string& s) {
+  std::size_t i = 0;
+  while (i < s.size()) {
+    const unsigned c = static_cast<unsigned char>(s[i]);
+    std::size_t n;
+    std::uint32_t cp;
+    if (c < 0x80) n = 1, cp = c;
+    else if ((c >> 5) == 0x6) n = 2, cp = c & 0x1F;
+    else if ((c >> 4) == 0xE) n = 3, cp = c & 0x0F;
+    else if ((c >> 3) == 0x1E) n = 4, cp = c & 0x07;
+    else return i;
+    if (i + n > s.size()) return i;
+    for (std::size_t k = 1; k < n; ++k) {
+      const unsigned d = static_cast<unsigned char>(s[i + k]);
+      if ((d >> 6) != 0x2) return i;
+      cp = (cp << 6) | (d & 0x3F);
+    }
+    const std::uint32_t least[] = {0, 0, 0x80, 0x800, 0x10000};
+    if (cp < least[n] || (cp >= 0xD800 && cp <= 0xDFFF) || cp > 0x10FFFF) return i;
+    i += n;
+  }
+  return std::string::npos;
+}
+
 // The tiny case (test_support.hpp) with a checkpoint every 2 sample points and a VTK snapshot
 // every 2 rows; `rate`: its eps' (1.25e-4: 250 triaxial steps).
 std::string tiny_case(const std::string& rate = "1.25e-4") {
@@ -121,6 +150,56 @@ std::string tiny_case(const std::string& rate = "1.25e-4") {
 }
 
 }  // namespace
+
+// The validator against the plain decoder, on every string of one to three bytes and on random
+// strings of four to twelve, and on the closed cases of each rule.
+TEST(Files, Utf8ValidatorAgreesWithAPlainDecoder) {
+  EXPECT_EQ(invalid_utf8_at(""), std::string_view::npos);
+  EXPECT_EQ(invalid_utf8_at("plain ASCII, 0.5 %"), std::string_view::npos);
+  EXPECT_EQ(invalid_utf8_at("\xC3\xA9 \xE2\x82\xAC \xF0\x9F\x98\x80 \xF4\x8F\xBF\xBF"), std::string_view::npos);
+  EXPECT_EQ(invalid_utf8_at("c\xFF.toml"), 1u);
+  EXPECT_EQ(invalid_utf8_at("\x80"), 0u) << "a continuation byte alone";
+  EXPECT_EQ(invalid_utf8_at("\xC0\xAF"), 0u) << "overlong '/'";
+  EXPECT_EQ(invalid_utf8_at("\xE0\x80\xAF"), 0u) << "overlong '/' in three bytes";
+  EXPECT_EQ(invalid_utf8_at("\xED\xA0\x80"), 0u) << "a surrogate";
+  EXPECT_EQ(invalid_utf8_at("\xF4\x90\x80\x80"), 0u) << "above U+10FFFF";
+  EXPECT_EQ(invalid_utf8_at("ab\xE2\x82"), 2u) << "cut short";
+  EXPECT_EQ(invalid_utf8_at("\xC3\x28"), 0u) << "a lead byte without its continuation";
+  long checked = 0;
+  for (unsigned len = 1; len <= 3; ++len)
+    for (std::uint32_t v = 0; v < (1u << (8 * len)); ++v) {
+      std::string s(len, '\0');
+      for (unsigned k = 0; k < len; ++k) s[k] = static_cast<char>((v >> (8 * k)) & 0xFF);
+      ASSERT_EQ(invalid_utf8_at(s), invalid_utf8_plain(s)) << "bytes " << std::hex << v << " (" << len << ")";
+      ++checked;
+    }
+  std::mt19937 rng(7);
+  for (int trial = 0; trial < 2'000'000; ++trial) {
+    std::string s(4 + rng() % 9, '\0');
+    // Bytes biased to lead and continuation bytes, where the rules are.
+    for (char& c : s) c = static_cast<char>(rng() % 3 == 0 ? rng() % 256 : 0x80 + rng() % 0x78);
+    ASSERT_EQ(invalid_utf8_at(s), invalid_utf8_plain(s)) << trial;
+    ++checked;
+  }
+  EXPECT_GT(checked, 16'000'000);
+  try {
+    require_utf8("runs/c\xFF\xFE.toml", "--out");
+    ADD_FAILURE() << "not refused";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("--out 'runs/c\\xFF\\xFE.toml' is not valid UTF-8"), std::string::npos)
+        << e.what();
+    EXPECT_EQ(invalid_utf8_at(e.what()), std::string_view::npos) << "the message itself is UTF-8";
+  }
+}
+
+// json_text, the last defence: where dump() throws type_error.316, the bytes become U+FFFD.
+TEST(Files, JsonTextReplacesWhatIsNotUtf8) {
+  const nlohmann::json j = {{"source", "c\xFF.toml"}};
+  EXPECT_THROW((void)j.dump(), nlohmann::json::type_error);
+  EXPECT_EQ(json_text(j, -1), "{\"source\":\"c\xEF\xBF\xBD.toml\"}");
+  const nlohmann::ordered_json o = {{"case", "\xC0"}};
+  EXPECT_EQ(json_text(o, -1), "{\"case\":\"\xEF\xBF\xBD\"}");
+}
 
 // The helpers each writer uses: a link under the name is never followed, a FIFO never blocks.
 TEST(Files, NoFileIsOpenedThroughALink) {
@@ -187,6 +266,74 @@ TEST(Files, NoFileIsOpenedThroughALink) {
   EXPECT_TRUE(fs::is_directory(fs::symlink_status(in / "samples/a-seed1")));
   EXPECT_THROW(make_directories(in, "../escape"), InputError);
   planted.expect_untouched();
+  fs::remove_all(d);
+}
+
+// A path, --out, --set key or value, sample.from or study file that is not UTF-8 is refused at
+// once with exit 2, naming it, before anything is computed or written (it used to fail only
+// when summary.json was written, after the whole run, exit 3).
+TEST(Utf8, NamesAndValuesThatAreNotUtf8AreRefusedBeforeAnyWork) {
+  const fs::path d = fresh("utf8");
+  write(d / "case.toml", tiny_case());
+  write(d / "c\xFF.toml", tiny_case());
+  const auto refused = [&](const std::vector<std::string>& args, const std::string& shown, const std::string& log) {
+    SCOPED_TRACE(log);
+    const Cli c = cli(args, log);
+    EXPECT_EQ(c.code, 2) << c.err;
+    EXPECT_NE(c.err.find(shown), std::string::npos) << c.err;
+    EXPECT_NE(c.err.find("not valid UTF-8"), std::string::npos) << c.err;
+  };
+  const std::string out = (d / "out").string();
+  refused({"run", (d / "c\xFF.toml").string(), "--out", out, "--quiet"}, "c\\xFF.toml", "path");
+  refused({"run", (d / "case.toml").string(), "--out", (d / "r\xFF").string(), "--quiet"}, "r\\xFF", "out");
+  refused({"run", (d / "case.toml").string(), "--out", out, "--quiet", "--set", "name=c\xFF"}, "name=c\\xFF", "value");
+  refused({"run", (d / "case.toml").string(), "--out", out, "--quiet", "--set", "name=\"c\xFF\""}, "c\\xFF", "string");
+  refused({"run", (d / "case.toml").string(), "--out", out, "--quiet", "--set", "na\xFFme=1"}, "na\\xFFme", "key");
+  refused({"run", (d / "case.toml").string(), "--out", out, "--quiet", "--set", "sample.from=p\xFF"}, "p\\xFF", "from");
+  refused({"prepare", (d / "case.toml").string(), "--out", (d / "p\xFF").string(), "--quiet"}, "p\\xFF", "prepare");
+  EXPECT_FALSE(fs::exists(out));
+  EXPECT_FALSE(fs::exists(d / "r\xFF"));
+  // In a case file, the TOML parser refuses it.
+  std::string text = tiny_case();
+  text.replace(text.find("name = \"files\""), 14, "name = \"fi\xFFles\"");
+  write(d / "bad.toml", text);
+  const Cli bad = cli({"run", (d / "bad.toml").string(), "--out", out, "--quiet"}, "toml");
+  EXPECT_EQ(bad.code, 2) << bad.err;
+  EXPECT_NE(bad.err.find("utf-8"), std::string::npos) << bad.err;
+  // A study: its directory (the absolute path of a case), its --out, `qsdem analyze`.
+  fs::create_directories(d / "s\xFF");
+  write(d / "s\xFF" / "case.toml", slurp(source_dir / "examples" / "spheres-A-small.toml"));
+  write(d / "s\xFF" / "study.toml",
+        "[[sample]]\nname = \"a\"\ncase = \"case.toml\"\n[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"1 %\"]\n"
+        "strain_rates = [1e-5]\n");
+  refused({"study", (d / "s\xFF" / "study.toml").string(), "--out", out, "--quiet"}, "s\\xFF/case.toml", "study");
+  refused({"study", (source_dir / "studies" / "tiny.toml").string(), "--out", (d / "st\xFF").string(), "--quiet"},
+          "st\\xFF", "study-out");
+  fs::create_directories(d / "a\xFF");
+  refused({"analyze", (d / "a\xFF").string()}, "a\\xFF", "analyze");
+  EXPECT_FALSE(fs::exists(out));
+  EXPECT_FALSE(fs::exists(d / "st\xFF"));
+  fs::remove_all(d);
+}
+
+// A checkpoint written before these checks, whose case path is not UTF-8, still resumes: its
+// summary.json names the path with U+FFFD in place of the bad byte (resume used to fail on it
+// every time, after the whole run).
+TEST(Utf8, ACheckpointNamingAPathThatIsNotUtf8Resumes) {
+  const fs::path d = fresh("legacy");
+  RunOptions o;
+  o.out = d / "run";
+  o.quiet = true;
+  // parse_case takes the source as given (load_case is what refuses it): as an older engine did.
+  EXPECT_THROW(run_case(parse_case(tiny_case(), "c\xFF.toml", {"limits.max_kinetic_ratio=1e-30"}), o), RunError);
+  ASSERT_TRUE(fs::exists(d / "run" / "checkpoint.qsck"));
+  o.sets = {"limits.max_kinetic_ratio=1"};
+  nlohmann::json s;
+  ASSERT_NO_THROW(s = resume_run(d / "run", o));
+  EXPECT_EQ(s["config"]["resolved_si"]["source"], "c\xFF.toml") << "the path as the checkpoint holds it";
+  const auto written = nlohmann::json::parse(slurp(d / "run" / "summary.json"));
+  EXPECT_EQ(written["config"]["resolved_si"]["source"], "c\xEF\xBF\xBD.toml");
+  EXPECT_FALSE(fs::exists(d / "run" / "checkpoint.qsck")) << "finished";
   fs::remove_all(d);
 }
 

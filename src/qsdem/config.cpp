@@ -23,6 +23,7 @@
 #include "qsdem/contact/laws.hpp"
 #include "qsdem/controller.hpp"
 #include "qsdem/damping/models.hpp"
+#include "qsdem/files.hpp"
 #include "qsdem/rate_control.hpp"
 #include "qsdem/units.hpp"
 
@@ -43,6 +44,7 @@ bool is_index(const std::string& s) {
 
 // Applies "a.b.c=value" to the table; the value is parsed as TOML, or kept as a string.
 void apply_override(toml::table& root, const std::string& assignment) {
+  require_utf8(assignment, "--set");  // a value that is not TOML is kept as a string, unchecked by the parser
   const auto eq = assignment.find('=');
   if (eq == std::string::npos || eq == 0)
     throw InputError(fmt::format("--set '{}': expected key=value, e.g. damping.ratio=\"0.3 %\"",
@@ -744,6 +746,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
     fs::path from = p.sample.from;
     if (from.is_relative() && in_file) from = base_dir / from;
     p.sample.from = fs::absolute(from).lexically_normal().string();
+    require_utf8(p.sample.from, "sample.from");  // with the working directory that made it absolute
     root["sample"].as_table()->insert_or_assign("from", p.sample.from);
   }
   // A given sample replaces the generated one: then the size table is not needed (nor read).
@@ -1060,6 +1063,7 @@ nlohmann::json to_json(const Params& p) {
 
 Params load_case(const std::string& path, const std::vector<std::string>& overrides) {
   namespace fs = std::filesystem;
+  require_utf8(path, "the case file's path");
   std::error_code ec;
   if (fs::is_directory(path, ec))
     throw InputError(fmt::format("case file '{}' is a directory: give a case file (TOML, docs/config.md)", path));

@@ -121,4 +121,54 @@ void make_directories(const fs::path& base, const fs::path& relative) {
   ::close(fd);
 }
 
+std::size_t invalid_utf8_at(std::string_view text) {
+  const auto* b = reinterpret_cast<const unsigned char*>(text.data());
+  const std::size_t size = text.size();
+  std::size_t i = 0;
+  while (i < size) {
+    const unsigned c = b[i];
+    if (c < 0x80) {
+      ++i;
+      continue;
+    }
+    // The continuation bytes a lead byte takes, and the range of the first (Unicode 15, Table 3-7).
+    std::size_t n = 0;
+    unsigned lo = 0x80, hi = 0xBF;
+    if (c >= 0xC2 && c <= 0xDF) n = 1;
+    else if (c == 0xE0) n = 2, lo = 0xA0;
+    else if ((c >= 0xE1 && c <= 0xEC) || c == 0xEE || c == 0xEF) n = 2;
+    else if (c == 0xED) n = 2, hi = 0x9F;
+    else if (c == 0xF0) n = 3, lo = 0x90;
+    else if (c >= 0xF1 && c <= 0xF3) n = 3;
+    else if (c == 0xF4) n = 3, hi = 0x8F;
+    else return i;
+    for (std::size_t k = 1; k <= n; ++k) {
+      if (i + k >= size) return i;
+      const unsigned d = b[i + k];
+      if (d < (k == 1 ? lo : 0x80u) || d > (k == 1 ? hi : 0xBFu)) return i;
+    }
+    i += n + 1;
+  }
+  return std::string_view::npos;
+}
+
+void require_utf8(std::string_view text, const std::string& what) {
+  std::size_t bad = invalid_utf8_at(text);
+  if (bad == std::string_view::npos) return;
+  const std::size_t first = bad;
+  std::string shown;
+  std::size_t from = 0;
+  while (bad != std::string_view::npos) {
+    shown.append(text.substr(from, bad - from));
+    shown += fmt::format("\\x{:02X}", static_cast<unsigned char>(text[bad]));
+    from = bad + 1;
+    const std::size_t next = invalid_utf8_at(text.substr(from));
+    bad = next == std::string_view::npos ? next : from + next;
+  }
+  shown.append(text.substr(from));
+  throw InputError(fmt::format("{} '{}' is not valid UTF-8 (byte {} is 0x{:02X}): qsdem writes it into JSON files "
+                               "(summary.json, study.json), which hold UTF-8 only; rename it, or write it in UTF-8",
+                               what, shown, first, static_cast<unsigned char>(text[first])));
+}
+
 }  // namespace qsdem

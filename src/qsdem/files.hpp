@@ -1,13 +1,17 @@
 // The files qsdem writes, made safe where others may have left names before it: a shared scratch
 // directory or an unpacked archive of results can hold symbolic links named like the files a run
 // or a study writes. Every file and directory qsdem writes is opened or created here, never
-// through a link (CWE-59).
+// through a link (CWE-59); and every text it writes into JSON is UTF-8.
 #pragma once
 #include <fcntl.h>
 
+#include <cstddef>
 #include <filesystem>
 #include <optional>
 #include <string>
+#include <string_view>
+
+#include <nlohmann/json.hpp>
 
 namespace qsdem {
 
@@ -39,5 +43,22 @@ std::optional<std::string> read_regular_file(const std::filesystem::path& path, 
 // or something else than a directory (InputError naming it): what is written below `base` stays
 // below it. `base` itself (a user's --out) may be anything that leads to a directory.
 void make_directories(const std::filesystem::path& base, const std::filesystem::path& relative);
+
+// The offset of the first byte of `text` that does not belong to valid UTF-8 (an overlong form, a
+// surrogate or a code point above U+10FFFF included), or npos when it is all valid.
+std::size_t invalid_utf8_at(std::string_view text);
+
+// Refuses (InputError) a name or text that qsdem would write into a JSON file and that is not
+// UTF-8, before any work. `what` names it ("--out", "the case file's path"); the message shows the
+// text with its bytes outside UTF-8 as \xHH.
+void require_utf8(std::string_view text, const std::string& what);
+
+// j.dump(indent), with any bytes that are not UTF-8 in its strings replaced by U+FFFD instead of
+// an exception: the last defence for a text that came from outside (a child's log, a checkpoint
+// of an older engine), which the checks on input should already have refused.
+template <class Json>
+std::string json_text(const Json& j, int indent = 2) {
+  return j.dump(indent, ' ', false, Json::error_handler_t::replace);
+}
 
 }  // namespace qsdem

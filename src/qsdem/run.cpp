@@ -362,7 +362,7 @@ class Execution {
     }
     if (!just_ended && run_.phase > 0) finish_phase(run_.phase - 1, nullptr, nullptr);  // stopped while writing them
     const nlohmann::json s = summary(note);
-    write_file_atomic(dir_ / "summary.json", s.dump(2) + "\n");
+    write_file_atomic(dir_ / "summary.json", json_text(s) + "\n");
     done("summary.json written");
     // A finished run needs no checkpoint: the older first, so that a checkpoint.qsck present means
     // "not finished".
@@ -660,6 +660,7 @@ State make_sample(const Params& params, RunProgress& run) {
 
 nlohmann::json run_case(const Params& params, const RunOptions& options) {
   const fs::path dir = options.out;
+  require_utf8(dir.string(), "--out");
   const SignalGuard signals;
   check_out(dir, options.force, false);
   std::error_code ec;
@@ -687,6 +688,7 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
 
 nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
   if (!fs::is_directory(dir)) throw InputError(fmt::format("'{}' is not a run directory", dir.string()));
+  require_utf8(dir.string(), "the run directory");
   const SignalGuard signals;
   const DirectoryLock lock = lock_run_directory(dir);
   if (fs::exists(dir / "summary.json") && !fs::exists(dir / checkpoint_file))

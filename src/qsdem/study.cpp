@@ -445,7 +445,7 @@ int mpi_bcast(const Mpi& m, int value) {
 // Rank 0 receives the failures of every rank.
 nlohmann::json mpi_gather_failures(const Mpi& m, const nlohmann::json& mine) {
   if (!m.active) return mine;
-  const std::string text = mine.dump();
+  const std::string text = json_text(mine, -1);
   int len = static_cast<int>(text.size());
   std::vector<int> lens(std::size_t(m.size)), offsets(std::size_t(m.size));
   MPI_Gather(&len, 1, MPI_INT, lens.data(), 1, MPI_INT, 0, MPI_COMM_WORLD);
@@ -551,7 +551,7 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
   check_recorded(study, out, recorded);
   adopt_recorded_picks(study, recorded);
   if (!has_copy || copied != study.text) write_file_atomic(copy, study.text);  // new, or new comments
-  write_file_atomic(out / "study.json", manifest_keeping(study, recorded).dump(2) + "\n");
+  write_file_atomic(out / "study.json", json_text(manifest_keeping(study, recorded)) + "\n");
 }
 
 // Records the FNV-1a of every prepared sample's compacted.packing not yet recorded in study.json
@@ -568,7 +568,7 @@ void record_samples(const Study& study, const fs::path& out) {
     if (!smp.contains("compacted_fnv1a64") && fs::exists(dir / prepared_sample_file) && fs::exists(dir / "summary.json"))
       smp["compacted_fnv1a64"] = file_fnv1a64(file);
   }
-  write_file_atomic(out / "study.json", m.dump(2) + "\n");
+  write_file_atomic(out / "study.json", json_text(m) + "\n");
 }
 
 std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
@@ -681,7 +681,7 @@ nlohmann::json pick_level(Study& study, const fs::path& out, int level, StudyPro
       }
     add_stage_runs(study, k);
   }
-  write_file_atomic(out / "study.json", manifest_keeping(study, recorded_manifest(out)).dump(2) + "\n");
+  write_file_atomic(out / "study.json", json_text(manifest_keeping(study, recorded_manifest(out))) + "\n");
   return failures;
 }
 
@@ -708,7 +708,7 @@ int finish_study(const Study& study, const fs::path& out, nlohmann::json failure
   if (failures.empty()) {
     fs::remove(failures_file);
   } else {
-    write_file_atomic(failures_file, failures.dump(2) + "\n");
+    write_file_atomic(failures_file, json_text(failures) + "\n");
     std::fprintf(stderr, "qsdem: %zu of %zu samples and runs failed (listed in %s, logs in their directories); "
                          "the analysis uses the runs that finished\n",
                  failures.size(), study.samples.size() + study.runs.size(), failures_file.string().c_str());
@@ -729,7 +729,9 @@ int finish_study(const Study& study, const fs::path& out, nlohmann::json failure
 
 int study_main(const fs::path& study_file, const StudyOptions& options, const Mpi& mpi) {
   Study study;
+  const fs::path out = fs::absolute(options.out);
   try {
+    require_utf8(out.string(), "--out");  // analysis.json names it
     study = load_study(study_file);
   } catch (const InputError& e) {
     if (mpi.rank == 0) std::fprintf(stderr, "qsdem: input error: %s\n", e.what());
@@ -737,7 +739,6 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   }
   if (options.parallel > 0) study.parallel_runs = options.parallel;
   if (!options.order.empty()) study.shortest_first = options.order == "shortest_first";
-  const fs::path out = fs::absolute(options.out);
 
   // Rank 0 sets the directory up; the others wait for its verdict, then read the picks it kept.
   int status = 0;

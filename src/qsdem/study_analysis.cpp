@@ -1186,6 +1186,7 @@ std::vector<double> pick_ratios(const StageOptimum& o, const std::string& pick, 
 }
 
 nlohmann::json analyze_study(const std::filesystem::path& dir) {
+  require_utf8(fs::absolute(dir).string(), "the study directory");  // analysis.json names it
   const json manifest = read_manifest(dir);
   const std::string study_file = manifest.value("study_file", std::string("study.toml"));
   std::string toml;
@@ -1274,7 +1275,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
     fs::remove(adir / "deviation.csv");  // of an earlier analysis with a reference
   }
   a["figures"] = json::array();
-  write_file_atomic(adir / "analysis.json", a.dump(2) + "\n");
+  write_file_atomic(adir / "analysis.json", json_text(a) + "\n");
 
   require_gnuplot();
   std::vector<Figure> figs = make_figures(an);
@@ -1288,7 +1289,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
                             {"svg", drawn.back() ? json("analysis/figures/" + f.name + ".svg") : json(nullptr)},
                             {"script", drawn.back() ? json("analysis/figures/" + f.name + ".gp") : json(nullptr)}});
   }
-  write_file_atomic(adir / "analysis.json", a.dump(2) + "\n");
+  write_file_atomic(adir / "analysis.json", json_text(a) + "\n");
   write_file_atomic(dir / "report.html", report_html(a, an.settings, tables, figs, drawn, runs, toml));
   return a;
 }

@@ -19,6 +19,7 @@
 
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/config.hpp"
+#include "qsdem/files.hpp"
 #include "qsdem/types.hpp"
 #include "qsdem/units.hpp"
 
@@ -322,6 +323,7 @@ void read_samples(const StudyReader& r, const toml::table& root, const std::vect
     fs::path case_file = case_text;
     if (case_file.is_relative()) case_file = s.file.parent_path() / case_file;  // relative to the study file
     case_file = fs::weakly_canonical(fs::absolute(case_file));
+    require_utf8(case_file.string(), fmt::format("{}: key '{}case': the path", r.where(t.get("case")), p));
     if (!fs::is_regular_file(case_file))
       r.fail(p + "case", t.get("case"), fmt::format("no such case file ('{}'; a relative path is relative to the study file)",
                                                     case_file.string()));
