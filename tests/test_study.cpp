@@ -264,6 +264,12 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
       {"a reference rule misspelt", sample + design + "[analysis]\nreference = \"least damped\"\n",
        {"analysis.reference", "\"least-damped\""}},
       {"a tolerance of zero", sample + design + "[analysis]\nphi_tolerance_deg = 0\n", {"analysis.phi_tolerance_deg", "> 0"}},
+      {"a convergence tolerance below zero", sample + design + "[analysis]\nconvergence = { phi_tolerance_deg = -1 }\n",
+       {"analysis.convergence.phi_tolerance_deg", "> 0"}},
+      {"a convergence key misspelt", sample + design + "[analysis]\nconvergence = { phi_tol = 1 }\n",
+       {"analysis.convergence.phi_tol"}},
+      {"convergence not a table", sample + design + "[analysis]\nconvergence = 0.5\n",
+       {"analysis.convergence", "expected a table"}},
       // rate_control: the keys of [triaxial.rate_control], checked by the case parser at this key.
       {"rate_control not a table", sample + design + "rate_control = \"imom\"\n",
        {"design.rate_control", "\"imom\"", "expected a table", "target"}},

@@ -735,7 +735,7 @@ TEST(StudyAnalysisResults, CommittedFullStudyReanalysesFromItsRuns) {
   fs::copy(results / "runs", dir / "runs", fs::copy_options::recursive);
   const std::string cmd = fmt::format("'{}' analyze '{}' > '{}/log' 2>&1", QSDEM_BINARY, dir.string(), dir.string());
   ASSERT_EQ(std::system(cmd.c_str()), 0) << slurp(dir / "log");
-  for (const char* f : {"optimum.csv", "power_law.csv", "per_run.csv", "deviation.csv"})
+  for (const char* f : {"optimum.csv", "power_law.csv", "per_run.csv", "deviation.csv", "convergence.csv"})
     EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
   const auto without_date = [](std::string md) { return md.erase(0, md.find("Indices in percent")); };
   EXPECT_EQ(without_date(slurp(dir / "analysis" / "tables.md")), without_date(slurp(results / "analysis" / "tables.md")));
@@ -872,5 +872,80 @@ TEST(StudyAnalysisControl, ControlledRunIsComparedNotFitted) {
   const std::string html = slurp(dir / "report.html");
   EXPECT_NE(html.find("Controlled runs"), std::string::npos);
   EXPECT_NE(html.find(cid), std::string::npos);
+  fs::remove_all(dir);
+}
+
+// Sample S, two seeds, on the same strains: phi = 30 + 20 e1 + d (seed 1: d = -1 deg, seed 2: +1 deg)
+// + c (eps' / 1e-4) and ev = 0.01 e1 -/+ 0.002, at 1e-4, 1e-5 and 1e-6. With c = 2 deg (nd) the
+// paired change from the slowest rung is exactly 1.98 and 0.18 deg, under the seed scatter
+// (sqrt(2) deg): converged, certified at 1e-5, and Aitken's limit of peak phi is 30 + 20 * 0.1 + 0
+// exactly (constant factor 10). With c = 20 deg (od) the two slowest rungs differ by 1.8 deg: not
+// converged. An od run at 1e-7 of one seed only, unfinished, is an incomplete rate.
+TEST(StudyAnalysisConvergence, LaddersOfTwoSeedsAreCertifiedFromTheRunsFiles) {
+  const fs::path dir = fresh_temp_dir("analysis-converge");
+  json m = {{"name", "converge-test"}, {"study_file", "study.toml"}};
+  m["samples"] = json::array({{{"name", "S"}, {"seed", 1}, {"dir", "samples/S-seed1"}},
+                              {{"name", "S"}, {"seed", 2}, {"dir", "samples/S-seed2"}}});
+  m["runs"] = json::array();
+  const auto add = [&](const std::string& model, double c, long seed, double rate, bool finished) {
+    const std::string id = fmt::format("S-seed{}/{}/xi-0.5%/rate-{:g}", seed, model, rate);
+    m["runs"].push_back({{"id", id}, {"sample", "S"}, {"seed", seed}, {"model", model}, {"xi", 0.005}, {"rate", rate},
+                         {"dir", "runs/" + id}});
+    const double d = seed == 1 ? -1.0 : 1.0;
+    std::string csv = "step,time_s,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,void_ratio,cn,ufr,iuf,imom,ekin_J,"
+                      "ekin_trans_J,ekin_rot_J\n";
+    for (int i = 0; i <= 10; ++i) {
+      const double e1 = 0.01 * i;
+      csv += fmt::format("{},0,{},{},1,1,1,2,1,{},0.6,4,0.01,0.01,0.01,1e-6,5e-7,5e-7\n", 100 * i, e1,
+                         0.01 * e1 + 0.002 * d, 30 + 20 * e1 + d + c * rate / 1e-4);
+    }
+    spit(dir / "runs" / id / (finished ? "series.csv" : "series.csv.partial"), csv);
+    if (!finished) return;
+    const json summary = {{"mean_imom", 0.01}, {"mean_ufr", 0.01}, {"mean_iuf", 0.01}, {"steps", 1000}, {"wall_s", 2.0}};
+    spit(dir / "runs" / id / "summary.json", summary.dump());
+  };
+  for (long seed : {1, 2})
+    for (double rate : {1e-4, 1e-5, 1e-6}) {
+      add("nd", 2.0, seed, rate, true);
+      add("od", 20.0, seed, rate, true);
+    }
+  add("od", 20.0, 1, 1e-7, false);
+  spit(dir / "study.json", m.dump(2));
+  spit(dir / "study.toml", "name = \"converge-test\"\n");
+
+  const json r = qsdem::analyze_study(dir);
+  ASSERT_EQ(r["convergence"].size(), 2u);
+  const json& nd = r["convergence"][0];
+  ASSERT_EQ(nd["model"], "nd");
+  EXPECT_EQ(nd["status"], "converged") << nd["reason"];
+  EXPECT_EQ(nd["certified_rate"].get<double>(), 1e-5);
+  EXPECT_EQ(nd["seeds"], json::array({1, 2}));
+  EXPECT_NEAR(nd["phi_scatter_deg"].get<double>(), std::sqrt(2.0), 1e-9);
+  EXPECT_NEAR(nd["ev_scatter"].get<double>(), 0.002 * std::sqrt(2.0), 1e-12);
+  ASSERT_EQ(nd["rungs"].size(), 3u);
+  EXPECT_NEAR(nd["rungs"][0]["phi_to_slowest"]["rms"].get<double>(), 1.98, 1e-9);
+  EXPECT_NEAR(nd["rungs"][1]["phi_to_slowest"]["rms"].get<double>(), 0.18, 1e-9);
+  EXPECT_NEAR(nd["rungs"][1]["ev_to_slowest"]["rms"].get<double>(), 0.0, 1e-15);
+  EXPECT_EQ(nd["rungs"][0]["within"], false);
+  EXPECT_EQ(nd["rungs"][1]["within"], true);
+  EXPECT_EQ(nd["rungs"][1]["steps"].get<double>(), 2000.0);
+  EXPECT_EQ(nd["steps"].get<double>(), 6000.0);
+  for (const json& s : nd["scalars"])
+    if (s["name"] == "peak_phi_deg") {
+      EXPECT_TRUE(s["extrapolated"].get<bool>());
+      EXPECT_NEAR(s["limit"].get<double>(), 32.0, 1e-9);
+    }
+  const json& od = r["convergence"][1];
+  ASSERT_EQ(od["model"], "od");
+  EXPECT_EQ(od["status"], "not converged");
+  EXPECT_TRUE(od["certified_rate"].is_null());
+  EXPECT_NEAR(od["rungs"][1]["phi_to_slowest"]["rms"].get<double>(), 1.8, 1e-9);
+  EXPECT_EQ(od["incomplete_rates"], json::array({1e-7}));
+
+  const std::string csv = slurp(dir / "analysis" / "convergence.csv");
+  EXPECT_EQ(std::count(csv.begin(), csv.end(), '\n'), 1 + 3 + 3);
+  EXPECT_NE(csv.find("S,nd,0.005,1e-05,2,0.18"), std::string::npos) << csv;
+  const std::string tables = slurp(dir / "analysis" / "tables.md");
+  EXPECT_NE(tables.find("### Convergence with the rate"), std::string::npos);
   fs::remove_all(dir);
 }

@@ -207,6 +207,9 @@ nlohmann::ordered_json to_json(const AnalysisSettings& s) {
   j["phi_tolerance_deg"] = s.phi_tolerance_deg;
   j["ev_tolerance"] = s.ev_tolerance;
   j["cn_tolerance"] = opt(s.cn_tolerance);
+  j["convergence"] = {{"phi_tolerance_deg", s.convergence.phi_rms_deg},
+                      {"ev_tolerance", s.convergence.ev_rms},
+                      {"within_seed_scatter", s.convergence.within_seed_scatter}};
   return j;
 }
 
@@ -229,6 +232,13 @@ AnalysisSettings analysis_settings_from_json(const nlohmann::json& j) {
   s.phi_tolerance_deg = number(j, "phi_tolerance_deg", s.phi_tolerance_deg);
   s.ev_tolerance = number(j, "ev_tolerance", s.ev_tolerance);
   s.cn_tolerance = number(j, "cn_tolerance", s.cn_tolerance);
+  if (j.contains("convergence") && j["convergence"].is_object()) {
+    const auto& c = j["convergence"];
+    s.convergence.phi_rms_deg = number(c, "phi_tolerance_deg", s.convergence.phi_rms_deg);
+    s.convergence.ev_rms = number(c, "ev_tolerance", s.convergence.ev_rms);
+    if (c.contains("within_seed_scatter") && c["within_seed_scatter"].is_boolean())
+      s.convergence.within_seed_scatter = c["within_seed_scatter"];
+  }
   return s;
 }
 
@@ -324,6 +334,7 @@ Series read_series(const fs::path& p) {
     s.ufr.push_back(v[col["ufr"]]);
     s.imom.push_back(v[col["imom"]]);
     s.ekin.push_back(v[col["ekin_J"]]);
+    s.q_over_p.push_back(col.count("q_Pa") && col.count("p_Pa") ? v[col["q_Pa"]] / v[col["p_Pa"]] : nan);
   }
   return s;
 }
@@ -1151,6 +1162,7 @@ void build_analysis(Analysis& a, const fs::path& dir, const json& manifest) {
   a.scatter = make_seed_scatter(a.refs);
   a.controls = make_controls(a.runs);
   a.pairs = make_listed_pairs(a.stages, a.runs);
+  a.ladders = make_ladders(a.runs, a.settings.convergence);
 }
 
 }  // namespace
@@ -1245,6 +1257,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
   a["controlled_runs"] = controls_json(an.controls);
   a["damping_dependence"] = damping_json(an);
   a["listed_pairs"] = listed_pairs_json(an);
+  a["convergence"] = ladders_json(an.ladders, an.settings.convergence);
   a["paper_reference"] = paper_reference_json();
 
   // Tables and CSVs first: they are useful even when gnuplot is missing.
@@ -1267,6 +1280,12 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
     a["files"]["controlled_runs_csv"] = "analysis/controlled_runs.csv";
   } else {
     fs::remove(adir / "controlled_runs.csv");
+  }
+  if (!an.ladders.empty()) {
+    write_file_atomic(adir / "convergence.csv", ladders_csv(an.ladders));
+    a["files"]["convergence_csv"] = "analysis/convergence.csv";
+  } else {
+    fs::remove(adir / "convergence.csv");
   }
   if (an.settings.has_reference) {
     write_file_atomic(adir / "deviation.csv", deviation_csv(an.devs));

@@ -11,6 +11,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "qsdem/convergence.hpp"
+
 namespace qsdem {
 
 // Minimum of an equilibrium index (mean IMom or mean UFR) over the damping ratio xi at one
@@ -84,6 +86,7 @@ struct AnalysisSettings {
   double phi_tolerance_deg = 1.0;  // RMS deviation of phi(e1) from the reference, degrees
   double ev_tolerance = 0.005;     // RMS deviation of ev(e1), volumetric strain as a fraction
   double cn_tolerance = nan;       // RMS deviation of the coordination number; NaN: not checked
+  ConvergenceTolerances convergence;  // the certificate of the ladders (section 11)
 };
 
 nlohmann::ordered_json to_json(const AnalysisSettings& s);

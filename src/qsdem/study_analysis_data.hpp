@@ -13,6 +13,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "qsdem/convergence.hpp"
 #include "qsdem/study_analysis.hpp"
 
 namespace qsdem::analysis {
@@ -33,6 +34,7 @@ inline bool has_name(const std::vector<std::string>& v, const std::string& x) { 
 // The curves of a run (series.csv by header name, SPEC 10).
 struct Series {
   std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
+  std::vector<double> q_over_p;  // q_Pa / p_Pa
 };
 
 // A controlled run's controller: study.json "rate_control", summary.json triaxial.controller
@@ -199,6 +201,19 @@ struct SeedScatter {
   double phi = nan, ev = nan, cn = nan;
 };
 
+// One ladder of the convergence certificate (docs/analysis.md section 11): the constant-rate runs
+// of one (sample, model, ratio) at two or more rates, every seed of the group on each rung.
+struct Ladder {
+  std::string sample, model;
+  double xi = nan;
+  std::vector<long> seeds;
+  std::vector<double> rates;                    // the complete rungs, fastest first
+  std::vector<std::vector<const Run*>> runs;    // per rung, per seed
+  std::vector<double> incomplete;               // rates at which a seed has not finished
+  Certificate certificate;
+  double steps = 0, wall_s = 0;                 // of every run of the complete rungs
+};
+
 // Everything the tables, figures and files are made from; groups, laws and deviations point
 // into `runs`, so an Analysis is filled in place and never copied.
 struct Analysis {
@@ -219,6 +234,7 @@ struct Analysis {
   std::vector<SeedScatter> scatter;
   std::vector<ControlComparison> controls;
   std::vector<ListedPair> pairs;
+  std::vector<Ladder> ladders;
 
   const Run* reference_of(const std::string& sample) const {  // the first seed's (for figures)
     for (const auto& [key, r] : refs)
@@ -264,6 +280,12 @@ json paper_reference_json();
 const Improvement* find_improvement(const std::vector<Improvement>& imps, const std::string& sample,
                                     const std::string& model);
 const OptimumFit* find_opt(const std::vector<Group>& groups, const Run& r);
+
+// The convergence certificate of each ladder of the runs (study_convergence.cpp), its JSON, CSV and table.
+std::vector<Ladder> make_ladders(const std::vector<Run>& runs, const ConvergenceTolerances& tol);
+json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
+std::string ladders_csv(const std::vector<Ladder>& ladders);
+Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
 
 // Rendering (study_report.cpp).
 std::vector<Table> make_tables(const Analysis& a);

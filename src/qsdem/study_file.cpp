@@ -618,7 +618,8 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
   const toml::table* t = r.table(root, "analysis", "analysis");
   if (!t) return;
   s.has_analysis = true;
-  r.only(*t, "analysis.", {"baseline", "imom_target", "reference", "phi_tolerance_deg", "ev_tolerance", "cn_tolerance"});
+  r.only(*t, "analysis.",
+         {"baseline", "imom_target", "reference", "phi_tolerance_deg", "ev_tolerance", "cn_tolerance", "convergence"});
   a.baseline = r.text(*t, "baseline", "analysis.baseline", labels.front());
   if (index_of(labels, a.baseline) == labels.size())
     r.fail("analysis.baseline", t->get("baseline"), "not a model of design.models");
@@ -641,6 +642,26 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
   positive("phi_tolerance_deg", false, a.phi_tolerance_deg);
   positive("ev_tolerance", true, a.ev_tolerance);
   positive("cn_tolerance", false, a.cn_tolerance);
+  if (const toml::node* c = t->get("convergence")) {
+    const toml::table* ct = c->as_table();
+    if (!ct) r.fail("analysis.convergence", c, "expected a table { phi_tolerance_deg = ..., ev_tolerance = ..., within_seed_scatter = ... }");
+    r.only(*ct, "analysis.convergence.", {"phi_tolerance_deg", "ev_tolerance", "within_seed_scatter"});
+    ConvergenceTolerances& tol = a.convergence;
+    if (const toml::node* n = ct->get("phi_tolerance_deg")) {
+      if (!(n->is_floating_point() || n->is_integer())) r.fail("analysis.convergence.phi_tolerance_deg", n, "expected a number");
+      tol.phi_rms_deg = *n->value<double>();
+      if (!std::isfinite(tol.phi_rms_deg) || tol.phi_rms_deg <= 0)
+        r.fail("analysis.convergence.phi_tolerance_deg", n, "out of range: must be > 0");
+    }
+    if (const toml::node* n = ct->get("ev_tolerance")) {
+      tol.ev_rms = read_ratio(r, n, "analysis.convergence.ev_tolerance");
+      if (!std::isfinite(tol.ev_rms) || tol.ev_rms <= 0) r.fail("analysis.convergence.ev_tolerance", n, "out of range: must be > 0");
+    }
+    if (const toml::node* n = ct->get("within_seed_scatter")) {
+      if (!n->is_boolean()) r.fail("analysis.convergence.within_seed_scatter", n, "expected true or false");
+      tol.within_seed_scatter = *n->value<bool>();
+    }
+  }
   const toml::node* ref = t->get("reference");
   if (!ref) return;
   a.has_reference = true;

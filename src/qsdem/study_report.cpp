@@ -754,6 +754,7 @@ std::vector<Table> make_tables(const Analysis& a) {
     tables.push_back(table_deviation(a));
   }
   if (!a.pairs.empty()) tables.push_back(table_listed_pairs(a));
+  if (!a.ladders.empty()) tables.push_back(table_ladders(a.ladders, a.settings.convergence));
   tables.push_back(table_missing(a));
   return tables;
 }
