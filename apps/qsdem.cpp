@@ -12,6 +12,7 @@
 #include <iostream>
 
 #include "qsdem/config.hpp"
+#include "qsdem/converge.hpp"
 #include "qsdem/default_case.hpp"
 #include "qsdem/files.hpp"
 #include "qsdem/run.hpp"
@@ -62,7 +63,7 @@ CLI::Validator thread_count() {
       fmt::format("INT in [0, {}]", max_threads));
 }
 
-constexpr const char* subcommands[] = {"run", "prepare", "resume", "bench", "study", "analyze"};
+constexpr const char* subcommands[] = {"run", "prepare", "resume", "bench", "study", "analyze", "converge"};
 
 }  // namespace
 
@@ -70,7 +71,7 @@ int main(int argc, char** argv) {
   // CLI11 answers an unknown subcommand with "A subcommand is required": name it instead.
   if (argc > 1 && argv[1][0] != '-' &&
       std::none_of(std::begin(subcommands), std::end(subcommands), [&](const char* c) { return std::strcmp(c, argv[1]) == 0; })) {
-    std::fprintf(stderr, "qsdem: unknown subcommand '%s' (allowed: run, prepare, resume, bench, study, analyze; see "
+    std::fprintf(stderr, "qsdem: unknown subcommand '%s' (allowed: run, prepare, resume, bench, study, analyze, converge; see "
                          "qsdem --help)\n", argv[1]);
     return 1;
   }
@@ -186,6 +187,33 @@ int main(int argc, char** argv) {
       "analyze", "Analyse a study directory (written by `qsdem study`) again: DIR/analysis/ (docs/analysis.md).");
   analyze->add_option("dir", analyze_dir, "Study directory")->required();
 
+  qsdem::LadderOptions ladder;
+  std::string ladder_case;
+  auto* converge = app.add_subcommand(
+      "converge",
+      "Certify a case's quasi-static response (docs/analysis.md, section 11): the case prepared with several seeds "
+      "and sheared at a ladder of falling strain rates, as a study in DIR, rung by rung until the response stops "
+      "changing with the rate (converged), the ladder ends or the step budget would be passed (not converged). "
+      "Writes DIR/certificate.json and the study's report; exit code 0 when converged, 4 when not. Running it "
+      "again on the same DIR continues it.");
+  converge->add_option("case", ladder_case, "Case file (TOML). Without it, the built-in default case.");
+  converge->add_option("--out,-o", out_dir, "Directory of the ladder (created if needed)")->required();
+  converge->add_option("--set,-s", overrides, "Override a case key (as for run)");
+  converge->add_option("--seeds", ladder.seeds, "Samples, prepared with sample.seed = 1 .. N")->default_val(3);
+  converge->add_option("--start-rate", ladder.start_rate, "The first rung's eps' (default: the case's triaxial.strain_rate)");
+  converge->add_option("--factor", ladder.factor, "eps' of a rung over eps' of the next")->default_val(3.16227766016838);
+  converge->add_option("--rungs", ladder.rungs, "Rungs at most")->default_val(4);
+  converge->add_option("--max-steps", ladder.max_steps,
+                       "Step budget: triaxial steps of every run together; a rung that would pass it is not run");
+  converge->add_option("--phi-tolerance", ladder.tolerances.phi_rms_deg, "RMS change of phi(e1), degrees")
+      ->default_val(0.5);
+  converge->add_option("--ev-tolerance", ladder.tolerances.ev_rms, "RMS change of ev(e1), a ratio")->default_val(0.001);
+  bool no_scatter = false;
+  converge->add_flag("--no-seed-scatter", no_scatter, "A rung's change need not be below the seed scatter");
+  converge->add_option("--parallel,-j", parallel, "Child processes at once (default: cores / MPI ranks on the node)")
+      ->check(whole_number_at_least(1));
+  converge->add_flag("--quiet,-q", quiet, "No progress display");
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -204,6 +232,10 @@ int main(int argc, char** argv) {
       } else if ((*run || *prepare || *bench) && fs::is_regular_file(case_path)) {
         qsdem::load_case(case_path, overrides);
         checked = "case " + case_path;
+      } else if (*converge) {
+        ladder.case_file = ladder_case, ladder.sets = overrides, ladder.tolerances.within_seed_scatter = !no_scatter;
+        qsdem::ladder_study_text(ladder);
+        checked = ladder_case.empty() ? "the ladder of the built-in case" : "the ladder of case " + ladder_case;
       } else if (*study && fs::is_regular_file(study_file)) {
         qsdem::load_study(study_file);
         checked = "study " + study_file;
@@ -233,6 +265,10 @@ int main(int argc, char** argv) {
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*study) {
       return qsdem::run_study(study_file, {out_dir, quiet, parallel, order});
+    } else if (*converge) {
+      ladder.case_file = ladder_case, ladder.sets = overrides, ladder.out = out_dir, ladder.parallel = parallel;
+      ladder.quiet = quiet, ladder.tolerances.within_seed_scatter = !no_scatter;
+      return qsdem::run_ladder(ladder);
     } else if (*analyze) {
       qsdem::analyze_study(analyze_dir);
       std::cout << "Analysis written to " << analyze_dir << "/analysis/\n";

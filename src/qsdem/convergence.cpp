@@ -143,8 +143,8 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
   } else {
     const RungVerdict& last = c.rungs[ladder.size() - 2];
     if (!within(last.phi_to_next, last.ev_to_next, tol, c.phi_scatter_deg, c.ev_scatter)) {
-      c.reason = fmt::format("the two slowest rates still differ: RMS dphi {:.3g} deg, dev {:.3g} (tolerances {:.3g} "
-                             "deg, {:.3g}{})",
+      c.reason = fmt::format("the two slowest rates still differ: RMS change of phi {:.3g} deg, of ev {:.3g} "
+                             "(tolerances {:.3g} deg, {:.3g}{})",
                              last.phi_to_next.rms, last.ev_to_next.rms, tol.phi_rms_deg, tol.ev_rms,
                              tol.within_seed_scatter && std::isfinite(c.phi_scatter_deg)
                                  ? fmt::format("; seed scatter {:.3g} deg, {:.3g}", c.phi_scatter_deg, c.ev_scatter)
@@ -154,8 +154,8 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
       std::size_t k = ladder.size() - 1;
       while (k > 0 && c.rungs[k - 1].within) --k;
       c.certified = k;
-      c.reason = fmt::format("the response at {:.3g} /s and every slower rate is within the tolerances of the "
-                             "slowest rate, {:.3g} /s",
+      c.reason = fmt::format("the response at eps' = {:.3g} and every slower rate is within the tolerances "
+                             "of the slowest rate, {:.3g}",
                              ladder[k].rate, slowest.rate);
     }
   }

@@ -592,10 +592,11 @@ std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
 }
 
 // The runs of the stages of one level.
-std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level) {
+std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level, const std::vector<std::string>& only) {
   std::vector<Job> jobs;
   for (const StudyRun& run : study.runs) {
     if (study.stages[run.stage].level != level) continue;
+    if (!only.empty() && std::find(only.begin(), only.end(), study.stages[run.stage].name) == only.end()) continue;
     const StudySample& smp = study.samples[run.sample];
     Job j;
     j.id = run.id;
@@ -626,10 +627,13 @@ std::vector<Job> share(std::vector<Job> jobs, const Mpi& m, bool shortest_first 
   return mine;
 }
 
-int interrupted(const Mpi& m, int sig, const fs::path& out, const std::string& study_file) {
-  std::fprintf(stderr, "qsdem: study stopped by %s; the running children wrote checkpoints. `qsdem study %s --out %s` "
+int interrupted(const Mpi& m, int sig, const StudyOptions& options, const std::string& study_file) {
+  const std::string again = !options.again.empty()
+                                ? options.again
+                                : fmt::format("qsdem study {} --out {}", study_file, options.out.string());
+  std::fprintf(stderr, "qsdem: study stopped by %s; the running children wrote checkpoints. `%s` "
                        "again continues it (finished runs are kept)\n",
-               sig == SIGINT ? "SIGINT" : "SIGTERM", study_file.c_str(), out.string().c_str());
+               sig == SIGINT ? "SIGINT" : "SIGTERM", again.c_str());
   // No MPI_Finalize: the other ranks may be busy; mpirun ends them when this rank exits.
   (void)m;
   return 128 + sig;
@@ -777,8 +781,8 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   nlohmann::json failures = nlohmann::json::array();
   PoolResult r = run_pool(share(sample_jobs(study, out), mpi), "samples", study.parallel_runs, launcher, progress);
   failures.insert(failures.end(), r.failures.begin(), r.failures.end());
-  if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
-  if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+  if (r.signal != 0) return interrupted(mpi, r.signal, options, study_file.string());
+  if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options, study_file.string());
   if (on_rank0([&] { record_samples(study, out); }) != 0) return status;
 
   // The stages, level by level: a stage that picks its ratios starts when its source has run and
@@ -797,11 +801,11 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
       if (on_rank0(pick) != 0) return status;
       failures.insert(failures.end(), picked.begin(), picked.end());
     }
-    r = run_pool(share(run_jobs(study, out, level), mpi, study.shortest_first), level_label(study, level), study.parallel_runs, launcher,
+    r = run_pool(share(run_jobs(study, out, level, options.stages), mpi, study.shortest_first), level_label(study, level), study.parallel_runs, launcher,
                  progress);
     failures.insert(failures.end(), r.failures.begin(), r.failures.end());
-    if (r.signal != 0) return interrupted(mpi, r.signal, options.out, study_file.string());
-    if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options.out, study_file.string());
+    if (r.signal != 0) return interrupted(mpi, r.signal, options, study_file.string());
+    if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options, study_file.string());
   }
 
   failures = mpi_gather_failures(mpi, failures);
@@ -812,8 +816,23 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
 }  // namespace
 
 int run_study(const fs::path& study_file, const StudyOptions& options) {
+  return run_study_rounds(study_file, options, [&](int round) {
+    return round == 0 ? std::optional(options.stages) : std::nullopt;
+  });
+}
+
+int run_study_rounds(const fs::path& study_file, const StudyOptions& options,
+                     const std::function<std::optional<std::vector<std::string>>(int round)>& next) {
   const Mpi mpi = mpi_start();
-  const int code = study_main(study_file, options, mpi);
+  int code = 0;
+  for (int round = 0;; ++round) {
+    const std::optional<std::vector<std::string>> stages = next(round);
+    if (!stages) break;
+    StudyOptions o = options;
+    o.stages = *stages;
+    code = study_main(study_file, o, mpi);
+    if (code != 0) break;
+  }
   if (mpi.active && code < 128) MPI_Finalize();
   return code;
 }

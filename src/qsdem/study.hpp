@@ -5,6 +5,8 @@
 #pragma once
 #include <cstdint>
 #include <filesystem>
+#include <functional>
+#include <optional>
 #include <limits>
 #include <string>
 #include <vector>
@@ -147,10 +149,19 @@ struct StudyOptions {
   bool quiet = false;
   int parallel = 0;  // > 0: overrides execution.parallel_runs
   std::string order;  // "longest_first" or "shortest_first": overrides execution.order
+  std::vector<std::string> stages;  // non-empty: only the runs of these stages run (samples all do)
+  std::string again;  // the command that continues it, for the message on SIGINT/SIGTERM
 };
 
 // Runs (or continues) the study described by `study_file` in options.out, then analyses it.
 // Returns the process exit code: 0, 2 (bad input), 3 (failed runs or analysis), 128 + signal.
 int run_study(const std::filesystem::path& study_file, const StudyOptions& options);
+
+// The same in rounds, under one MPI start: round k runs (or continues) the stages `next(k)` names
+// (an empty list: every stage) and analyses the directory; no list, or a round that does not
+// return 0, ends it. Every rank calls `next` after the analysis of the round before, so it decides
+// from the files alone. Returns the last round's code.
+int run_study_rounds(const std::filesystem::path& study_file, const StudyOptions& options,
+                     const std::function<std::optional<std::vector<std::string>>(int round)>& next);
 
 }  // namespace qsdem
