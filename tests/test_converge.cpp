@@ -83,6 +83,7 @@ TEST_F(Converge, StopsAtTheFirstConvergedRungs) {
   EXPECT_EQ(runs_made("wide"), 4);
   EXPECT_TRUE(fs::exists(dir_ / "wide" / "report.html"));
   EXPECT_TRUE(fs::exists(dir_ / "wide" / "analysis" / "convergence.csv"));
+  EXPECT_TRUE(fs::exists(dir_ / "wide" / "analysis" / "figures" / "ladder_case_nd_0_5.png"));
   EXPECT_NE(r.out.find("certificate: converged at eps' = 0.000125"), std::string::npos) << r.out;
 }
 

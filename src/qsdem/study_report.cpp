@@ -9,6 +9,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include <fmt/format.h>
@@ -652,6 +653,56 @@ void add_stage_figures(std::vector<Figure>& figs, const Analysis& a, const std::
   }
 }
 
+// The convergence certificate of a ladder of two or more seeds (section 11): phi and ev against e1
+// at every rung (a colour per rate, a dash per seed), and the seed mean of peak phi and of ev at the
+// end against the rate with the mean -/+ its standard error (dashed). Ladders of one seed (a sweep's
+// rates) are in the table only.
+void add_ladder_figures(std::vector<Figure>& figs, const Analysis& a) {
+  for (const Ladder& l : a.ladders) {
+    if (l.seeds.size() < 2 || l.rates.empty()) continue;
+    Figure f{fmt::format("ladder_{}_{}_{}", tag(l.sample), tag(l.model), tag(sig(100 * l.xi))),
+             fmt::format("{} {} ξ = {} %: the response as the rate falls", l.sample, l.model, pct(l.xi)),
+             fmt::format("Friction angle and volumetric strain against the axial strain at each rate of the ladder "
+                         "(a colour per rate, solid for seed {}, dashed for the others), and the seed mean of the "
+                         "peak friction angle and of εv at the last strain against the rate, between the mean ∓ its "
+                         "standard error (dashed). Certificate: {}.",
+                         l.seeds.front(), l.certificate.status),
+             {}};
+    for (const Quantity q : {Quantity::phi, Quantity::ev}) {
+      const QuantityAxis ax = axis_of(q);
+      Panel p{ax.title, "axial strain ε1 (%)", ax.ylabel, false, false, {}};
+      for (std::size_t k = 0; k < l.rates.size(); ++k)
+        for (std::size_t s = 0; s < l.runs[k].size(); ++s)
+          p.curves.push_back(series_curve(*l.runs[k][s], q, s == 0 ? fmt::format("ε' = {}", sig(l.rates[k])) : "",
+                                          (s == 0 ? "lines lw 1.5 " : "lines lw 1 dt 2 ") + lc(k)));
+      f.panels.push_back(std::move(p));
+    }
+    for (const auto& [name, ylabel, scale] : {std::tuple{"peak_phi_deg", "peak φ (°)", 1.0},
+                                              std::tuple{"ev", "εv at the last strain (%)", 100.0}}) {
+      const auto sc = std::find_if(l.certificate.scalars.begin(), l.certificate.scalars.end(),
+                                   [&](const ScalarLimit& x) { return x.name == name; });
+      if (sc == l.certificate.scalars.end()) continue;
+      Panel p{ylabel, "strain rate ε'", ylabel, true, false, {}};
+      Curve mean{"seed mean", {}, {}, "linespoints pt 7 lw 1.5 lc 1"}, lo{"", {}, {}, "lines dt 2 lc 1"},
+          hi{"", {}, {}, "lines dt 2 lc 1"};
+      for (std::size_t k = 0; k < l.rates.size(); ++k) {
+        const double m = scale * sc->mean[k], e = std::isfinite(sc->error[k]) ? scale * sc->error[k] : 0.0;
+        mean.x.push_back(l.rates[k]), mean.y.push_back(m);
+        lo.x.push_back(l.rates[k]), lo.y.push_back(m - e);
+        hi.x.push_back(l.rates[k]), hi.y.push_back(m + e);
+      }
+      p.curves = {mean, lo, hi};
+      // Fastest rate on the left, a margin of a factor 1.5 each side; log x labels each rate.
+      std::string tics;
+      for (double r : l.rates) tics += fmt::format("{}'{}' {:.9g}", tics.empty() ? "" : ", ", sig(r, 3), r);
+      p.extra = fmt::format("set xrange [{:.9g}:{:.9g}]\nset xtics ({})\n", 1.5 * l.rates.front(),
+                            l.rates.back() / 1.5, tics);
+      f.panels.push_back(std::move(p));
+    }
+    figs.push_back(std::move(f));
+  }
+}
+
 // The damping dependence of one sample: RMS deviations from the reference against the mean IMom
 // (quasi-static: left of the target and under the tolerance) and RMS dphi against xi.
 Figure deviation_figure(const Analysis& a, const std::string& s) {
@@ -832,6 +883,7 @@ std::vector<Figure> make_figures(const Analysis& a) {
     add_stage_figures(figs, a, s);
     if (a.settings.has_reference) figs.push_back(deviation_figure(a, s));
   }
+  add_ladder_figures(figs, a);
   return figs;
 }
 
