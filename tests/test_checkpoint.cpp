@@ -5,6 +5,7 @@
 #include <signal.h>
 #include <spawn.h>
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -15,6 +16,8 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
+#include <limits>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -149,7 +152,13 @@ TEST(CheckpointProcess, RunBegunWithoutClassesCsvResumesWithoutIt) {
   ASSERT_TRUE(wait_rows(d, 14, pid)) << "the run ended before it could be stopped";
   ::kill(pid, SIGTERM);
   ASSERT_EQ(wait_exit(pid), 128 + SIGTERM) << read(d.string() + ".err");
-  ASSERT_GT(load_checkpoint(d / checkpoint_file).run.current().rows, 0);
+  {
+    // As that engine left it: a checkpoint of format 9, which counts no files (from format 10 on, a
+    // missing classes.csv.partial is a damaged directory, not an older engine's).
+    const Checkpoint c = load_checkpoint(d / checkpoint_file);
+    ASSERT_GT(c.run.current().rows, 0);
+    save_checkpoint(d / checkpoint_file, c.case_text, c.case_source, c.state, c.run, 9);
+  }
   ASSERT_TRUE(fs::remove(d / "classes.csv.partial"));
   ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0)
       << read(d.string() + "-resume.err");
@@ -314,6 +323,165 @@ TEST(PreparedSample, ShearingAPreparedSampleEqualsTheFullRun) {
                     bad.string()),
             2);
   EXPECT_NE(read(bad.string() + ".err").find("prepared with"), std::string::npos);
+}
+
+namespace {
+
+// A run stopped in its compaction (compaction.max_steps): checkpoints, compaction.csv.partial and
+// classes.csv.partial of 200 spheres, made once; each test resumes a copy.
+const fs::path& stopped_run() {
+  static const fs::path dir = [] {
+    const fs::path d = scratch("stopped");
+    EXPECT_EQ(run_cli({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet", "--set",
+                       "compaction.max_steps=3000"},
+                      d.string()),
+              3)
+        << read(d.string() + ".err");
+    return d;
+  }();
+  return dir;
+}
+
+fs::path copy_of(const fs::path& from, const std::string& name) {
+  const fs::path d = scratch(name);
+  fs::copy(from, d, fs::copy_options::recursive);
+  return d;
+}
+
+// `resume DIR` to the end of the compaction, with a deadline (a hang fails): the exit code and stderr.
+std::pair<int, std::string> resume_within(const fs::path& d, double seconds) {
+  const pid_t pid = spawn({"resume", d.string(), "--threads", "1", "--quiet", "--set", "compaction.max_steps=2000000"},
+                          d.string() + "-resume");
+  const int code = qsdem_test::wait_exit_within(pid, seconds);
+  return {code, read(d.string() + "-resume.err")};
+}
+
+}  // namespace
+
+// A checkpoint whose checksum is valid but whose contents do not fit together (edited and resealed,
+// or written by a faulty build) is refused on load with a message naming the file and what is
+// wrong: resume exits with 2, never steps it (out-of-range indices crashed the neighbour list or
+// the force stage; a NaN ran on into every later row). Each case changes one thing of a real
+// checkpoint and saves it again, which reseals it.
+TEST(CheckpointFile, InconsistentContentsAreRefused) {
+  struct Case {
+    const char* name;
+    std::function<void(Checkpoint&)> change;
+    const char* says;
+  };
+  const std::vector<Case> cases{
+      {"pair index", [](Checkpoint& c) { c.state.pairs.j[3] = static_cast<std::uint32_t>(c.state.particles.size() + 5); },
+       "joins particles"},
+      {"pair order i < j", [](Checkpoint& c) { c.state.pairs.j[0] = c.state.pairs.i[0]; }, "joins particles"},
+      {"pair image", [](Checkpoint& c) { c.state.pairs.image[2].x() += 1000; }, "cell lengths apart"},
+      {"pair keys sorted", [](Checkpoint& c) {
+         auto& q = c.state.pairs;
+         std::swap(q.i[0], q.i.back()), std::swap(q.j[0], q.j.back()), std::swap(q.image[0], q.image.back());
+       }, "in the order of the keys"},
+      {"history length", [](Checkpoint& c) {
+         auto& h = c.state.pairs.history;
+         h.values.resize(h.values.size() - static_cast<std::size_t>(h.layout->width));  // one pair short
+       }, "contact history has"},
+      {"NaN velocity", [](Checkpoint& c) { c.state.particles.v[3].x() = std::nan(""); },
+       "the velocity of particle 3 is not finite"},
+      {"far centre", [](Checkpoint& c) { c.state.particles.s[4].y() = 1e9; }, "10^6 cell lengths"},
+      {"quaternion", [](Checkpoint& c) { c.state.particles.q[2].coeffs() *= 2; }, "unit quaternion"},
+      {"semi-axes", [](Checkpoint& c) { c.state.particles.semi_axes[5].setZero(); }, "semi-axes"},
+      {"array length", [](Checkpoint& c) { c.state.particles.mass.pop_back(); }, "the particles' mass has"},
+      {"ids", [](Checkpoint& c) { c.state.particles.id[1] = c.state.particles.id[0]; }, "the ids are not 0 to"},
+      {"singular cell", [](Checkpoint& c) { c.state.cell.h.col(0).setZero(); }, "the cell matrix is not finite"},
+      {"list reference", [](Checkpoint& c) { c.state.neighbor.s_at_build.resize(5); }, "reference holds 5 positions"},
+      {"phase index", [](Checkpoint& c) { c.run.phase = 7; }, "it stands at phase 7"},
+      {"row count", [](Checkpoint& c) { c.run.phases[0].rows = -3; }, "row count is -3"},
+      {"rows beyond steps", [](Checkpoint& c) { c.run.phases[0].rows = c.run.phases[0].steps + 1; }, "rows in"},
+      {"first step", [](Checkpoint& c) { c.run.first_step = c.state.step + 1; }, "first step"},
+      {"phase count", [](Checkpoint& c) { c.run.phases.resize(3); }, "it holds 3 phases, the case has 2"},
+      {"control value", [](Checkpoint& c) { c.run.state.controls.component[0].value *= 2; },
+       "controlled by other values than its case's"},
+  };
+  const Checkpoint good = load_checkpoint(stopped_run() / checkpoint_file);
+  ASSERT_EQ(good.run.phase, 0);
+  ASSERT_TRUE(good.run.phase_started);
+  ASSERT_GT(good.state.pairs.size(), 10u);
+  for (std::size_t k = 0; k < cases.size(); ++k) {
+    SCOPED_TRACE(cases[k].name);
+    const fs::path d = copy_of(stopped_run(), "inconsistent-" + std::to_string(k));
+    Checkpoint c = good;
+    cases[k].change(c);
+    save_checkpoint(d / checkpoint_file, c.case_text, c.case_source, c.state, c.run);
+    fs::remove(d / "checkpoint.qsck.prev");  // no good one to fall back on
+    const auto [code, err] = resume_within(d, 120);
+    EXPECT_EQ(code, 2) << err;
+    EXPECT_NE(err.find((d / checkpoint_file).string()), std::string::npos) << err;
+    EXPECT_NE(err.find(cases[k].says), std::string::npos) << err;
+  }
+  // The untouched checkpoint resumes.
+  const fs::path d = copy_of(stopped_run(), "consistent");
+  EXPECT_EQ(resume_within(d, 300).first, 0);
+
+  // A prepared sample the same (`sample.from`): refused before the run's directory is made.
+  for (const bool nan : {false, true}) {
+    const fs::path p = scratch(nan ? "sample-nan" : "sample-index");
+    fs::create_directories(p);
+    Checkpoint c = load_checkpoint(reference() / prepared_sample_file);
+    if (nan)
+      c.state.particles.s[7].z() = std::numeric_limits<double>::infinity();
+    else
+      c.state.pairs.i[1] = static_cast<std::uint32_t>(c.state.particles.size());
+    save_checkpoint(p / prepared_sample_file, c.case_text, c.case_source, c.state, c.run);
+    const fs::path out = scratch(nan ? "from-sample-nan" : "from-sample-index");
+    const pid_t pid = spawn({"run", case_file().string(), "--out", out.string(), "--threads", "1", "--quiet", "--set",
+                             "sample.from=" + p.string()},
+                            out.string());
+    EXPECT_EQ(qsdem_test::wait_exit_within(pid, 120), 2) << read(out.string() + ".err");
+    const std::string err = read(out.string() + ".err");
+    EXPECT_NE(err.find((p / prepared_sample_file).string()), std::string::npos) << err;
+    EXPECT_NE(err.find(nan ? "its centre not finite" : "joins particles"), std::string::npos) << err;
+    EXPECT_FALSE(fs::exists(out));
+  }
+}
+
+// Checkpoints, prepared samples and the rows a resume continues are read from regular files only,
+// no further than their headers' length: a FIFO (which blocked the reader for ever) or a device
+// such as /dev/zero (read until the memory ran out) is refused at once with exit code 2.
+TEST(CheckpointFile, OnlyRegularFilesAreRead) {
+  for (const std::string what : {"fifo", "dev-zero", "partial-fifo"}) {
+    SCOPED_TRACE(what);
+    const fs::path d = copy_of(stopped_run(), "special-" + what);
+    if (what == "partial-fifo") {
+      fs::remove(d / "compaction.csv.partial");
+      ASSERT_EQ(::mkfifo((d / "compaction.csv.partial").c_str(), 0644), 0);
+    } else {
+      fs::remove(d / checkpoint_file);
+      fs::remove(d / "checkpoint.qsck.prev");
+      if (what == "fifo")
+        ASSERT_EQ(::mkfifo((d / checkpoint_file).c_str(), 0644), 0);
+      else
+        fs::create_symlink("/dev/zero", d / checkpoint_file);
+    }
+    const auto [code, err] = resume_within(d, 30);
+    EXPECT_EQ(code, 2) << err;
+    EXPECT_NE(err.find("not a regular file"), std::string::npos) << err;
+  }
+  // A header that claims more bytes than the file holds: truncated, nothing allocated for it.
+  const fs::path d = copy_of(stopped_run(), "long-header");
+  fs::remove(d / "checkpoint.qsck.prev");
+  std::string bytes = read(d / checkpoint_file);
+  const std::uint64_t claimed = std::uint64_t{1} << 60;
+  std::memcpy(bytes.data() + 16, &claimed, 8);
+  std::ofstream(d / checkpoint_file, std::ios::binary) << bytes;
+  const auto [code, err] = resume_within(d, 30);
+  EXPECT_EQ(code, 2) << err;
+  EXPECT_NE(err.find("truncated"), std::string::npos) << err;
+  // sample.from naming a directory whose sample.qsck is a FIFO.
+  const fs::path p = scratch("fifo-sample");
+  fs::create_directories(p);
+  ASSERT_EQ(::mkfifo((p / prepared_sample_file).c_str(), 0644), 0);
+  const fs::path out = scratch("from-fifo-sample");
+  const pid_t pid = spawn({"run", case_file().string(), "--out", out.string(), "--quiet", "--set", "sample.from=" + p.string()},
+                          out.string());
+  EXPECT_EQ(qsdem_test::wait_exit_within(pid, 30), 2) << read(out.string() + ".err");
+  EXPECT_NE(read(out.string() + ".err").find("not a regular file"), std::string::npos) << read(out.string() + ".err");
 }
 
 // A finished run is not overwritten without --force; an unfinished one points to resume.
@@ -518,6 +686,8 @@ TEST(CheckpointFile, PhaseRecordsAreWrittenFieldByField) {
     // Fill the records' bytes, then set every field: what a compiler's padding would hold differs.
     std::memset(static_cast<void*>(run.phases.data()), fill, 2 * sizeof(PhaseRecord));
     for (PhaseRecord& r : run.phases) r = PhaseRecord{};
+    run.phases[0].v0 = 1e-6;  // the compaction's start, as a run at its second phase has one
+    run.phases[1].steps = 250;
     run.phases[1].rows = 7;
     run.phases[1].ufr = 0.25;
     run.phases[1].peak_phi_deg = 31.5;

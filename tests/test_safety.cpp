@@ -13,6 +13,7 @@
 #include <filesystem>
 #include <functional>
 #include <fstream>
+#include <map>
 #include <mutex>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -154,10 +155,43 @@ const fs::path& reference() {
 
 }  // namespace
 
+// The files of a run directory (relative paths) and a comparable form of each: the bytes, but for
+// what legitimately differs between an uninterrupted run and a resumed one, the time it took.
+// summary.json without its wall times, speed, peak memory and stage timings (each process measures
+// its own); a checkpoint (sample.qsck) re-saved with its wall times and stage timers zeroed.
+std::map<std::string, std::string> comparable_files(const fs::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& e : fs::recursive_directory_iterator(dir)) {
+    if (!e.is_regular_file()) continue;
+    const std::string name = fs::relative(e.path(), dir).string();
+    std::string& text = files[name];
+    if (name == "summary.json") {
+      nlohmann::json s = nlohmann::json::parse(slurp(e.path()));
+      for (const char* key : {"wall_s", "particle_steps_per_s", "peak_rss_kib", "stages", "stage_table"}) s.erase(key);
+      for (const char* part : {"compaction", "triaxial"})
+        if (s.contains(part)) s[part].erase("wall_s");
+      for (auto& phase : s["phases"]) phase.erase("wall_s");
+      text = s.dump(1);
+    } else if (e.path().extension() == ".qsck") {
+      Checkpoint c = load_checkpoint(e.path());
+      c.state.timers = {};
+      c.run.wall_s = 0;
+      for (PhaseRecord& r : c.run.phases) r.wall_s = 0;
+      const fs::path f = root / "comparable.qsck";
+      save_checkpoint(f, c.case_text, c.case_source, c.state, c.run);
+      text = slurp(f);
+    } else {
+      text = slurp(e.path());
+    }
+  }
+  return files;
+}
+
 // A crash at any instant of the end of a phase (SIGKILL, or no room for the next file) leaves a
-// directory that `resume` finishes to the uninterrupted run's results. The run copies its
-// directory after every write and rename of the end of compaction and of the triaxial test: each
-// copy is what a SIGKILL at that instant leaves (every write before it is synchronous and flushed).
+// directory that `resume` finishes to the uninterrupted run's results: every file the same
+// (comparable_files: but the time taken). The run copies its directory after every write and
+// rename of the end of compaction and of the triaxial test: each copy is what a SIGKILL at that
+// instant leaves (every write before it is synchronous and flushed).
 TEST(RunSafety, EveryInstantOfTheEndOfARunResumes) {
   const fs::path ref = reference();
   ASSERT_TRUE(fs::exists(ref / "classes.csv"));
@@ -179,6 +213,12 @@ TEST(RunSafety, EveryInstantOfTheEndOfARunResumes) {
     }
     for (const char* f : {"series.csv", "compaction.csv", "classes.csv", "compacted.packing", "final.packing"})
       EXPECT_EQ(slurp(dir / f), slurp(ref / f)) << f;
+    const auto got = comparable_files(dir), want = comparable_files(ref);
+    for (const auto& [name, text] : want) {
+      ASSERT_TRUE(got.count(name)) << name << " is missing";
+      EXPECT_EQ(got.at(name), text) << name;
+    }
+    for (const auto& [name, text] : got) EXPECT_TRUE(want.count(name)) << name << ": not in the uninterrupted run";
     EXPECT_TRUE(fs::exists(dir / "summary.json"));
     EXPECT_TRUE(fs::exists(dir / prepared_sample_file)) << "a run that compacted leaves its prepared sample";
     EXPECT_FALSE(fs::exists(dir / checkpoint_file));
@@ -360,6 +400,101 @@ TEST(RunSafety, ResumeSetRaisesCompactionMaxSteps) {
 }
 
 // The triaxial wall time in summary.json covers every process that worked on a resumed run.
+// A run directory whose checkpoint, case.toml or rows come from another run is not resumed
+// (rows of one run were followed by those of the other, exit 0): the checkpoint holds the digests
+// of the case.toml the run wrote and of the rows it counts, and resume refuses a directory whose
+// files differ, saying what to do. Nothing in it is changed.
+TEST(RunSafety, ACheckpointOrRowsOfAnotherRunAreRefused) {
+  const fs::path file = tiny_file();
+  const auto stopped = [&](const std::string& name, const std::string& seed) {
+    const fs::path d = fresh(name);
+    const Cli c = cli({"run", file.string(), "--out", d.string(), "--quiet", "--set", "compaction.max_steps=3000",
+                       "--set", "sample.seed=" + seed},
+                      name);
+    EXPECT_EQ(c.code, 3) << c.err;
+    return d;
+  };
+  const fs::path a = stopped("mix-a", "1"), b = stopped("mix-b", "2");
+  const auto mixed = [&](const std::string& name, const std::vector<std::string>& from_b) {
+    const fs::path d = fresh(name);
+    fs::copy(a, d, fs::copy_options::recursive);
+    for (const std::string& f : from_b) fs::copy_file(b / f, d / f, fs::copy_options::overwrite_existing);
+    return d;
+  };
+  const auto resume = [&](const fs::path& d) {
+    return cli({"resume", d.string(), "--quiet", "--set", "compaction.max_steps=2000000"}, d.filename().string() + "-resume");
+  };
+  const struct {
+    const char* name;
+    std::vector<std::string> from_b;
+    std::string says;
+  } cases[] = {
+      {"mix-checkpoint", {checkpoint_file, "checkpoint.qsck.prev"}, "is not the case.toml of the run that wrote"},
+      {"mix-checkpoint-and-case", {checkpoint_file, "checkpoint.qsck.prev", "case.toml"}, "compaction.csv.partial' are not the rows the checkpoint counts"},
+      {"mix-rows", {"compaction.csv.partial"}, "compaction.csv.partial' are not the rows the checkpoint counts"},
+      {"mix-classes", {"classes.csv.partial"}, "classes.csv.partial' are not the rows the checkpoint counts"},
+  };
+  for (const auto& c : cases) {
+    SCOPED_TRACE(c.name);
+    const fs::path d = mixed(c.name, c.from_b);
+    const std::string rows = slurp(d / "compaction.csv.partial");
+    const Cli r = resume(d);
+    EXPECT_EQ(r.code, 2) << r.err;
+    EXPECT_NE(r.err.find(c.says), std::string::npos) << r.err;
+    EXPECT_NE(r.err.find("put back the run's own files, or start it anew"), std::string::npos) << r.err;
+    EXPECT_EQ(slurp(d / "compaction.csv.partial"), rows) << "nothing is written";
+    EXPECT_FALSE(fs::exists(d / "compaction.csv"));
+  }
+  const Cli r = resume(a);  // its own files: resumed
+  EXPECT_EQ(r.code, 0) << r.err;
+}
+
+// A file begun by another version of qsdem with other columns (one that wrote no phi_al_deg,
+// tilt_deg) is continued with its own columns: every row as wide as the header, the rows those of
+// an uninterrupted run without the columns the file lacks, and summary.json says so. Before, the
+// rows after the resume were wider than the header. A column this version does not write is refused.
+TEST(RunSafety, AResumedFileKeepsTheColumnsItWasBegunWith) {
+  const fs::path ref = reference();
+  const auto older = [&](const std::string& name, const std::function<std::string(const std::string&)>& line) {
+    const fs::path d = fresh(name);
+    EXPECT_THROW(run_case(tiny({"compaction.max_steps=3000"}), to(d)), RunError);
+    std::istringstream in(slurp(d / "compaction.csv.partial"));
+    std::string text;
+    for (std::string l; std::getline(in, l);) text += line(l) + "\n";
+    std::ofstream(d / "compaction.csv.partial") << text;
+    // As that version left it: a checkpoint of format 9, which counts no files' bytes.
+    const Checkpoint c = load_checkpoint(d / checkpoint_file);
+    save_checkpoint(d / checkpoint_file, c.case_text, c.case_source, c.state, c.run, 9);
+    fs::remove(d / "checkpoint.qsck.prev");
+    return d;
+  };
+  const auto without_last_two = [](const std::string& l) {
+    const std::size_t cut = l.rfind(',', l.rfind(',') - 1);
+    return l.substr(0, cut);
+  };
+  const fs::path d = older("old-columns", without_last_two);
+  RunOptions o = to(d);
+  o.sets = {"compaction.max_steps=2000000"};
+  const nlohmann::json s = resume_run(d, o);
+  const qsdem_test::Csv got = qsdem_test::read_csv(d / "compaction.csv"), want = qsdem_test::read_csv(ref / "compaction.csv");
+  ASSERT_EQ(want.header.size(), got.header.size() + 2);
+  EXPECT_EQ(want.header[want.header.size() - 2], "phi_al_deg");
+  EXPECT_EQ(want.header.back(), "tilt_deg");
+  ASSERT_EQ(got.rows.size(), want.rows.size());
+  for (std::size_t k = 0; k < got.rows.size(); ++k)
+    EXPECT_EQ(got.rows[k], std::vector<std::string>(want.rows[k].begin(), want.rows[k].end() - 2)) << "row " << k;
+  EXPECT_EQ(slurp(d / "series.csv"), slurp(ref / "series.csv")) << "a file begun after the resume has every column";
+  EXPECT_NE(s.dump().find("compaction.csv keeps the columns it was begun with, without phi_al_deg,tilt_deg"),
+            std::string::npos)
+      << s["resume_changes"].dump();
+
+  const fs::path e = older("unknown-column", [](const std::string& l) {
+    return l.rfind("step,", 0) == 0 ? l + ",old_column" : l + ",0";
+  });
+  const std::string why = input_error([&] { resume_run(e, o); });
+  EXPECT_NE(why.find("has the column 'old_column', which this qsdem does not write"), std::string::npos) << why;
+}
+
 TEST(RunSafety, TriaxialWallTimeCoversEveryProcess) {
   const fs::path d = fresh("wall");
   const pid_t pid = spawn({"run", tiny_file().string(), "--out", d.string(), "--quiet", "--threads", "1"},

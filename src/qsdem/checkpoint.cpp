@@ -5,12 +5,14 @@
 #include <unistd.h>
 
 #include <cstring>
-#include <fstream>
-#include <iterator>
+#include <algorithm>
+#include <cmath>
 #include <limits>
+#include <tuple>
 #include <type_traits>
 
 #include "qsdem/contact/laws.hpp"
+#include "qsdem/controller.hpp"
 #include "qsdem/files.hpp"
 
 namespace qsdem {
@@ -70,7 +72,7 @@ class Reader {
   void vec(std::vector<T>& v) {
     std::uint64_t n = 0;
     pod(n);
-    if (n > static_cast<std::uint64_t>(end_ - p_)) damaged("an array is longer than the file");
+    if (n > static_cast<std::uint64_t>(end_ - p_) / sizeof(T)) damaged("an array is longer than the file");
     v.resize(n);
     for (T& x : v) pod(x);
   }
@@ -84,8 +86,9 @@ class Reader {
   void pair_values(std::vector<double>& v, std::size_t w) {
     std::uint64_t n = 0;
     pod(n);
-    if (n > static_cast<std::uint64_t>(end_ - p_)) damaged("an array is longer than the file");
-    v.resize(n * w);
+    if (w > 0 && n > static_cast<std::uint64_t>(end_ - p_) / (w * sizeof(double)))
+      damaged("an array is longer than the file");
+    v.resize(w > 0 ? n * w : 0);
     for (double& x : v) pod(x);
   }
   bool at_end() const { return p_ == end_; }
@@ -318,6 +321,12 @@ void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
   }
   if (version >= 9)  // each phase's energy ledger at its start and last row
     for (const PhaseRecord& p : r.phases) w.pod(p.energy_start), w.pod(p.energy_end);
+  if (version >= 10) {  // the digests of the run directory's files
+    w.pod(r.case_digest.has_value());
+    w.pod(r.case_digest.value_or(0));
+    w.pod(static_cast<std::uint64_t>(r.files.size()));
+    for (const FileDigest& f : r.files) w.str(f.name), w.pod(f.bytes), w.pod(f.hash);
+  }
 }
 
 void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
@@ -348,6 +357,17 @@ void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
   }
   if (version >= 9)
     for (PhaseRecord& p : r.phases) in.pod(p.energy_start), in.pod(p.energy_end);
+  if (version >= 10) {
+    bool known = false;
+    std::uint64_t digest = 0, files = 0;
+    in.pod(known);
+    in.pod(digest);
+    if (known) r.case_digest = digest;
+    in.pod(files);
+    if (files > 16) in.damaged("more file digests than a run has files");
+    r.files.resize(files);
+    for (FileDigest& f : r.files) in.str(f.name), in.pod(f.bytes), in.pod(f.hash);
+  }
 }
 
 // The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats
@@ -407,6 +427,254 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
   if (version >= 9) io.pod(st.energy);
 }
 
+// What the state and the run of a checkpoint must be for a run to step them: every count and index
+// in range, the arrays of one length, every number finite. A valid checksum proves only that the
+// bytes are those written; a faulty build or an edit can still break these, and the neighbour list,
+// the force stage or the phase loop would then read out of bounds or compute NaN. The case is not
+// known here (check_checkpoint_case checks what depends on it).
+class ContentCheck {
+ public:
+  ContentCheck(const Reader& r) : r_(r) {}
+  template <class... A>
+  void require(bool ok, fmt::format_string<A...> what, A&&... args) const {
+    if (!ok) r_.damaged(fmt::format(what, std::forward<A>(args)...));
+  }
+  static bool finite(double x) { return std::isfinite(x); }
+  template <class Scalar, int R, int C>
+  static bool finite(const Eigen::Matrix<Scalar, R, C>& m) {
+    return m.allFinite();
+  }
+  static bool finite(const Quat& q) { return q.coeffs().allFinite(); }
+  // Each of `v` finite, else names the first that is not.
+  template <class T>
+  void all_finite(const std::vector<T>& v, const char* what) const {
+    for (std::size_t k = 0; k < v.size(); ++k) require(finite(v[k]), "{} {} is not finite (NaN or infinity)", what, k);
+  }
+  // A cell matrix: finite with a positive determinant (a volume).
+  void cell_matrix(const Mat3& h, const char* what) const {
+    require(h.allFinite() && h.determinant() > 0, "{} is not finite with a positive determinant", what);
+  }
+  void count(long n, const char* what) const {
+    require(n >= 0 && n <= max_count, "{} is {}, not from 0 to {}", what, n, max_count);
+  }
+  // No run takes 10^15 steps (30 years at 10^6 steps per second): larger counts are damage, and
+  // products of them with a phase's settings must not overflow.
+  static constexpr long max_count = 1'000'000'000'000'000;
+
+ private:
+  const Reader& r_;
+};
+
+void check_particles(const ContentCheck& c, const Particles& p, std::uint32_t version) {
+  const std::size_t n = p.size();
+  c.require(n >= 1 && n < std::numeric_limits<std::uint32_t>::max(), "it holds {} particles", n);
+  for_each_field(p, [&](const auto& array, ParticleField field) {
+    if (field.saved_since != 0 && version >= field.saved_since)
+      c.require(array.size() == n, "the particles' {} has {} entries for {} particles", field.name, array.size(), n);
+  });
+  std::vector<bool> seen(n, false);
+  for (std::size_t i = 0; i < n; ++i) {
+    c.require(p.id[i] < n && !seen[p.id[i]], "particle {} has id {}: the ids are not 0 to {}, each once", i, p.id[i],
+              n - 1);
+    seen[p.id[i]] = true;
+    const Vec3& a = p.semi_axes[i];
+    c.require(p.shape[i] == ShapeKind::sphere || p.shape[i] == ShapeKind::ellipsoid, "particle {} has no shape ({})",
+              i, static_cast<int>(p.shape[i]));
+    // The bounds of the packing reader (packing-format.md): from 1 nm to 1 km, a >= b >= c.
+    c.require(a.allFinite() && a.minCoeff() >= 1e-9 && a.maxCoeff() <= 1e3 && a.x() >= a.y() && a.y() >= a.z(),
+              "particle {} has semi-axes ({}, {}, {}) m, not ordered a >= b >= c from 1 nm to 1 km", i, a.x(), a.y(),
+              a.z());
+    c.require(p.shape[i] == ShapeKind::ellipsoid || a.x() == a.z(), "sphere {} has unequal semi-axes", i);
+    c.require(p.bound_radius[i] == a.x(), "particle {} has a bounding radius {} m, not its largest semi-axis {} m", i,
+              p.bound_radius[i], a.x());
+    const double r = std::cbrt(a.x() * a.y() * a.z());
+    c.require(std::abs(p.equiv_radius[i] - r) <= 1e-12 * r, "particle {} has an equal-volume radius {} m, not {} m", i,
+              p.equiv_radius[i], r);
+    c.require(std::isfinite(p.mass[i]) && p.mass[i] > 0 && p.inertia[i].allFinite() && p.inertia[i].minCoeff() > 0,
+              "particle {} has a mass or moment of inertia that is not finite and > 0", i);
+    c.require(std::isfinite(p.damping_translation[i]) && p.damping_translation[i] >= 0,
+              "particle {} has a damping factor that is not finite and >= 0", i);
+    // Unwrapped fractional centres (SPEC 3): within a million cell lengths, so that wrapping keeps
+    // the digits and the integer shifts of the neighbour search do not overflow.
+    c.require(p.s[i].allFinite() && p.s[i].cwiseAbs().maxCoeff() <= 1e6,
+              "particle {} has its centre not finite or more than 10^6 cell lengths from the cell", i);
+    c.require(p.q[i].coeffs().allFinite() && std::abs(p.q[i].norm() - 1) <= 1e-6,
+              "particle {} has an orientation that is not a unit quaternion", i);
+  }
+  c.all_finite(p.v, "the velocity of particle");
+  c.all_finite(p.angmom, "the angular momentum of particle");
+  c.all_finite(p.omega, "the angular velocity of particle");
+  c.all_finite(p.force, "the force on particle");
+  c.all_finite(p.torque, "the torque on particle");
+}
+
+void check_pairs(const ContentCheck& c, const PairList& q, const Particles& p, std::uint32_t version) {
+  const std::size_t np = q.size(), n = p.size();
+  c.require(q.j.size() == np && q.image.size() == np, "the pair list's keys have {}, {} and {} entries", np,
+            q.j.size(), q.image.size());
+  c.require(np < std::numeric_limits<std::uint32_t>::max(), "it holds {} pairs", np);
+  for (std::size_t k = 0; k < np; ++k) {
+    const std::uint32_t i = q.i[k], j = q.j[k];
+    c.require(i < j && j < n, "pair {} joins particles {} and {}: the ends must be i < j < {} (the particles)", k, i,
+              j, n);
+    // A listed pair is closer than its bounding spheres plus the skin, under half the cell
+    // (SPEC 3): its fractional branch is well within a cell length.
+    const Vec3 f = p.s[j] - p.s[i] + q.image[k].cast<double>();
+    c.require(f.cwiseAbs().maxCoeff() <= 1, "pair {} ({}, {}) has the image ({}, {}, {}): its ends are {} cell lengths "
+              "apart", k, i, j, q.image[k].x(), q.image[k].y(), q.image[k].z(), f.cwiseAbs().maxCoeff());
+    if (k > 0) {
+      const auto key = [&](std::size_t m) {
+        return std::tie(q.i[m], q.j[m], q.image[m].x(), q.image[m].y(), q.image[m].z());
+      };
+      c.require(key(k - 1) < key(k), "pair {} is not after pair {} in the order of the keys (i, j, image)", k, k - 1);
+    }
+  }
+  const auto sized = [&](const std::vector<double>& v, std::size_t width, const char* what) {
+    c.require(v.size() == width * np, "the pairs' {} has {} values for {} pairs of {}", what, v.size(), np, width);
+    c.all_finite(v, what);
+  };
+  sized(q.history.values, static_cast<std::size_t>(q.history.layout->width), "contact history");
+  sized(q.pw_lambda, 1, "Perram-Wertheim warm start");
+  if (version >= 2) sized(q.apart_until, 1, "proven gap");
+  if (version >= 9) {
+    sized(q.overlap, 1, "overlap");
+    for (std::size_t k = 0; k < np; ++k) c.require(q.overlap[k] >= 0, "pair {} has a negative overlap", k);
+  }
+}
+
+void check_neighbor(const ContentCheck& c, const NeighborState& ns, const Particles& p) {
+  const std::size_t n = p.size();
+  c.require(ns.s_at_build.size() == n || (!ns.valid && ns.s_at_build.empty()),
+            "the neighbour list's reference holds {} positions for {} particles", ns.s_at_build.size(), n);
+  c.all_finite(ns.s_at_build, "the neighbour list's reference position");
+  c.require(ns.surface_path.empty() || ns.surface_path.size() == n, "the surface paths hold {} values for {} particles",
+            ns.surface_path.size(), n);
+  c.all_finite(ns.surface_path, "the surface path of particle");
+  for (const double x : ns.surface_path) c.require(x >= 0, "a surface path is negative");
+  c.cell_matrix(ns.h_at_build, "the cell matrix of the neighbour list's build");
+  // fluctuation_path may be infinite: unknown (a checkpoint of format 2 or older, until the next build).
+  c.require(!std::isnan(ns.fluctuation_path) && ns.fluctuation_path >= 0 && std::isfinite(ns.strain_path) &&
+                ns.strain_path >= 0,
+            "the neighbour list's motion bounds are negative or NaN");
+  c.require(std::isfinite(ns.skin) && ns.skin >= 0 && (!ns.valid || ns.skin > 0), "the Verlet skin {} m is not > 0",
+            ns.skin);
+  const double rmax = *std::max_element(p.bound_radius.begin(), p.bound_radius.end());
+  c.require(!ns.valid || ns.max_bound_radius == rmax,
+            "the neighbour list was built for a largest bounding radius {} m; the particles' is {} m",
+            ns.max_bound_radius, rmax);
+  c.count(ns.builds, "the number of list builds");
+  c.count(ns.distance_checks, "the number of distance checks");
+}
+
+void check_record(const ContentCheck& c, const PhaseRecord& r, std::size_t p, bool started, std::uint32_t version) {
+  c.count(r.steps, "a phase's step count");
+  c.count(r.rows, "a phase's row count");
+  c.require(version < 7 || r.rows <= r.steps, "phase {} has {} rows in {} steps (at most a row a step)", p, r.rows,
+            r.steps);
+  if (started) {
+    c.cell_matrix(r.h0, "the cell matrix at the start of a phase");
+    c.require(std::isfinite(r.v0) && r.v0 > 0, "phase {} started at a volume {} m^3", p, r.v0);
+  }
+  const Measures& m = r.final;
+  const double sums[] = {r.wall_s, r.ufr, r.iuf, r.imom, r.stress_error, r.max_stress_error, r.max_shear_stress,
+                         r.peak_phi_deg, r.peak_phi_e1, r.final_e1, r.final_ev, m.mean_stress, m.deviator,
+                         m.octahedral, m.friction_angle_deg, m.friction_angle_al_deg, m.principal_tilt_deg, m.ufr,
+                         m.iuf, m.imom, m.coordination, m.ekin_trans, m.ekin_rot, m.volume, m.solid_volume,
+                         m.void_ratio};
+  for (const double x : sums) c.require(std::isfinite(x), "phase {}'s record holds a number that is not finite", p);
+  c.require(m.stress.allFinite() && m.principal.allFinite() && r.wall_s >= 0 && m.contacts >= 0,
+            "phase {}'s record holds a stress that is not finite, or a negative count or time", p);
+  for (const EnergyLedger* e : {&r.energy_start, &r.energy_end})
+    for (const auto field : energy_ledger_fields)
+      c.require(std::isfinite(e->*field), "phase {}'s energy ledger is not finite", p);
+}
+
+void check_run(const ContentCheck& c, const RunProgress& r, const State& st, std::uint32_t version) {
+  const std::size_t phases = r.phases.size();
+  c.require(phases >= 1, "it holds no phase");
+  c.require(r.phase >= 0 && static_cast<std::size_t>(r.phase) <= phases && !(r.phase_started && r.phase == static_cast<std::int32_t>(phases)),
+            "it stands at phase {} (started: {}) of {}", r.phase, r.phase_started, phases);
+  for (std::size_t p = 0; p < phases; ++p) {
+    const bool now = static_cast<std::int32_t>(p) == r.phase;
+    // Formats 1 to 6 kept the start of the current phase only.
+    const bool started = (static_cast<std::int32_t>(p) < r.phase && version >= 7) || (now && r.phase_started);
+    check_record(c, r.phases[p], p, started, version);
+  }
+  c.require(std::isfinite(r.wall_s) && r.wall_s >= 0, "its wall time {} s is not finite and >= 0", r.wall_s);
+  c.require(r.first_step >= 0 && r.first_step <= st.step, "its first step {} is not from 0 to the state's step {}",
+            r.first_step, st.step);
+  for (const auto& saved : r.controller_end) c.all_finite(saved, "a controller's saved value");
+  if (!r.phase_started || !r.state.live) return;  // a phase begins with its own controls (run_phase)
+  const PhaseState& s = r.state;
+  const PhaseRecord& now = r.phases[static_cast<std::size_t>(r.phase)];
+  for (const ComponentControl& k : s.controls.component)
+    c.require(k.kind >= ComponentControl::Kind::fixed && k.kind <= ComponentControl::Kind::constant_volume &&
+                  std::isfinite(k.value),
+              "the current phase's controls hold an unknown kind or a value that is not finite");
+  c.require(std::isfinite(s.controls.max_strain_rate) && s.controls.max_strain_rate >= 0 &&
+                std::isfinite(s.controls.rate_factor) && s.controls.rate_factor >= 0,
+            "the current phase's cap of the servo's rate is not finite and >= 0");
+  for (std::size_t k = 0; k < 3; ++k) {
+    c.require(s.segment_step[k] >= 0 && s.segment_step[k] <= now.steps && std::isfinite(s.segment_strain[k]),
+              "the current phase's strain segment {} starts at step {} of {}", k, s.segment_step[k], now.steps);
+  }
+  c.require(s.row_base_step >= 0 && s.row_base_step <= now.steps && s.row_base_rows >= 0 && s.row_base_rows <= now.rows &&
+                s.last_row_step >= -1 && s.last_row_step < now.steps,
+            "the current phase's rows are counted from step {}, row {}, last at step {}, of {} steps and {} rows",
+            s.row_base_step, s.row_base_rows, s.last_row_step, now.steps, now.rows);
+  for (const std::int8_t side : s.stress_side)
+    c.require(side >= -1 && side <= 1, "the current phase's stress stop has the side {}", side);
+  c.all_finite(s.controller, "the current phase's controller's saved value");
+}
+
+void check_contents(const Checkpoint& ck, std::uint32_t version, const Reader& r) {
+  const ContentCheck c(r);
+  const State& st = ck.state;
+  check_particles(c, st.particles, version);
+  c.cell_matrix(st.cell.h, "the cell matrix");
+  c.require(st.cell.L.allFinite(), "the cell's velocity gradient is not finite");
+  check_pairs(c, st.pairs, st.particles, version);
+  check_neighbor(c, st.neighbor, st.particles);
+  c.count(st.step, "the step count");
+  c.require(std::isfinite(st.time) && st.time >= 0, "the time {} s is not finite and >= 0", st.time);
+  c.require(st.servo_integral.allFinite() && st.stress.allFinite() && st.affine_stiffness.allFinite() &&
+                st.shear_stiffness.allFinite(),
+            "the stress or the servo's state is not finite");
+  c.require(std::isfinite(st.stress_volume) && st.stress_volume > 0, "the stress was evaluated at a volume of {} m^3",
+            st.stress_volume);
+  c.cell_matrix(st.stress_h, "the cell matrix of the last force evaluation");
+  for (const double t : st.timers.seconds) c.require(std::isfinite(t) && t >= 0, "a stage's time is not finite and >= 0");
+  for (const auto field : energy_ledger_fields) c.require(std::isfinite(st.energy.*field), "the energy ledger is not finite");
+  check_run(c, ck.run, st, version);
+}
+
+struct Header {
+  std::uint32_t version = 0;
+  std::uint64_t size = 0, sum = 0;  // of the payload
+};
+
+Header parse_header(std::string_view bytes, const std::string& name) {
+  if (bytes.size() < header_size || std::memcmp(bytes.data(), magic, 8) != 0)
+    throw InputError(fmt::format("'{}' is not a qsdem checkpoint (or is truncated before its header)", name));
+  Header h;
+  std::memcpy(&h.version, bytes.data() + 8, 4);
+  std::memcpy(&h.size, bytes.data() + 16, 8);
+  std::memcpy(&h.sum, bytes.data() + 24, 8);
+  if (h.version < 1 || h.version > checkpoint_format_version)
+    throw InputError(fmt::format("checkpoint '{}' has format version {}; this qsdem reads versions 1 to {}", name,
+                                 h.version, checkpoint_format_version));
+  return h;
+}
+
+// `have` bytes after the header, where it says `size`.
+void check_length(std::uint64_t have, std::uint64_t size, const std::string& name) {
+  if (have < size)
+    throw InputError(fmt::format("checkpoint '{}' is damaged: truncated ({} of {} bytes)", name, have, size));
+  if (have > size)
+    throw InputError(fmt::format("checkpoint '{}' is damaged: {} bytes after its header, which says {}", name, have,
+                                 size));
+}
+
 void fsync_dir(const std::filesystem::path& dir) {
   const int fd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY);
   if (fd >= 0) {
@@ -416,16 +684,6 @@ void fsync_dir(const std::filesystem::path& dir) {
 }
 
 }  // namespace
-
-std::uint64_t fnv1a64(const void* data, std::size_t size) {
-  std::uint64_t h = 14695981039346656037ull;
-  const auto* b = static_cast<const unsigned char*>(data);
-  for (std::size_t k = 0; k < size; ++k) {
-    h ^= b[k];
-    h *= 1099511628211ull;
-  }
-  return h;
-}
 
 void save_checkpoint(const std::filesystem::path& path, const std::string& case_text, const std::string& case_source,
                      const State& state, const RunProgress& run, std::uint32_t format) {
@@ -483,37 +741,25 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
   fsync_dir(path.parent_path());
 }
 
-Checkpoint load_checkpoint(const std::filesystem::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError(fmt::format("no checkpoint '{}'", path.string()));
-  const std::vector<char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  const std::string name = path.string();
-  if (bytes.size() < header_size || std::memcmp(bytes.data(), magic, 8) != 0)
-    throw InputError(fmt::format("'{}' is not a qsdem checkpoint (or is truncated before its header)", name));
-  std::uint32_t version = 0;
-  std::uint64_t size = 0, sum = 0;
-  std::memcpy(&version, bytes.data() + 8, 4);
-  std::memcpy(&size, bytes.data() + 16, 8);
-  std::memcpy(&sum, bytes.data() + 24, 8);
-  if (version < 1 || version > checkpoint_format_version)
-    throw InputError(fmt::format("checkpoint '{}' has format version {}; this qsdem reads versions 1 to {}", name,
-                                 version, checkpoint_format_version));
-  if (bytes.size() - header_size != size)
-    throw InputError(fmt::format("checkpoint '{}' is damaged: truncated ({} of {} bytes)", name,
-                                 bytes.size() - header_size, size));
+Checkpoint parse_checkpoint(std::string_view bytes, const std::string& name, Seal seal) {
+  const Header h = parse_header(bytes, name);
+  const std::uint64_t size = seal == Seal::ignore ? bytes.size() - header_size : h.size;
+  check_length(bytes.size() - header_size, size, name);
   const char* payload = bytes.data() + header_size;
-  if (fnv1a64(payload, size) != sum)
+  if (seal == Seal::verify && fnv1a64(payload, size) != h.sum)
     throw InputError(fmt::format("checkpoint '{}' is damaged: checksum mismatch", name));
   Reader r(payload, size, name);
   Checkpoint c;
   r.str(c.case_text);
   r.str(c.case_source);
+  const std::uint32_t version = h.version;
   io_run(r, c.run, version);
   io_state(r, c.state, version);
+  if (!r.at_end()) r.damaged("unexpected bytes after the state");
+  check_contents(c, version, r);
   c.state.particles.derive_inverses();
   // The rotation's damping factors are not kept: a phase sets both when it starts (damping/stage.hpp).
   c.state.particles.damping_rotation = c.state.particles.damping_translation;
-  if (!r.at_end()) r.damaged("unexpected bytes after the state");
   set_matrix(c.state.cell, c.state.cell.h);
   const std::size_t np = c.state.pairs.size();
   // Before format 9 the overlaps were not kept (the energy ledger's stiffness work reads them).
@@ -532,6 +778,90 @@ Checkpoint load_checkpoint(const std::filesystem::path& path) {
   if (version < 4 && c.state.particles.has_ellipsoids())
     c.state.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
   return c;
+}
+
+Checkpoint load_checkpoint(const std::filesystem::path& path) {
+  const std::string name = path.string();
+  std::error_code ec;
+  if (!std::filesystem::exists(path, ec)) throw InputError(fmt::format("no checkpoint '{}'", name));
+  // Regular files only, read no further than the header's length: a FIFO or a device (/dev/zero)
+  // is refused at once.
+  std::uint64_t file_size = 0;
+  const Header h = parse_header(read_regular_file(path, header_size, &file_size), name);
+  check_length(file_size - header_size, h.size, name);
+  const std::string bytes = read_regular_file(path, header_size + h.size);
+  return parse_checkpoint(bytes, name);
+}
+
+void check_checkpoint_case(const Checkpoint& c, const Params& params, const std::string& name) {
+  const auto refuse = [&](const std::string& why) {
+    throw InputError(fmt::format("checkpoint '{}' does not fit the case it holds ({}): {}", name, c.case_source, why));
+  };
+  const RunProgress& run = c.run;
+  const Protocol& protocol = params.protocol;
+  if (run.phases.size() != protocol.size())
+    refuse(fmt::format("it holds {} phases, the case has {}", run.phases.size(), protocol.size()));
+  // A controller's saved state, restored as the phase loop and the summary restore it.
+  const auto restorable = [&](std::size_t p, const std::vector<double>& saved) {
+    if (!protocol[p].make_controller || saved.empty()) return;
+    try {
+      protocol[p].make_controller()->restore(saved);
+    } catch (const InputError& e) {
+      refuse(fmt::format("the saved state of the controller of phase {}: {}", protocol[p].name, e.what()));
+    }
+  };
+  for (std::size_t p = 0; p < run.controller_end.size(); ++p) restorable(p, run.controller_end[p]);
+  if (!run.phase_started || !run.state.live) return;
+  const std::size_t p = static_cast<std::size_t>(run.phase);
+  const Phase& phase = protocol[p];
+  const PhaseControls& now = run.state.controls;
+  // A controller changes the control values, never their kinds; without one they are the case's.
+  for (std::size_t k = 0; k < now.component.size(); ++k) {
+    const ComponentControl &a = now.component[k], &b = phase.controls.component[k];
+    if (a.kind != b.kind || (!phase.make_controller && a.value != b.value))
+      refuse(fmt::format("phase {} is controlled by other values than its case's ({} of component {})", phase.name,
+                         a.kind != b.kind ? "the kind" : "the value", component_names[k]));
+  }
+  if (!phase.make_controller &&
+      (now.max_strain_rate != phase.controls.max_strain_rate || now.rate_factor != phase.controls.rate_factor))
+    refuse(fmt::format("phase {} caps the servo's rate otherwise than its case", phase.name));
+  restorable(p, run.state.controller);
+  // No more rows than the phase's sample points give in its steps (the last step is one too).
+  const PhaseRecord& rec = run.phases[p];
+  const Cadence& cadence = phase.output.cadence;
+  const long most = cadence.kind == Cadence::Kind::points        ? cadence.points
+                    : cadence.kind == Cadence::Kind::every_steps ? rec.steps / cadence.every_steps + 1
+                                                                 : rec.steps;
+  if (rec.rows > most)
+    refuse(fmt::format("phase {} has {} rows after {} steps, more than its sample points give ({})", phase.name,
+                       rec.rows, rec.steps, most));
+}
+
+State prepared_sample(Checkpoint c, const Params& params, const std::string& from, RunProgress& run) {
+  const Params prepared = parse_case(c.case_text, c.case_source);
+  const auto& a = prepared.material;
+  const auto& b = params.material;
+  if (a.density != b.density || a.young_modulus != b.young_modulus || a.poisson_ratio != b.poisson_ratio ||
+      prepared.step_ratio != params.step_ratio)
+    throw InputError(fmt::format(
+        "sample.from = '{}': that sample was prepared with density {} kg/m^3, E {} Pa, nu {}, time.step_ratio {}; "
+        "this case has {}, {}, {}, {}: they must be equal",
+        from, a.density, a.young_modulus, a.poisson_ratio, prepared.step_ratio, b.density, b.young_modulus,
+        b.poisson_ratio, params.step_ratio));
+  if (c.run.phase != 1 || c.run.phase_started)
+    throw InputError(
+        fmt::format("sample.from = '{}': {} is not a sample at the end of compaction", from, "sample.qsck"));
+  check_checkpoint_case(c, prepared, (std::filesystem::path(from) / "sample.qsck").string());
+  run = c.run;
+  run.phases.resize(params.protocol.size());  // its first phase's record; the others are this run's
+  run.wall_s = 0;
+  run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
+  run.prepare_only = false;
+  run.changes.clear();
+  run.case_digest.reset();     // its directory's files are not this run's
+  run.files.clear();
+  c.state.timers = {};
+  return std::move(c.state);
 }
 
 Checkpoint load_latest_checkpoint(const std::filesystem::path& path, std::string* note) {

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <string>
+#include <string_view>
 
 #include "qsdem/protocol.hpp"
 #include "qsdem/state.hpp"
@@ -17,8 +18,9 @@ namespace qsdem {
 // contact history named by its law's layout; 7: any protocol (phase.hpp): a record per phase, the
 // current phase's control values, plan and controller state (formats 1 to 6 are read as the
 // default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures);
-// 9: the energy ledger (State::energy, and each phase's at its start and last row)
-inline constexpr std::uint32_t checkpoint_format_version = 9;
+// 9: the energy ledger (State::energy, and each phase's at its start and last row); 10: the digests
+// of the run directory's case.toml and of the rows counted (RunProgress::case_digest, files)
+inline constexpr std::uint32_t checkpoint_format_version = 10;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides
@@ -34,13 +36,29 @@ void save_checkpoint(const std::filesystem::path& path, const std::string& case_
                      std::uint32_t format = checkpoint_format_version);
 
 // Reads and verifies one checkpoint file; throws InputError saying what is wrong with it
-// (missing, truncated, not a checkpoint, other format version, checksum mismatch).
+// (missing, not a regular file, truncated, not a checkpoint, other format version, checksum
+// mismatch, contents that do not fit together: check_contents in checkpoint.cpp).
 Checkpoint load_checkpoint(const std::filesystem::path& path);
+
+// The bytes of a checkpoint file, read as load_checkpoint reads them; `name` is the file's name in
+// messages. Seal::ignore skips the checksum and the payload's length in the header (the contents
+// are still checked): only the fuzz target (fuzz/) does, to reach the reader behind the checksum.
+enum class Seal { verify, ignore };
+Checkpoint parse_checkpoint(std::string_view bytes, const std::string& name, Seal seal = Seal::verify);
+
+// Refuses (InputError naming `name`) a checkpoint that does not fit `params`, the case it holds
+// (parse_case of its case_text, with any `resume --set`): its number of phases, the kinds of the
+// current phase's controls (and their values when no controller changes them), the controllers'
+// saved states, the rows of the current phase against its sample points.
+void check_checkpoint_case(const Checkpoint& c, const Params& params, const std::string& name);
+
+// The state of a prepared sample `c` (sample.qsck, read from `from`) for a new run of `params`,
+// which continues it from its second phase: `run` is set to start there. Refuses (InputError) a
+// sample prepared with another material or time step, or not at the end of its first phase.
+State prepared_sample(Checkpoint c, const Params& params, const std::string& from, RunProgress& run);
 
 // The newest good checkpoint of `path` or, if that one is damaged, of `path.prev`; `note` says
 // which one was used and why. Throws InputError when neither is usable.
 Checkpoint load_latest_checkpoint(const std::filesystem::path& path, std::string* note);
-
-std::uint64_t fnv1a64(const void* data, std::size_t size);
 
 }  // namespace qsdem

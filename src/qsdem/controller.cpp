@@ -28,7 +28,11 @@ class Schedule final : public Controller {
   }
   std::vector<double> save() const override { return {static_cast<double>(next_)}; }
   void restore(const std::vector<double>& saved) override {
-    next_ = saved.empty() ? 0 : static_cast<std::size_t>(saved[0]);
+    const double next = saved.empty() ? 0 : saved[0];
+    if (saved.size() > 1 || !(next >= 0 && next <= static_cast<double>(at_.size())) || next != std::floor(next))
+      throw InputError(fmt::format("a schedule of {} entries saved as {} values, the first {}", at_.size(),
+                                   saved.size(), next));
+    next_ = static_cast<std::size_t>(next);
   }
 
  private:

@@ -47,7 +47,8 @@ class Controller {
   }
   // Whether the phase ends after this step (a controller that counts cycles, ControllerKind::ends_phase).
   virtual bool done() const { return false; }
-  // What it needs to continue exactly after a resume (saved in the checkpoint), and its restoration.
+  // What it needs to continue exactly after a resume (saved in the checkpoint), and its restoration,
+  // which throws InputError, saying why, on a saved state it could not continue from (a damaged one).
   virtual std::vector<double> save() const { return {}; }
   virtual void restore(const std::vector<double>& /*saved*/) {}
   // At the phase's last row (no change can apply any more): a controller that keeps figures of

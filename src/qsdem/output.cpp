@@ -3,8 +3,10 @@
 #include <fcntl.h>
 #include <fmt/format.h>
 #include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <iterator>
@@ -15,6 +17,17 @@
 namespace qsdem {
 
 namespace {
+
+// The fields of a CSV line the engine wrote (no quoting: no field holds a comma), empty ones kept.
+std::vector<std::string> split_fields(const std::string& line) {
+  std::vector<std::string> fields;
+  for (std::size_t at = 0;;) {
+    const std::size_t comma = line.find(',', at);
+    fields.push_back(line.substr(at, comma == std::string::npos ? std::string::npos : comma - at));
+    if (comma == std::string::npos) return fields;
+    at = comma + 1;
+  }
+}
 
 // The columns, in order: SPEC 10's (10.1), then phi_al_deg and tilt_deg (SPEC 7). Each appends its
 // value; the header and the rows are made from this one list.
@@ -123,6 +136,46 @@ std::string classes_rows(const SeriesRow& r, const std::vector<ClassMeasures>& c
   return fmt::to_string(out);
 }
 
+std::uint64_t fnv1a64(const void* data, std::size_t size, std::uint64_t h) {
+  const auto* b = static_cast<const unsigned char*>(data);
+  for (std::size_t k = 0; k < size; ++k) {
+    h ^= b[k];
+    h *= 1099511628211ull;
+  }
+  return h;
+}
+
+std::string read_regular_file(const std::filesystem::path& path, std::uint64_t max_bytes, std::uint64_t* size) {
+  // O_NONBLOCK: opening a FIFO does not wait for a writer (it is then refused as not a regular file).
+  const int fd = ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) throw InputError(fmt::format("cannot read '{}': {}", path.string(), std::strerror(errno)));
+  struct stat st {};
+  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {
+    ::close(fd);
+    throw InputError(fmt::format("'{}' is not a regular file (a FIFO, a device or a directory): it cannot be read "
+                                 "as one",
+                                 path.string()));
+  }
+  const std::uint64_t file_size = static_cast<std::uint64_t>(st.st_size);
+  if (size) *size = file_size;
+  std::string bytes(static_cast<std::size_t>(std::min(max_bytes, file_size)), '\0');
+  std::size_t got = 0;
+  while (got < bytes.size()) {
+    const ssize_t n = ::read(fd, bytes.data() + got, bytes.size() - got);
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) {
+      const int err = errno;
+      ::close(fd);
+      throw InputError(fmt::format("cannot read '{}': {}", path.string(), std::strerror(err)));
+    }
+    if (n == 0) break;  // shorter than it was
+    got += static_cast<std::size_t>(n);
+  }
+  ::close(fd);
+  bytes.resize(got);
+  return bytes;
+}
+
 SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const SeriesColumns& columns)
     : SeriesWriter(std::move(path), keep_rows, CsvHeader{series_header(columns)}) {}
 
@@ -130,6 +183,7 @@ SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const Csv
     : path_(std::move(path)) {
   partial_ = path_;
   partial_ += ".partial";
+  digest_.name = path_.filename().string();
   if (keep_rows < 0) {
     const int fd = create_file(partial_);
     if (fd >= 0) file_ = ::fdopen(fd, "w");
@@ -149,11 +203,13 @@ SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const Csv
   long lines = 0;
   off_t kept = 0, size = 0;
   bool ends_in_newline = true;
+  std::string text;  // the bytes read, of which the first `kept` stay
   if (fd >= 0) {
     char buf[1 << 16];
     for (ssize_t n; lines < keep_rows + 1 && (n = ::read(fd, buf, sizeof buf)) > 0;) {
       for (ssize_t k = 0; k < n && lines < keep_rows + 1; ++k)
         if (buf[k] == '\n') ++lines, kept = size + k + 1;
+      text.append(buf, static_cast<std::size_t>(n));
       size += n;
       ends_in_newline = buf[n - 1] == '\n';
     }
@@ -166,6 +222,14 @@ SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const Csv
                                  std::max(0L, lines - 1), keep_rows));
   }
   const bool add_newline = kept == size && !ends_in_newline;
+  text.resize(static_cast<std::size_t>(kept));
+  if (add_newline) text += '\n';
+  try {
+    keep_columns(text.substr(0, text.find('\n')), header.text);
+  } catch (...) {
+    ::close(fd);
+    throw;
+  }
   if (::ftruncate(fd, kept) != 0 || ::lseek(fd, 0, SEEK_END) < 0 || !(file_ = ::fdopen(fd, "w")) ||
       (add_newline && std::fputc('\n', file_) == EOF) || std::fflush(file_) != 0) {
     const int err = errno;
@@ -173,6 +237,23 @@ SeriesWriter::SeriesWriter(std::filesystem::path path, long keep_rows, const Csv
     else ::close(fd);
     throw RunError(fmt::format("cannot rewrite '{}': {}", partial_.string(), std::strerror(err)));
   }
+  digest_.bytes = text.size();
+  digest_.hash = fnv1a64(text.data(), text.size());
+}
+
+void SeriesWriter::keep_columns(const std::string& file_header, const std::string& header) {
+  if (file_header == header) return;
+  const std::vector<std::string> have = split_fields(file_header), names = split_fields(header);
+  for (const std::string& name : have) {
+    const auto at = std::find(names.begin(), names.end(), name);
+    if (at == names.end())
+      throw InputError(fmt::format("cannot resume: '{}' has the column '{}', which this qsdem does not write (it "
+                                   "was begun by another version): finish the run with the qsdem that began it",
+                                   partial_.string(), name));
+    projection_.push_back(static_cast<std::size_t>(at - names.begin()));
+  }
+  for (const std::string& name : names)
+    if (std::find(have.begin(), have.end(), name) == have.end()) omitted_ += (omitted_.empty() ? "" : ",") + name;
 }
 
 SeriesWriter::~SeriesWriter() {
@@ -180,8 +261,23 @@ SeriesWriter::~SeriesWriter() {
 }
 
 void SeriesWriter::write(const std::string& row) {
-  if (std::fputs(row.c_str(), file_) < 0 || std::fputc('\n', file_) < 0 || std::fflush(file_) != 0)
+  if (projection_.empty()) return put(row + '\n');
+  std::string out;  // each line of the row with the file's columns only
+  for (std::size_t at = 0; at <= row.size();) {
+    const std::size_t end = std::min(row.find('\n', at), row.size());
+    const std::vector<std::string> fields = split_fields(row.substr(at, end - at));
+    for (std::size_t k = 0; k < projection_.size(); ++k) (out += k > 0 ? "," : "") += fields.at(projection_[k]);
+    out += '\n';
+    at = end + 1;
+  }
+  put(out);
+}
+
+void SeriesWriter::put(const std::string& text) {
+  if (std::fputs(text.c_str(), file_) < 0 || std::fflush(file_) != 0)
     throw RunError(fmt::format("write to '{}' failed: {}", partial_.string(), std::strerror(errno)));
+  digest_.bytes += text.size();
+  digest_.hash = fnv1a64(text.data(), text.size(), digest_.hash);
 }
 
 void SeriesWriter::sync() {

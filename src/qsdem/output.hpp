@@ -2,6 +2,7 @@
 // name and renamed into place.
 #pragma once
 #include <array>
+#include <cstdint>
 #include <cstdio>
 #include <filesystem>
 #include <optional>
@@ -53,6 +54,25 @@ std::string classes_rows(const SeriesRow& row, const std::vector<ClassMeasures>&
 // dissipated + stored + kinetic misses.
 nlohmann::json energy_change(const EnergyLedger& start, const EnergyLedger& end);
 
+// FNV-1a, 64 bits, over `size` bytes, continued from the hash `h` of the bytes before: the
+// checkpoints' checksum and the digests of the files a run appends to.
+inline constexpr std::uint64_t fnv1a64_basis = 14695981039346656037ull;
+std::uint64_t fnv1a64(const void* data, std::size_t size, std::uint64_t h = fnv1a64_basis);
+
+// The first `bytes` bytes of a file in the run directory, by their hash: what a checkpoint counts of
+// a file the run appends rows to (its header and the rows so far).
+struct FileDigest {
+  std::string name;
+  std::uint64_t bytes = 0;
+  std::uint64_t hash = fnv1a64_basis;
+};
+
+// The first `max_bytes` bytes (all, when it is shorter) of the regular file `path`; `size`: its
+// size. Anything else (a FIFO, a device, a directory) is refused, never waited for or read without
+// end: InputError naming the file, as when it cannot be opened.
+std::string read_regular_file(const std::filesystem::path& path, std::uint64_t max_bytes,
+                              std::uint64_t* size = nullptr);
+
 // The header line of a file that is not series.csv's (SeriesWriter's second constructor).
 struct CsvHeader {
   std::string text;
@@ -60,7 +80,10 @@ struct CsvHeader {
 
 // Writes to `path.partial`, flushed after every row; commit() renames it to `path`.
 // With keep_rows >= 0 it continues an existing `path.partial` after its first keep_rows rows
-// (a resumed run: rows written after the checkpoint are dropped and written again).
+// (a resumed run: rows written after the checkpoint are dropped and written again). A file begun
+// by another engine version, whose header is not this one's, keeps its columns: each row is
+// written with those only (omitted() names the others); a column this engine does not write is
+// refused (InputError).
 class SeriesWriter {
  public:
   explicit SeriesWriter(std::filesystem::path path, long keep_rows = -1, const SeriesColumns& columns = {});
@@ -71,10 +94,20 @@ class SeriesWriter {
   void write(const std::string& row);
   void sync();    // the rows written so far are on disk (fsync): before each checkpoint
   void commit();  // sync, close and rename to `path`
+  // Everything written to the file so far, header included (what a checkpoint counts of it).
+  const FileDigest& digest() const { return digest_; }
+  // The columns of this engine's header that a file begun with other columns does not get ("" when
+  // it has them all, in this order).
+  const std::string& omitted() const { return omitted_; }
 
  private:
+  void put(const std::string& text);  // writes, flushes and adds to the digest
+  void keep_columns(const std::string& file_header, const std::string& header);
   std::filesystem::path path_, partial_;
   std::FILE* file_ = nullptr;
+  FileDigest digest_;
+  std::vector<std::size_t> projection_;  // the file's columns, by index in this engine's rows (empty: all)
+  std::string omitted_;
 };
 
 // Renames `path.partial`, complete and synced, to `path` (a phase that ended before a crash).

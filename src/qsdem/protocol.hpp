@@ -7,6 +7,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -71,6 +72,11 @@ struct RunProgress {
   std::string changes;         // `resume --set` changes, one "from PHASE step N: key=value" a line
   // Per phase that ended: its controller's saved state at its end (Controller::figures()).
   std::vector<std::vector<double>> controller_end;
+  // The run's directory as the checkpoint counts it (none in checkpoints before format 10): the
+  // digest of the case.toml the run wrote, and of the rows so far of each file it appends to.
+  // `resume` refuses a directory that holds other files (from another run).
+  std::optional<std::uint64_t> case_digest;
+  std::vector<FileDigest> files;
 
   PhaseRecord& current() { return phases.at(static_cast<std::size_t>(phase)); }
   const PhaseRecord& current() const { return phases.at(static_cast<std::size_t>(phase)); }

@@ -45,6 +45,8 @@ class RateControl final : public Controller {
   }
   void restore(const std::vector<double>& v) override {
     if (v.size() != 9) return;
+    if (!(v[1] >= 0 && v[1] <= 1e15) || v[1] != std::floor(v[1]))
+      throw InputError(fmt::format("a rate controller saved as having seen {} sample points", v[1]));
     filtered_ = v[0];
     seen_ = static_cast<long>(v[1]);
     rows_ = v[2], rate_sum_ = v[3], rate_min_ = v[4], rate_max_ = v[5], in_band_ = v[6];

@@ -385,6 +385,10 @@ class Execution {
     ScopedStage t(st_.timers, Stage::output);
     if (rows_) rows_->sync();
     if (classes_rows_) classes_rows_->sync();
+    if (rows_) {  // what the checkpoint counts of the files it appends to (resume checks them)
+      run_.files = {rows_->digest()};
+      if (classes_rows_) run_.files.push_back(classes_rows_->digest());
+    }
     save_checkpoint(file, params_.case_text, params_.source, st_, run_);
     last_save_ = std::chrono::steady_clock::now();
   }
@@ -435,6 +439,8 @@ class Execution {
     std::optional<SeriesWriter> classes;
     if (params_.output.classes) open_classes(classes);
     classes_rows_ = classes ? &*classes : nullptr;
+    note_kept_columns(writer);
+    if (classes) note_kept_columns(*classes);
     try {
       run_phase(params_, st_, run_, {&writer, file.phases.front(), columns, classes_rows_, &size_classes_}, progress_,
                 [this](bool sample_point) { on_step(sample_point); });
@@ -465,6 +471,17 @@ class Execution {
     classes.emplace(dir_ / classes_file, held > 0 ? lines : -1, CsvHeader{classes_header()});
   }
 
+  // A file begun by another version of qsdem keeps its columns (SeriesWriter): said, and recorded
+  // among the resume changes (summary.json).
+  void note_kept_columns(const SeriesWriter& w) {
+    if (w.omitted().empty()) return;
+    const std::string change = fmt::format("{} keeps the columns it was begun with, without {}", w.digest().name,
+                                           w.omitted());
+    std::fprintf(stderr, "qsdem: %s (it was begun by another version of qsdem)\n", change.c_str());
+    if (run_.changes.find(change) != std::string::npos) return;
+    run_.changes += fmt::format("from {} step {}: {}\n", phase_name(params_, run_.phase), run_.current().steps, change);
+  }
+
   int last_phase() const {
     const int count = static_cast<int>(params_.protocol.size());
     return (run_.prepare_only ? std::min(1, count) : count) - 1;
@@ -489,6 +506,8 @@ class Execution {
       write_packing(dir_ / "compacted.packing", st_.particles, st_.cell);
       done("compacted.packing written");
       save(dir_ / prepared_sample_file);
+      // Written again by a resume that redoes this end: the sample needs no previous one.
+      fs::remove(dir_ / (std::string(prepared_sample_file) + ".prev"));
       done("sample.qsck written");
       if (params_.output.vtk_every > 0) {
         write_snapshot(dir_, params_, st_, 0);
@@ -604,28 +623,7 @@ State load_sample(const Params& params, RunProgress& run) {
     if (!fs::exists(from / prepared_sample_file))
       throw InputError(fmt::format("sample.from = '{}': that directory holds no prepared sample ({})", from.string(),
                                    prepared_sample_file));
-    Checkpoint c = load_checkpoint(from / prepared_sample_file);
-    const Params prepared = parse_case(c.case_text, c.case_source);
-    const auto& a = prepared.material;
-    const auto& b = params.material;
-    if (a.density != b.density || a.young_modulus != b.young_modulus || a.poisson_ratio != b.poisson_ratio ||
-        prepared.step_ratio != params.step_ratio)
-      throw InputError(fmt::format(
-          "sample.from = '{}': that sample was prepared with density {} kg/m^3, E {} Pa, nu {}, time.step_ratio {}; "
-          "this case has {}, {}, {}, {}: they must be equal",
-          from.string(), a.density, a.young_modulus, a.poisson_ratio, prepared.step_ratio, b.density, b.young_modulus,
-          b.poisson_ratio, params.step_ratio));
-    if (c.run.phase != 1 || c.run.phase_started)
-      throw InputError(fmt::format("sample.from = '{}': {} is not a sample at the end of compaction", from.string(),
-                                   prepared_sample_file));
-    run = c.run;
-    run.phases.resize(params.protocol.size());  // its first phase's record; the others are this run's
-    run.wall_s = 0;
-    run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
-    run.prepare_only = false;
-    run.changes.clear();
-    c.state.timers = {};
-    return std::move(c.state);
+    return prepared_sample(load_checkpoint(from / prepared_sample_file), params, from.string(), run);
   }
   if (!fs::is_regular_file(from))
     throw InputError(fmt::format("sample.from = '{}': no such prepared sample directory or packing file",
@@ -656,6 +654,38 @@ State make_sample(const Params& params, RunProgress& run) {
   return st;
 }
 
+// Refuses to resume `dir` when its files are not those its checkpoint counts (checkpoints of format
+// 10 on): its case.toml is not the one the run wrote, or the rows of a file it appends to begin
+// otherwise (another run's checkpoint, case.toml or rows copied in).
+void check_run_directory(const fs::path& dir, const RunProgress& run, const Params& params) {
+  const std::string checkpoint = (dir / checkpoint_file).string();
+  const auto refuse = [&](const std::string& what) {
+    throw InputError(fmt::format("cannot resume '{}': {}. Its checkpoint ({}) and its files are of different runs "
+                                 "(copied in, or edited): put back the run's own files, or start it anew (`qsdem "
+                                 "run CASE --out {} --force`)",
+                                 dir.string(), what, checkpoint, dir.string()));
+  };
+  const auto hash = [](const std::string& bytes) { return fnv1a64(bytes.data(), bytes.size()); };
+  if (run.case_digest) {
+    const fs::path file = dir / "case.toml";
+    if (!fs::exists(file)) refuse(fmt::format("it holds no case.toml, which the checkpoint's run wrote"));
+    if (hash(read_regular_file(file, UINT64_MAX)) != *run.case_digest)
+      refuse(fmt::format("'{}' is not the case.toml of the run that wrote the checkpoint", file.string()));
+  }
+  for (const FileDigest& f : run.files) {
+    const bool known = f.name == classes_file || std::any_of(params.protocol.begin(), params.protocol.end(),
+                                                              [&](const Phase& p) { return p.output.file == f.name; });
+    if (!known) refuse(fmt::format("the checkpoint counts rows of '{}', a file no phase of its case writes", f.name));
+    // The file is still being written, or renamed at its end (a crash after the rename).
+    fs::path file = dir / (f.name + ".partial");
+    if (!fs::exists(file)) file = dir / f.name;
+    if (!fs::exists(file)) refuse(fmt::format("the checkpoint counts {} bytes of rows of {}, which it does not hold", f.bytes, f.name));
+    const std::string bytes = read_regular_file(file, f.bytes);
+    if (bytes.size() < f.bytes || hash(bytes) != f.hash)
+      refuse(fmt::format("the first {} bytes of '{}' are not the rows the checkpoint counts", f.bytes, file.string()));
+  }
+}
+
 }  // namespace
 
 nlohmann::json run_case(const Params& params, const RunOptions& options) {
@@ -683,6 +713,7 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
   }
   fs::remove_all(dir / "vtk");
   write_file_atomic(dir / "case.toml", params.case_text);
+  run.case_digest = fnv1a64(params.case_text.data(), params.case_text.size());
   return execute(params, st, run, options, "");
 }
 
@@ -712,6 +743,8 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
                                    set, fs::absolute(dir).string()));
   }
   Params params = parse_case(c.case_text, c.case_source, options.sets);
+  check_checkpoint_case(c, params, (dir / checkpoint_file).string());
+  check_run_directory(dir, c.run, params);
   const auto record_change = [&](const std::string& change) {  // a line of summary.json's resume_changes
     c.run.changes += fmt::format("from {} step {}: {}\n", phase_name(params, c.run.phase),
                                  c.run.phase < static_cast<std::int32_t>(c.run.phases.size()) ? c.run.current().steps : 0,
@@ -719,7 +752,8 @@ nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
   };
   // A run begun by an engine without classes.csv (rows written, no classes.csv.partial) continues
   // without it rather than with a file that lacks its first rows.
-  if (params.output.classes && classes_rows_held(c.run) > 0 && !present(dir / "classes.csv.partial")) {
+  if (params.output.classes && classes_rows_held(c.run) > 0 && !present(dir / "classes.csv.partial") &&
+      !present(dir / classes_file)) {
     params.output.classes = false;
     const std::string change = "output.classes=false (begun without classes.csv)";
     if (c.run.changes.find(change) == std::string::npos) record_change(change);
@@ -832,6 +866,7 @@ BenchInput bench_input(const std::filesystem::path& source, const std::string& c
   }
   Checkpoint c = load_checkpoint(file);
   const Params own = parse_case(c.case_text, c.case_source, case_path.empty() ? overrides : std::vector<std::string>{});
+  check_checkpoint_case(c, own, file.string());
   in.params = case_path.empty() ? own : load_case(case_path, overrides);
   const auto& a = own.material;
   const auto& b = in.params.material;
