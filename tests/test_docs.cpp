@@ -2,7 +2,9 @@
 //  - every key of docs/config.md is a key the parser reads, and every key it reads is documented;
 //  - the annotated example of docs/config.md is the default case with every key written out;
 //  - every qsdem command line quoted in README.md and the docs is accepted by `qsdem --dry-run`;
-//  - every relative link of the Markdown files points to a file that exists.
+//  - every relative link of the Markdown files points to a file that exists;
+//  - every CSV file of the repository (the results' series.csv, compaction.csv, classes.csv and
+//    analysis tables) has as many fields in each row as in its header.
 #include <gtest/gtest.h>
 
 #include <sys/wait.h>
@@ -329,4 +331,77 @@ TEST(Docs, DefaultProtocolWrittenAsPhasesIsTheDefaultProtocol) {
   ASSERT_EQ(listed.protocol.size(), plain.protocol.size());
   for (std::size_t k = 0; k < plain.protocol.size(); ++k)
     EXPECT_EQ(qsdem::to_json(listed.protocol[k]), qsdem::to_json(plain.protocol[k])) << "phase " << k;
+}
+
+namespace {
+
+// The fields of each record of a CSV text (RFC 4180: a quoted field may hold commas, doubled
+// quotes and line breaks; a CR before the LF is not part of the field), with the line each begins on.
+struct CsvRecord {
+  std::size_t line = 0, fields = 0;
+};
+std::vector<CsvRecord> csv_records(const std::string& text) {
+  std::vector<CsvRecord> records;
+  std::size_t line = 1;
+  bool quoted = false, at_start = true;
+  CsvRecord r{1, 1};
+  for (std::size_t k = 0; k < text.size(); ++k) {
+    const char c = text[k];
+    if (c == '\n') ++line;
+    if (quoted) {
+      if (c == '"' && k + 1 < text.size() && text[k + 1] == '"')
+        ++k;
+      else if (c == '"')
+        quoted = false;
+    } else if (c == '"') {
+      quoted = true;
+    } else if (c == ',') {
+      ++r.fields;
+    } else if (c == '\n') {
+      records.push_back(r);
+      r = {line, 1};
+      at_start = true;
+      continue;
+    }
+    if (c != '\r') at_start = false;
+  }
+  if (!at_start) records.push_back(r);  // a last record without its line break
+  return records;
+}
+
+}  // namespace
+
+// A strict CSV reader maps a row's fields to the header's names: a row wider than its header (a run
+// resumed by a build that wrote more columns) shifts or drops values without a word. Every CSV file
+// of the source tree (build trees and hidden directories aside) is rectangular.
+TEST(Docs, EveryCsvFileOfTheRepositoryIsRectangular) {
+  std::size_t files = 0;
+  for (auto it = fs::recursive_directory_iterator(source_dir); it != fs::recursive_directory_iterator(); ++it) {
+    const fs::path& p = it->path();
+    if (it->is_directory() && (p.filename().string().front() == '.' || fs::exists(p / "CMakeCache.txt"))) {
+      it.disable_recursion_pending();
+      continue;
+    }
+    if (!it->is_regular_file() || p.extension() != ".csv") continue;
+    ++files;
+    const std::vector<CsvRecord> records = csv_records(read_text(p));
+    ASSERT_FALSE(records.empty()) << fs::relative(p, source_dir).string() << " is empty";
+    std::size_t wrong = 0;
+    for (const CsvRecord& r : records)
+      if (r.fields != records[0].fields && wrong++ == 0)
+        ADD_FAILURE() << fs::relative(p, source_dir).string() << ":" << r.line << ": " << r.fields
+                      << " fields under a header of " << records[0].fields;
+    EXPECT_EQ(wrong, 0u) << fs::relative(p, source_dir).string() << ": rows not as wide as the header";
+  }
+  EXPECT_GE(files, 100u) << "the results' CSV files were not found";
+}
+
+// The reader counts as a strict one does: quoted commas and line breaks are inside a field.
+TEST(Docs, CsvRecordsAreCountedAsAStrictReaderCounts) {
+  const std::vector<CsvRecord> r = csv_records("a,b,c\r\n1,\"x, \"\"y\"\"\n z\",3\n4,5\n");
+  ASSERT_EQ(r.size(), 3u);
+  EXPECT_EQ(r[0].fields, 3u);
+  EXPECT_EQ(r[1].fields, 3u);
+  EXPECT_EQ(r[2].line, 4u);
+  EXPECT_EQ(r[2].fields, 2u);
 }
