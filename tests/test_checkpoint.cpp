@@ -28,6 +28,7 @@
 #include "qsdem/generate.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/neighbor.hpp"
+#include "qsdem/output.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/step.hpp"
@@ -482,6 +483,30 @@ TEST(CheckpointFile, OnlyRegularFilesAreRead) {
                           out.string());
   EXPECT_EQ(qsdem_test::wait_exit_within(pid, 30), 2) << read(out.string() + ".err");
   EXPECT_NE(read(out.string() + ".err").find("not a regular file"), std::string::npos) << read(out.string() + ".err");
+}
+
+// A flag of a checkpoint (here: whether the current phase has started) is the byte 0 or 1; any
+// other byte, resealed, is refused as damage instead of being copied into a bool (undefined
+// behaviour, which the fuzz target's sanitizer reported).
+TEST(CheckpointFile, AFlagThatIsNeitherZeroNorOneIsRefused) {
+  const fs::path d = copy_of(stopped_run(), "flag");
+  const Checkpoint c = load_checkpoint(d / checkpoint_file);
+  std::string bytes = read(d / checkpoint_file);
+  // The header (32 bytes), the case and its source (each a 64-bit length and its bytes), the
+  // current phase (32 bits), then the flag.
+  constexpr std::size_t header = 32;
+  const std::size_t flag = header + 8 + c.case_text.size() + 8 + c.case_source.size() + 4;
+  ASSERT_EQ(bytes[flag], 1) << "the stopped run's compaction has started";
+  bytes[flag] = 2;
+  const std::uint64_t sum = fnv1a64(bytes.data() + header, bytes.size() - header);
+  std::memcpy(bytes.data() + 24, &sum, 8);
+  std::ofstream(d / checkpoint_file, std::ios::binary | std::ios::trunc) << bytes;
+  try {
+    load_checkpoint(d / checkpoint_file);
+    ADD_FAILURE() << "a flag of 2 was read";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("a flag holds 2, not 0 or 1"), std::string::npos) << e.what();
+  }
 }
 
 // A finished run is not overwritten without --force; an unfinished one points to resume.

@@ -68,6 +68,13 @@ class Reader {
     for (int k = 0; k < m.size(); ++k) pod(m.data()[k]);
   }
   void pod(Quat& q) { pod(q.coeffs()); }
+  // A flag is the byte 0 or 1: any other value, copied into a bool, would be undefined behaviour.
+  void pod(bool& v) {
+    std::uint8_t b = 0;
+    pod(b);
+    if (b > 1) damaged(fmt::format("a flag holds {}, not 0 or 1", b));
+    v = b == 1;
+  }
   template <class T>
   void vec(std::vector<T>& v) {
     std::uint64_t n = 0;
