@@ -580,7 +580,8 @@ void check_record(const ContentCheck& c, const PhaseRecord& r, std::size_t p, bo
             r.steps);
   if (started) {
     c.cell_matrix(r.h0, "the cell matrix at the start of a phase");
-    c.require(std::isfinite(r.v0) && r.v0 > 0, "phase {} started at a volume {} m^3", p, r.v0);
+    // 0: not recorded (a prepared sample of an older format, saved again)
+    c.require(std::isfinite(r.v0) && r.v0 >= 0, "phase {} started at a volume {} m^3", p, r.v0);
   }
   const Measures& m = r.final;
   const double sums[] = {r.wall_s, r.ufr, r.iuf, r.imom, r.stress_error, r.max_stress_error, r.max_shear_stress,
