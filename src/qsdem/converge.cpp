@@ -9,13 +9,13 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <fstream>
 #include <optional>
 #include <sstream>
 #include <thread>
 
 #include "qsdem/config.hpp"
 #include "qsdem/default_case.hpp"
+#include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/types.hpp"
@@ -55,11 +55,6 @@ std::vector<double> ladder_rates(const LadderOptions& o, const Params& p) {
   return rates;
 }
 
-// Triaxial steps of one run at `rate` (as the study plans them).
-double planned_steps(const Params& p, double rate) {
-  return std::max(1.0, std::round(p.triaxial.final_axial_strain / (p.step_ratio * rate)));
-}
-
 std::string rung_name(std::size_t k) { return fmt::format("rung-{}", k + 1); }
 
 bool rank_zero() {
@@ -68,18 +63,12 @@ bool rank_zero() {
   return true;
 }
 
-std::string read_file(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
 // The ladder of the case in DIR/analysis/analysis.json, or null.
 nlohmann::json ladder_of(const fs::path& out) {
   const fs::path f = out / "analysis" / "analysis.json";
-  if (!fs::exists(f)) return nullptr;
-  const nlohmann::json a = nlohmann::json::parse(read_file(f), nullptr, false);
+  const std::optional<std::string> text = read_regular_file(f);
+  if (!text) return nullptr;
+  const nlohmann::json a = nlohmann::json::parse(*text, nullptr, false);
   if (a.is_discarded() || !a.contains("convergence")) return nullptr;
   for (const auto& l : a["convergence"])
     if (l.value("sample", "") == sample_name) return l;
@@ -91,7 +80,8 @@ nlohmann::json ladder_of(const fs::path& out) {
 void setup(const LadderOptions& o, const std::string& text) {
   const fs::path copy = o.out / "study.toml";
   if (fs::exists(copy)) {
-    if (!same_study_values(read_file(copy), text))
+    const std::optional<std::string> held = read_regular_file(copy);
+    if (!held || !same_study_values(*held, text))
       throw InputError(fmt::format(
           "'{}' holds another ladder or study: its study.toml differs from the one these options give. Continue it "
           "with the case, --set and options it was started with, or choose another --out",
@@ -159,7 +149,7 @@ int run_ladder(const LadderOptions& o) {
     return 2;
   }
   const std::vector<double> rates = ladder_rates(o, p);
-  const double first_two = o.seeds * (planned_steps(p, rates[0]) + planned_steps(p, rates[1]));
+  const double first_two = o.seeds * (planned_triaxial_steps(p, rates[0]) + planned_triaxial_steps(p, rates[1]));
   if (first_two > o.max_steps) {
     std::fprintf(stderr, "qsdem: input error: --max-steps = %g: the first two rungs alone take %.0f steps (a "
                          "certificate needs two); allowed: at least that\n", o.max_steps, first_two);
@@ -186,7 +176,7 @@ int run_ladder(const LadderOptions& o) {
     if (!l.is_object() || done < std::size_t(round) + 1) return stopped_by = "failed runs", std::nullopt;
     if (l["status"] == "converged") return stopped_by = "converged", std::nullopt;
     if (done >= rates.size()) return stopped_by = "the last rung", std::nullopt;
-    next_steps = o.seeds * planned_steps(p, rates[done]);
+    next_steps = o.seeds * planned_triaxial_steps(p, rates[done]);
     if (l["steps"].get<double>() + next_steps > o.max_steps) return stopped_by = "the step budget", std::nullopt;
     return stages_to(done + 1);
   };

@@ -78,6 +78,12 @@ struct Certificate {
   bool limit_resolved = true;  // the slowest rung's standard error within the tolerances
   std::vector<RungVerdict> rungs;
   std::vector<ScalarLimit> scalars;  // peak_phi_deg, e1_at_peak, and phi_deg, ev, cn, q_over_p at the end
+
+  const ScalarLimit* scalar(const std::string& name) const {  // nullptr when not computed
+    for (const ScalarLimit& s : scalars)
+      if (s.name == name) return &s;
+    return nullptr;
+  }
 };
 
 // The certificate of a ladder ordered from the fastest rate to the slowest (rates strictly

@@ -17,6 +17,8 @@
 
 namespace qsdem {
 
+struct Params;
+
 // One prepared sample: a case (with its overrides) and a seed, compacted once by `qsdem prepare`.
 struct StudySample {
   std::string name;                   // the [[sample]] name
@@ -126,6 +128,10 @@ bool same_study_values(const std::string& a, const std::string& b);
 // Adds the runs of stage `stage` whose ratios are known (given, listed, or picked so far) and that
 // the study does not hold yet. Throws InputError when two stages of given ratios list one run.
 void add_stage_runs(Study& study, std::size_t stage);
+
+// The triaxial steps a run of the case plans at strain rate `rate`: final_axial_strain / (c_t eps'),
+// at least 1 (the ETA's and `qsdem converge`'s step budget).
+double planned_triaxial_steps(const Params& params, double rate);
 
 // FNV-1a 64 of a file's bytes, 16 hex digits (the hashes of study.json).
 std::string file_fnv1a64(const std::filesystem::path& file);

@@ -211,6 +211,7 @@ struct Ladder {
   std::vector<std::vector<const Run*>> runs;    // per rung, per seed
   std::vector<double> incomplete;               // rates at which a seed has not finished
   Certificate certificate;
+  std::vector<double> rung_steps, rung_wall_s;  // per rung, summed over its seeds
   double steps = 0, wall_s = 0;                 // of every run of the complete rungs
 };
 
@@ -273,6 +274,7 @@ struct Figure {
 // Numbers in tables: NaN shown as a dash.
 std::string sig(double v, int digits = 3);
 std::string pct(double v, int digits = 3);  // a fraction in percent
+std::string csvnum(double v);               // 9 significant digits; NaN: empty
 std::string read_text(const fs::path& p);
 double mean_finite(const std::vector<double>& v);
 std::optional<PaperRef> paper_ref(const std::string& sample, const std::string& model);

@@ -15,8 +15,6 @@ ResponseCurve response_of(const Run& r) { return {r.s.e1, r.s.phi, r.s.ev, r.s.c
 
 bool usable(const Run* r) { return r && r->finished && !r->s.e1.empty(); }
 
-std::string csvnum(double v) { return std::isfinite(v) ? fmt::format("{:.9g}", v) : ""; }
-
 json number_or_null(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
 
 json change_json(const CurveChange& c) { return {{"rms", number_or_null(c.rms)}, {"error", number_or_null(c.error)}}; }
@@ -48,7 +46,8 @@ std::vector<Ladder> make_ladders(const std::vector<Run>& runs, const Convergence
     if (g.rates.size() < 2) continue;
     std::sort(g.rates.begin(), g.rates.end(), std::greater<>());
     std::sort(g.seeds.begin(), g.seeds.end());
-    Ladder l{g.sample, g.model, g.xi, g.seeds, {}, {}, {}, {}, 0, 0};
+    Ladder l;
+    l.sample = g.sample, l.model = g.model, l.xi = g.xi, l.seeds = g.seeds;
     std::vector<Rung> rungs;
     for (double rate : g.rates) {
       std::vector<const Run*> at(g.seeds.size(), nullptr);
@@ -62,14 +61,17 @@ std::vector<Ladder> make_ladders(const std::vector<Run>& runs, const Convergence
         continue;
       }
       Rung rung{rate, {}};
+      double steps = 0, wall = 0;
       for (const Run* r : at) {
         rung.seeds.push_back(response_of(*r));
-        l.steps += std::isfinite(r->steps) ? r->steps : 0.0;
-        l.wall_s += std::isfinite(r->wall_s) ? r->wall_s : 0.0;
+        steps += std::isfinite(r->steps) ? r->steps : 0.0;
+        wall += std::isfinite(r->wall_s) ? r->wall_s : 0.0;
       }
       rungs.push_back(std::move(rung));
       l.rates.push_back(rate);
       l.runs.push_back(at);
+      l.rung_steps.push_back(steps), l.rung_wall_s.push_back(wall);
+      l.steps += steps, l.wall_s += wall;
     }
     if (!rungs.empty()) l.certificate = certify(rungs, tol);
     if (rungs.empty()) l.certificate.reason = "no rate has every seed finished";
@@ -85,12 +87,8 @@ json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerance
     json rungs = json::array();
     for (std::size_t k = 0; k < c.rungs.size(); ++k) {
       const RungVerdict& v = c.rungs[k];
-      double steps = 0, wall = 0;
       json ids = json::array();
-      for (const Run* r : l.runs[k]) {
-        steps += std::isfinite(r->steps) ? r->steps : 0.0, wall += std::isfinite(r->wall_s) ? r->wall_s : 0.0;
-        ids.push_back(r->id);
-      }
+      for (const Run* r : l.runs[k]) ids.push_back(r->id);
       rungs.push_back({{"rate", v.rate},
                        {"runs", ids},
                        {"phi_to_slowest", change_json(v.phi_to_slowest)},
@@ -98,8 +96,8 @@ json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerance
                        {"phi_to_next", change_json(v.phi_to_next)},
                        {"ev_to_next", change_json(v.ev_to_next)},
                        {"within", v.within},
-                       {"steps", steps},
-                       {"wall_s", wall}});
+                       {"steps", l.rung_steps[k]},
+                       {"wall_s", l.rung_wall_s[k]}});
     }
     json scalars = json::array();
     for (const ScalarLimit& s : c.scalars) {
@@ -143,24 +141,16 @@ std::string ladders_csv(const std::vector<Ladder>& ladders) {
       "phi_to_next_deg,ev_to_next,within,certified,peak_phi_deg,peak_phi_error_deg,ev_end,ev_end_error,steps,wall_s\n";
   for (const Ladder& l : ladders) {
     const Certificate& c = l.certificate;
-    const auto scalar = [&](const char* name) -> const ScalarLimit* {
-      for (const ScalarLimit& s : c.scalars)
-        if (s.name == name) return &s;
-      return nullptr;
-    };
-    const ScalarLimit *peak = scalar("peak_phi_deg"), *ev = scalar("ev");
+    const ScalarLimit *peak = c.scalar("peak_phi_deg"), *ev = c.scalar("ev");
     for (std::size_t k = 0; k < c.rungs.size(); ++k) {
       const RungVerdict& v = c.rungs[k];
-      double steps = 0, wall = 0;
-      for (const Run* r : l.runs[k])
-        steps += std::isfinite(r->steps) ? r->steps : 0.0, wall += std::isfinite(r->wall_s) ? r->wall_s : 0.0;
       out += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n", l.sample, l.model, csvnum(l.xi),
                          csvnum(v.rate), l.seeds.size(), csvnum(v.phi_to_slowest.rms), csvnum(v.phi_to_slowest.error),
                          csvnum(v.ev_to_slowest.rms), csvnum(v.ev_to_slowest.error), csvnum(v.phi_to_next.rms),
                          csvnum(v.ev_to_next.rms), v.within ? "true" : "false",
                          c.certified && *c.certified == k ? "true" : "false", csvnum(peak ? peak->mean[k] : nan),
                          csvnum(peak ? peak->error[k] : nan), csvnum(ev ? ev->mean[k] : nan),
-                         csvnum(ev ? ev->error[k] : nan), csvnum(steps), csvnum(wall));
+                         csvnum(ev ? ev->error[k] : nan), csvnum(l.rung_steps[k]), csvnum(l.rung_wall_s[k]));
     }
   }
   return out;
@@ -186,11 +176,10 @@ Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceToleran
                              v.within ? "" : " ✗");
     }
     const auto limit = [&](const char* name, double scale) {
-      for (const ScalarLimit& s : c.scalars)
-        if (s.name == name)
-          return fmt::format("{} ± {}{}", sig(scale * s.limit, 4), sig(scale * s.band, 2),
-                             s.extrapolated ? " (extrapolated)" : "");
-      return std::string("—");
+      const ScalarLimit* s = c.scalar(name);
+      return s ? fmt::format("{} ± {}{}", sig(scale * s->limit, 4), sig(scale * s->band, 2),
+                             s->extrapolated ? " (extrapolated)" : "")
+               : std::string("—");
     };
     t.rows.push_back({l.sample, l.model, pct(l.xi), std::to_string(l.seeds.size()), changes,
                       sig(c.phi_scatter_deg, 2) + " / " + pct(c.ev_scatter, 2), c.status,

@@ -726,11 +726,18 @@ bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model,
   // A controlled run's rate is unknown in advance: the ETA takes the geometric mean of its start
   // rate and its lower bound.
   const double eta_rate = control.on() ? std::sqrt(rate * control.min_rate) : params.triaxial.strain_rate;
-  run.expected_steps =
-      std::max(1.0, std::round(params.triaxial.final_axial_strain / (params.step_ratio * eta_rate)));
+  run.expected_steps = planned_triaxial_steps(params, eta_rate);
   s.runs.push_back(std::move(run));
   return true;
 }
+
+}  // namespace
+
+double planned_triaxial_steps(const Params& params, double rate) {
+  return std::max(1.0, std::round(params.triaxial.final_axial_strain / (params.step_ratio * rate)));
+}
+
+namespace {
 
 bool stage_has_sample(const StudyStage& st, const StudySample& smp, const Study& s) {
   return std::find(st.samples.begin(), st.samples.end(), index_of(s.sample_names, smp.name)) != st.samples.end();

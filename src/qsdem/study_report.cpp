@@ -679,9 +679,8 @@ void add_ladder_figures(std::vector<Figure>& figs, const Analysis& a) {
     }
     for (const auto& [name, ylabel, scale] : {std::tuple{"peak_phi_deg", "peak φ (°)", 1.0},
                                               std::tuple{"ev", "εv at the last strain (%)", 100.0}}) {
-      const auto sc = std::find_if(l.certificate.scalars.begin(), l.certificate.scalars.end(),
-                                   [&](const ScalarLimit& x) { return x.name == name; });
-      if (sc == l.certificate.scalars.end()) continue;
+      const ScalarLimit* sc = l.certificate.scalar(name);
+      if (!sc) continue;
       Panel p{ylabel, "strain rate ε'", ylabel, true, false, {}};
       Curve mean{"seed mean", {}, {}, "linespoints pt 7 lw 1.5 lc 1"}, lo{"", {}, {}, "lines dt 2 lc 1"},
           hi{"", {}, {}, "lines dt 2 lc 1"};
