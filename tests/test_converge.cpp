@@ -21,17 +21,10 @@ namespace {
 
 const std::string binary = QSDEM_BINARY;
 
-struct Result {
-  int code = -1;
-  std::string out, err;
-};
+using Result = qsdem_test::Cli;
 
 Result run(const std::vector<std::string>& args, const fs::path& log) {
-  Result r;
-  r.code = qsdem_test::wait_exit(qsdem_test::spawn_logged(args, log));
-  r.out = qsdem_test::slurp(log.string() + ".out");
-  r.err = qsdem_test::slurp(log.string() + ".err");
-  return r;
+  return qsdem_test::finish(qsdem_test::spawn_logged(args, log), log);
 }
 
 class Converge : public ::testing::Test {

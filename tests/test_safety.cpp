@@ -100,23 +100,13 @@ std::string input_error(F&& f) {
   return "";
 }
 
-struct Cli {
-  int code = -1;
-  std::string out, err;
-};
+using qsdem_test::Cli;
+using qsdem_test::finish;
 
 pid_t spawn(const std::vector<std::string>& args, const fs::path& log) {
   std::vector<std::string> all{QSDEM_BINARY};
   all.insert(all.end(), args.begin(), args.end());
   return qsdem_test::spawn_logged(all, log);
-}
-
-Cli finish(pid_t pid, const fs::path& log) {
-  Cli c;
-  c.code = qsdem_test::wait_exit(pid);
-  c.out = slurp(log.string() + ".out");
-  c.err = slurp(log.string() + ".err");
-  return c;
 }
 
 Cli cli(const std::vector<std::string>& args, const std::string& log_name) {

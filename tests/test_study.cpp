@@ -56,21 +56,11 @@ fs::path fresh_dir(const std::string& name) {
   return dir;
 }
 
-struct Result {
-  int code = -1;
-  std::string out, err;
-};
+using Result = qsdem_test::Cli;
+using qsdem_test::finish;
 
 // Starts `args` (args[0] is looked up in PATH) with stdout and stderr in files next to `log`.
 pid_t spawn(const std::vector<std::string>& args, const fs::path& log) { return qsdem_test::spawn_logged(args, log); }
-
-Result finish(pid_t pid, const fs::path& log) {
-  Result r;
-  r.code = qsdem_test::wait_exit(pid);
-  r.out = slurp(log.string() + ".out");
-  r.err = slurp(log.string() + ".err");
-  return r;
-}
 
 Result run(const std::vector<std::string>& args, const fs::path& log) { return finish(spawn(args, log), log); }
 

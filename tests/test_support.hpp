@@ -146,6 +146,20 @@ inline int wait_exit(pid_t pid) {
   return -1;
 }
 
+// A command's exit code and what it printed (spawn_logged's files next to `log`).
+struct Cli {
+  int code = -1;
+  std::string out, err;
+};
+
+inline Cli finish(pid_t pid, const std::filesystem::path& log) {
+  Cli c;
+  c.code = wait_exit(pid);
+  c.out = slurp(log.string() + ".out");
+  c.err = slurp(log.string() + ".err");
+  return c;
+}
+
 // wait_exit with a deadline: a child still running after `seconds` is killed (SIGKILL) and -2 is
 // returned, so that a hang fails a test instead of stopping the suite.
 inline int wait_exit_within(pid_t pid, double seconds) {
