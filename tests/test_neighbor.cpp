@@ -9,9 +9,12 @@
 #include <cstdio>
 #include <cmath>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <set>
 #include <vector>
+
+#include <fmt/format.h>
 
 #include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/cell.hpp"
@@ -188,6 +191,22 @@ TEST(NeighborList, EqualsBruteForce) {
         EXPECT_EQ(real_mismatches(got, want, st.particles, st.cell.h, kSkin), 0)
             << "engine " << got.size() << " pairs, brute force " << want.size();
       }
+}
+
+// A blown-up state (a NaN position, or one beyond an int's count of cell images) is a RunError
+// naming the particle, not a cast of NaN to int (undefined behaviour, found by the loaders' fuzzer).
+TEST(NeighborList, BlownUpPositionIsARunError) {
+  for (const double bad : {std::numeric_limits<double>::quiet_NaN(), 1e272}) {
+    State st = random_sample(50, 1.0, Mat3::Identity(), 0.5, 1);
+    st.particles.s[7].y() = bad;
+    try {
+      build_pairs(st.particles, st.cell, kSkin, st.pairs, st.neighbor);
+      ADD_FAILURE() << "no error for " << bad;
+    } catch (const RunError& e) {
+      EXPECT_NE(std::string(e.what()).find(fmt::format("particle id {}", st.particles.id[7])), std::string::npos)
+          << e.what();
+    }
+  }
 }
 
 // SPEC 4: the Verlet list stays valid while particles move and the cell deforms (compression,

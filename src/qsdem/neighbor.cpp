@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <tuple>
 
@@ -138,8 +139,14 @@ struct WrappedPositions {
 WrappedPositions wrap_positions(const Particles& p) {
   const std::size_t n = p.size();
   WrappedPositions w{std::vector<Vec3>(n), std::vector<Vec3i>(n)};
+  constexpr double reach = std::numeric_limits<int>::max();
   for (std::size_t i = 0; i < n; ++i) {
     const Vec3 f = p.s[i].array().floor();
+    // An image count beyond int (or NaN) is a blown-up state, not a position: stop before the cast.
+    if (!(f.array().abs() < reach).all())
+      throw RunError(fmt::format("particle id {} is at ({}, {}, {}) in cell coordinates: the state has blown up "
+                                 "and cannot be stepped",
+                                 p.id[i], p.s[i].x(), p.s[i].y(), p.s[i].z()));
     w.wrap[i] = f.cast<int>();
     w.s[i] = p.s[i] - f;
   }
