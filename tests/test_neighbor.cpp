@@ -193,6 +193,34 @@ TEST(NeighborList, EqualsBruteForce) {
       }
 }
 
+// A wide grading (size ratio 1000: 300 spheres of 1 mm and 5 of 1 um, the skin 0.2 R_min): the
+// grids hold at most one bin per particle and class, where bins of 2 R_min + skin would number
+// ~1e11 (an int overflow, then gigabytes), and the list is still exact.
+TEST(NeighborList, WideGradingCostsBinsByParticlesAndStaysExact) {
+  for (int tric = 0; tric <= 1; ++tric) {
+    SCOPED_TRACE(tric ? "triclinic" : "orthorhombic");
+    const Mat3 shape = tric ? triclinic_shape() : Mat3(Vec3(1.0, 1.1, 0.9).asDiagonal());
+    State st = random_sample(300, 1.0, shape, 0.55, 7);
+    Random rng(8);
+    for (std::uint32_t f = 0; f < 5; ++f) {  // fines beside coarse particles, some within reach
+      const Vec3 at = st.particles.s[f] + st.cell.h.inverse() * Vec3(kR0 + 2e-7 * f, 0, 0);
+      st.particles.add(300 + f, ShapeKind::sphere, Vec3::Constant(1e-3 * kR0), kRho, at, Quat::Identity());
+    }
+    const double skin = 0.2 * 1e-3 * kR0;
+    build_pairs(st.particles, st.cell, skin, st.pairs, st.neighbor);
+    EXPECT_LE(st.neighbor.grid_bins, 305 + 2);
+    EXPECT_LT(st.neighbor.distance_checks, 305L * 100);
+    const std::set<Key> got = engine_keys(st.pairs);
+    EXPECT_EQ(got.size(), st.pairs.size()) << "a pair is listed twice";
+    const std::set<Key> want = brute_pairs(st.particles, st.cell.h, skin);
+    std::size_t with_fines = 0;
+    for (const Key& k : want) with_fines += k.j >= 300;
+    ASSERT_GE(with_fines, 3u) << "the fines must have partners for the test to be one";
+    EXPECT_EQ(real_mismatches(got, want, st.particles, st.cell.h, skin), 0)
+        << "engine " << got.size() << " pairs, brute force " << want.size();
+  }
+}
+
 // A blown-up state (a NaN position, or one beyond an int's count of cell images) is a RunError
 // naming the particle, not a cast of NaN to int (undefined behaviour, found by the loaders' fuzzer).
 TEST(NeighborList, BlownUpPositionIsARunError) {

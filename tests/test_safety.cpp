@@ -669,3 +669,21 @@ TEST(RunSafety, CellShrinkingBelowTheSizeRuleIsARunTimeStop) {
   }
   EXPECT_TRUE(fs::exists(d / checkpoint_file));
 }
+
+// A legal wide grading (size ratio 1000: 300 spheres of 2 mm and 5 of 2 um) runs: the broad phase
+// sized by the smallest particles once overflowed int and took gigabytes (a segfault).
+TEST(RunSafety, AWideGradingRuns) {
+  const fs::path d = fresh("wide");
+  fs::create_directories(root);
+  const fs::path case_file = root / "wide.toml";
+  std::ofstream(case_file) << "name = \"wide\"\n[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\n"
+                              "poisson_ratio = 0.3\n[sample]\nseed = 1\n"
+                              "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 300\n"
+                              "[[sample.particles]]\ndiameter = \"0.002 mm\"\ncount = 5\n"
+                              "[[phase]]\nname = \"compaction\"\nfriction = 0.2\n"
+                              "stress = { 11 = \"200 kPa\", 22 = \"200 kPa\", 33 = \"200 kPa\" }\n"
+                              "stop = { steps = 50 }\noutput = { every_steps = 10 }\n";
+  const Cli r = cli({"run", case_file.string(), "--out", d.string(), "--threads", "1", "--quiet"}, "wide");
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(fs::exists(d / "series.csv")) << r.err;
+}

@@ -30,7 +30,9 @@ std::vector<SizeClass> resolve_table(const Params::Sample& sample) {
 }
 
 double run_memory_bytes(double particles) {
-  constexpr double bytes_per_particle = 3 * 1024.0;  // 1.9 KiB peak + 0.9 KiB state serialised, rounded up
+  // 1.9 KiB peak + 0.9 KiB state serialised, rounded up; the broad phase's grids are in the peak
+  // at any size ratio (at most one bin per particle and class, neighbor.cpp grid_bins).
+  constexpr double bytes_per_particle = 3 * 1024.0;
   return particles * bytes_per_particle;
 }
 

@@ -30,8 +30,32 @@ struct Grid {
   double r_max = 0;                              // largest bounding radius in the class
   std::vector<std::uint32_t> start, members;     // CSR: bin -> particles
 
-  int bin_index(const Eigen::Vector3i& b) const { return (b.z() * n.y() + b.y()) * n.x() + b.x(); }
+  std::size_t bins() const { return std::size_t(n.x()) * std::size_t(n.y()) * std::size_t(n.z()); }
+  std::size_t bin_index(const Eigen::Vector3i& b) const {
+    return (std::size_t(b.z()) * std::size_t(n.y()) + std::size_t(b.y())) * std::size_t(n.x()) + std::size_t(b.x());
+  }
 };
+
+// Bins per axis of a class's grid: at least 2 r_max + skin wide, so that a bin's neighbours hold
+// every partner, and no more than one per member of the class, so that a few small particles
+// among large ones (a wide grading) cost one bin each, not (cell / r_max)^3 bins in all. Coarser
+// bins only put more members in each.
+Eigen::Vector3i grid_bins(const Vec3& w, double r_max, double skin, std::size_t members) {
+  const double per_length = std::cbrt(static_cast<double>(members) / (w.x() * w.y() * w.z()));
+  Eigen::Vector3i n;
+  for (int k = 0; k < 3; ++k) {
+    const double fine = w[k] / (2 * r_max + skin), sparse = w[k] * per_length;
+    n[k] = static_cast<int>(std::clamp(std::floor(std::min(fine, sparse)), 1.0, double(std::numeric_limits<int>::max())));
+  }
+  // An axis raised to one bin in a flat cell may leave more bins than members: coarsen the others.
+  const auto bins = [&] { return std::size_t(n.x()) * std::size_t(n.y()) * std::size_t(n.z()); };
+  while (bins() > std::max<std::size_t>(members, 1)) {
+    int k = 0;
+    n.maxCoeff(&k);
+    n[k] = std::max(1, n[k] / 2);
+  }
+  return n;
+}
 
 // Size classes: greedy groups of bounding radii within a factor 2, smallest first.
 std::vector<int> size_classes(const Particles& p, std::vector<double>& class_rmax) {
@@ -153,19 +177,20 @@ WrappedPositions wrap_positions(const Particles& p) {
   return w;
 }
 
-// One grid per size class (size_classes), bins at least 2 r_max + skin wide.
+// One grid per size class (size_classes), bins as grid_bins sizes them.
 std::vector<Grid> make_grids(const Particles& p, const std::vector<Vec3>& sw, const std::vector<int>& cls,
                              const std::vector<double>& class_rmax, const Vec3& w, double skin) {
   const std::size_t n = p.size();
   const int nclass = static_cast<int>(class_rmax.size());
   std::vector<Grid> grids(nclass);
+  std::vector<std::size_t> members(nclass, 0);
+  for (std::size_t i = 0; i < n; ++i) ++members[cls[i]];
   std::vector<Eigen::Vector3i> bin_of(n);
   for (int c = 0; c < nclass; ++c) {
     Grid& g = grids[c];
     g.r_max = class_rmax[c];
-    for (int k = 0; k < 3; ++k) g.n[k] = std::max(1, static_cast<int>(w[k] / (2 * g.r_max + skin)));
-    const int nb = g.n.prod();
-    g.start.assign(nb + 1, 0);
+    g.n = grid_bins(w, g.r_max, skin, members[c]);
+    g.start.assign(g.bins() + 1, 0);
     for (std::size_t i = 0; i < n; ++i) {
       if (cls[i] != c) continue;
       Eigen::Vector3i b;
@@ -215,7 +240,7 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
                 img[k] = floor_div(u[k], g.n[k]);
                 bin[k] = u[k] - img[k] * g.n[k];
               }
-              const int b = g.bin_index(bin);
+              const std::size_t b = g.bin_index(bin);
               for (std::uint32_t m = g.start[b]; m < g.start[b + 1]; ++m) {
                 const std::uint32_t j = g.members[m];
                 if (c == cls[i] && j <= i) continue;
@@ -302,6 +327,8 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   std::vector<double> class_rmax;
   const std::vector<int> cls = size_classes(p, class_rmax);
   const std::vector<Grid> grids = make_grids(p, wp.s, cls, class_rmax, cell.widths(), skin);
+  std::size_t bins = 0;
+  for (const Grid& g : grids) bins += g.bins();
   long checked = 0;
   const std::vector<Candidate> all = find_candidates(p, cell, skin, wp, cls, grids, checked);
   PairList next = list_with_history(all, pairs);
@@ -315,6 +342,7 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   ns.restart_motion(p);
   ns.valid = true;
   ns.distance_checks = checked;
+  ns.grid_bins = static_cast<long>(bins);
   ++ns.builds;
 }
 

@@ -8,6 +8,7 @@
 #include <concepts>
 #include <cstdint>
 #include <span>
+#include <string>
 #include <type_traits>
 #include <vector>
 
@@ -107,6 +108,7 @@ struct NeighborState {
   double max_bound_radius = 0;
   long builds = 0;
   long distance_checks = 0;  // pair distances computed by the last build (linear in N, not N^2)
+  long grid_bins = 0;        // bins of the last build's grids: at most one per particle and class
   bool valid = false;
 
   // Motion since the last build, for skipping pairs that are provably apart. Per step the branch
