@@ -264,7 +264,9 @@ int main(int argc, char** argv) {
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
     } else if (*study) {
-      return qsdem::run_study(study_file, {out_dir, quiet, parallel, order});
+      qsdem::StudyOptions options;
+      options.out = out_dir, options.quiet = quiet, options.parallel = parallel, options.order = order;
+      return qsdem::run_study(study_file, options);
     } else if (*converge) {
       ladder.case_file = ladder_case, ladder.sets = overrides, ladder.out = out_dir, ladder.parallel = parallel;
       ladder.quiet = quiet, ladder.tolerances.within_seed_scatter = !no_scatter;

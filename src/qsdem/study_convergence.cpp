@@ -24,25 +24,25 @@ json change_json(const CurveChange& c) { return {{"rms", number_or_null(c.rms)},
 std::vector<Ladder> make_ladders(const std::vector<Run>& runs, const ConvergenceTolerances& tol) {
   std::vector<Ladder> ladders;
   // (sample, model, xi) in the manifest's order, with every seed and rate it has.
-  struct Group {
+  struct RateGroup {
     std::string sample, model;
     double xi;
     std::vector<long> seeds;
     std::vector<double> rates;
     std::vector<const Run*> runs;
   };
-  std::vector<Group> groups;
+  std::vector<RateGroup> groups;
   for (const Run& r : runs) {
     if (r.controlled || !std::isfinite(r.rate) || !(r.rate > 0)) continue;
-    auto g = std::find_if(groups.begin(), groups.end(), [&](const Group& x) {
+    auto g = std::find_if(groups.begin(), groups.end(), [&](const RateGroup& x) {
       return x.sample == r.sample && x.model == r.model && same_value(x.xi, r.xi);
     });
-    if (g == groups.end()) g = groups.insert(groups.end(), Group{r.sample, r.model, r.xi, {}, {}, {}});
+    if (g == groups.end()) g = groups.insert(groups.end(), RateGroup{r.sample, r.model, r.xi, {}, {}, {}});
     if (std::find(g->seeds.begin(), g->seeds.end(), r.seed) == g->seeds.end()) g->seeds.push_back(r.seed);
     if (!has_value(g->rates, r.rate)) g->rates.push_back(r.rate);
     g->runs.push_back(&r);
   }
-  for (Group& g : groups) {
+  for (RateGroup& g : groups) {
     if (g.rates.size() < 2) continue;
     std::sort(g.rates.begin(), g.rates.end(), std::greater<>());
     std::sort(g.seeds.begin(), g.seeds.end());
