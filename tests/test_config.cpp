@@ -178,6 +178,12 @@ TEST(Config, OverridesReplaceValues) {
   expect_mentions(error_of(text, {"damping.model=xd"}), {"damping.model", "xd", "\"od\""});
   expect_mentions(error_of(text, {"damping.ratoi=0.1"}), {"unknown key", "damping.ratoi"});
   expect_mentions(error_of(text, {"sample.particles.3.count=10"}), {"sample.particles.3.count", "out of range"});
+  // An index beyond any integer is out of range too, not an uncaught std::out_of_range.
+  expect_mentions(error_of(text, {"sample.particles.99999999999999999999.count=5"}),
+                  {"index 99999999999999999999 is out of range"});
+  expect_mentions(error_of(text, {"sample.particles.99999999999999999999=5"}), {"index 99999999999999999999 is out"});
+  // A rate that would plan more steps than a run can take (the step count would overflow).
+  expect_mentions(error_of(text, {"triaxial.strain_rate=1e-19"}), {"triaxial.strain_rate", "steps", "raise the rate"});
   expect_mentions(error_of(text, {"damping.ratio"}), {"key=value"});
 }
 

@@ -666,8 +666,29 @@ TEST(RunSafety, CellShrinkingBelowTheSizeRuleIsARunTimeStop) {
     const std::string what = e.what();
     EXPECT_NE(what.find("compaction stopped after compaction step"), std::string::npos) << what;
     EXPECT_NE(what.find("half the smallest cell width"), std::string::npos) << what;
+    EXPECT_NE(what.find("before the phase reached its stops (equilibrium)"), std::string::npos) << what;
+    EXPECT_EQ(what.find("sample.total_particles"), std::string::npos) << "advice for a case before its run: " << what;
   }
   EXPECT_TRUE(fs::exists(d / checkpoint_file));
+}
+
+// A stress stop the loading moves away from (axis 33 extended while its stop is a compression of
+// 1 MPa) ends in a run-time stop naming the stop and the stress now, not a cell-size input error.
+TEST(RunSafety, AStopTheLoadingMovesAwayFromIsNamedWhenTheCellGivesOut) {
+  const fs::path d = fresh("away");
+  fs::create_directories(root);
+  const fs::path case_file = root / "away.toml";
+  std::ofstream(case_file) << "name = \"away\"\n[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\n"
+                              "poisson_ratio = 0.3\n[sample]\nseed = 1\n"
+                              "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 120\n"
+                              "[[phase]]\nname = \"extension\"\nfriction = 0.5\nstrain_rate = { 33 = -1e-3 }\n"
+                              "stress = { 11 = \"200 kPa\", 22 = \"200 kPa\" }\n"
+                              "stop = { stress = { 33 = \"1 MPa\" } }\noutput = { every_steps = 1000 }\n";
+  const Cli r = cli({"run", case_file.string(), "--out", d.string(), "--threads", "1", "--quiet"}, "away");
+  EXPECT_EQ(r.code, 3) << r.err;
+  EXPECT_NE(r.err.find("extension stopped after extension step"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("before the phase reached its stops (stress 33 = 1000 kPa (now"), std::string::npos) << r.err;
+  EXPECT_EQ(r.err.find("sample.total_particles"), std::string::npos) << r.err;
 }
 
 // A legal wide grading (size ratio 1000: 300 spheres of 2 mm and 5 of 2 um) runs: the broad phase

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cctype>
 #include <cerrno>
+#include <charconv>
 #include <cmath>
 #include <cstring>
 #include <filesystem>
@@ -42,6 +43,13 @@ bool is_index(const std::string& s) {
   return !s.empty() && s.find_first_not_of("0123456789") == std::string::npos;
 }
 
+// An index's value (is_index), SIZE_MAX when it is too large to be one: out of range of any array.
+std::size_t index_value(const std::string& s) {
+  std::size_t v = 0;
+  const auto [end, err] = std::from_chars(s.data(), s.data() + s.size(), v);
+  return err == std::errc() && end == s.data() + s.size() ? v : SIZE_MAX;
+}
+
 // Applies "a.b.c=value" to the table; the value is parsed as TOML, or kept as a string.
 void apply_override(toml::table& root, const std::string& assignment) {
   require_utf8(assignment, "--set");  // a value that is not TOML is kept as a string, unchecked by the parser
@@ -64,10 +72,10 @@ void apply_override(toml::table& root, const std::string& assignment) {
   for (std::size_t k = 0; k + 1 < parts.size(); ++k) {
     const std::string& p = parts[k];
     if (auto* arr = node->as_array(); arr && is_index(p)) {
-      const auto idx = std::stoul(p);
+      const auto idx = index_value(p);
       if (idx >= arr->size())
         throw InputError(fmt::format("--set '{}': index {} is out of range ({} entries)", key,
-                                     idx, arr->size()));
+                                     p, arr->size()));
       node = arr->get(idx);
     } else if (auto* tbl = node->as_table()) {
       if (!tbl->contains(p)) tbl->insert(p, toml::table{});
@@ -78,9 +86,9 @@ void apply_override(toml::table& root, const std::string& assignment) {
   }
   const std::string& last = parts.back();
   if (auto* arr = node->as_array(); arr && is_index(last)) {
-    const auto idx = std::stoul(last);
+    const auto idx = index_value(last);
     if (idx >= arr->size())
-      throw InputError(fmt::format("--set '{}': index out of range", key));
+      throw InputError(fmt::format("--set '{}': index {} is out of range ({} entries)", key, last, arr->size()));
     arr->replace(arr->begin() + static_cast<std::ptrdiff_t>(idx), std::move(value));
   } else if (auto* tbl = node->as_table()) {
     tbl->insert_or_assign(last, std::move(value));
@@ -124,7 +132,7 @@ class Reader {
       if (const auto* tbl = node->as_table()) {
         node = tbl->get(p);
       } else if (const auto* arr = node->as_array(); arr && is_index(p)) {
-        node = arr->get(std::stoul(p));
+        node = arr->get(index_value(p));
       } else {
         return nullptr;
       }
@@ -490,6 +498,9 @@ class ControllerTable final : public ControllerKeys {
 
 // Default sample points: 250 over a phase whose end is known in advance, else every 200 steps.
 constexpr long default_points = 250, default_every_steps = 200, default_max_steps = 2'000'000;
+// The most steps a phase may plan: a year of the fastest stepping on the smallest sample, and far
+// below the step counter's range (a rate near 1e-20 plans past it).
+constexpr double max_planned_steps = 1e12;
 
 // One [[phase]] entry, `k` = "phase.N" (docs/config.md).
 Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step_ratio, const ContactSettings& contact) {
@@ -569,9 +580,20 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
                                           "must be nonzero and in (-100 %, 100 %)");
     stop.stress[kc] = r.optional_quantity(k + ".stop.stress." + name, Dimension::stress, [](double) { return true; }, "");
     const auto& control = ph.controls.component[kc];
+    if (stop.strain[kc] && control.kind == ComponentControl::Kind::fixed)
+      r.fail(k + ".stop.strain." + name, r.find(k + ".stop.strain." + name),
+             fmt::format("component {} is fixed (no strain_rate, stress or constant_volume): its strain stays 0", name));
     if (planned_strain(ph, c) && (*stop.strain[kc] > 0) != (control.value > 0))
       r.fail(k + ".stop.strain." + name, r.find(k + ".stop.strain." + name),
              fmt::format("the strain rate of component {} ({}) never reaches it", name, control.value));
+    if (planned_strain(ph, c)) {
+      const double steps = std::abs(*stop.strain[kc] / (step_ratio * control.value));
+      if (steps > max_planned_steps)
+        r.fail(k + ".strain_rate." + name, r.find(k + ".strain_rate." + name),
+               fmt::format("the phase would take {:.3g} steps to its strain stop (stop.strain / (time.step_ratio "
+                           "strain_rate)), more than the {:.0e} allowed: raise the rate",
+                           steps, max_planned_steps));
+    }
   }
   if (r.find(k + ".stop.equilibrium")) {
     const std::string e = k + ".stop.equilibrium";
@@ -601,6 +623,9 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   if (out.file.size() < 5 || out.file.substr(out.file.size() - 4) != ".csv" || out.file.find('/') != std::string::npos ||
       out.file.front() == '.')
     r.fail(k + ".output.file", r.find(k + ".output.file"), "must be a file name ending in .csv, in the run directory");
+  if (out.file == classes_file)
+    r.fail(k + ".output.file", r.find(k + ".output.file"),
+           fmt::format("{} is the run's per-class file (output.classes): name another file", classes_file));
   out.clock = r.text(k + ".output.clock", std::string("phase"), {"phase", "run"}) == "run" ? PhaseOutput::Clock::run
                                                                                       : PhaseOutput::Clock::phase;
   const auto points = r.optional_integer(k + ".output.points", 1, 1'000'000);
@@ -794,6 +819,11 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   p.phase_list = r.find("phase") != nullptr;
   if (!p.phase_list) {
     const double steps = t.final_axial_strain / (p.step_ratio * t.strain_rate);
+    if (steps > max_planned_steps)
+      r.fail("triaxial.strain_rate", r.find("triaxial.strain_rate"),
+             fmt::format("the test would take {:.3g} steps (final_axial_strain / (time.step_ratio strain_rate)), more "
+                         "than the {:.0e} allowed: raise the rate",
+                         steps, max_planned_steps));
     if (t.sample_points > steps)
       r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
              fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "

@@ -17,6 +17,8 @@
 
 namespace qsdem {
 
+inline constexpr const char* classes_file = "classes.csv";  // docs/physics.md 10.3, output.classes
+
 // One row of the particle-size table (SPEC 9): a shape and how many of it.
 struct SizeClass {
   ShapeKind shape = ShapeKind::sphere;

@@ -84,10 +84,10 @@ void check_cell_size(const Particles& p, const Cell& cell, double skin) {
   const double wmin = cell.widths().minCoeff();
   // A particle must stay smaller than half the cell (SPEC 3); the skin keeps the list exact.
   if (2 * rmax + skin >= 0.5 * wmin)
-    throw InputError(fmt::format(
-        "the largest particle (diameter {:.4g} mm, plus skin {:.3g} mm) is not smaller than half the "
-        "smallest cell width ({:.4g} mm): use more particles (sample.total_particles) or smaller ones",
-        2e3 * rmax, 1e3 * skin, 1e3 * wmin));
+    throw CellTooSmall(fmt::format("the largest particle (diameter {:.4g} mm, plus skin {:.3g} mm) is not smaller "
+                                   "than half the smallest cell width ({:.4g} mm)",
+                                   2e3 * rmax, 1e3 * skin, 1e3 * wmin),
+                       "use more particles (sample.total_particles) or smaller ones");
 }
 
 void NeighborState::restart_motion(const Particles& p) {

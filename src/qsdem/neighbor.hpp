@@ -166,7 +166,13 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
 // Rebuilds first_i and block_first from the (sorted) pair keys.
 void build_incidence(PairList& pairs, std::size_t n_particles);
 
-// Refuses a cell in which a particle could touch its own image (SPEC 3).
+// The cell-size guard's error: an input error before a run, a deformation gone too far in one.
+struct CellTooSmall : InputError {
+  CellTooSmall(const std::string& sizes, const std::string& advice) : InputError(sizes + ": " + advice), fact(sizes) {}
+  std::string fact;  // the sizes, without the advice for a sample before its run
+};
+
+// Refuses a cell in which a particle could touch its own image (SPEC 3): throws CellTooSmall.
 void check_cell_size(const Particles& p, const Cell& cell, double skin);
 
 }  // namespace qsdem

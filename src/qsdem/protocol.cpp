@@ -155,6 +155,24 @@ bool measured_end(const Phase& phase, PhaseState& s, const State& st, const Mat3
   return reached;
 }
 
+// The phase's stops, its strain and stress ones against the values now, for a message.
+std::string stops_now(const Phase& phase, const State& st, const Mat3& h0) {
+  const auto strain = phase_strain(st.stress_h, h0);
+  std::string out = phase.stop.equilibrium ? "equilibrium" : "";
+  if (phase.stop.steps > 0) out += fmt::format("{}{} steps", out.empty() ? "" : ", ", phase.stop.steps);
+  for (int c = 0; c < component_count; ++c) {
+    const auto k = static_cast<std::size_t>(c);
+    const auto [a, b] = component_axes[k];
+    if (const auto& e = phase.stop.strain[k])
+      out += fmt::format("{}strain {} = {:.4g} % (now {:.4g} %)", out.empty() ? "" : ", ", component_names[k], 100 * *e,
+                         100 * strain[k]);
+    if (const auto& s = phase.stop.stress[k])
+      out += fmt::format("{}stress {} = {:.4g} kPa (now {:.4g} kPa)", out.empty() ? "" : ", ", component_names[k],
+                         *s / 1e3, st.stress(a, b) / 1e3);
+  }
+  return out;
+}
+
 bool in_equilibrium(const Measures& m, const StopCriteria::Equilibrium& e, double error) {
   return m.contacts > 0 && error < e.stress_tolerance && (!e.ufr || m.ufr < *e.ufr) && (!e.imom || m.imom < *e.imom);
 }
@@ -264,7 +282,13 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   bool ended = false;
   while (!ended) {
     const long n = rec.steps;  // the force evaluation of this step
-    step(model, st, schedule);
+    try {
+      step(model, st, schedule);
+    } catch (const CellTooSmall& e) {  // the loading went on until the cell no longer holds the sample
+      throw RunError(fmt::format("{} stopped after {} step {}: the cell has deformed until {}, before the phase "
+                                 "reached its stops ({}): check that the loading moves towards them",
+                                 phase.name, phase.name, n, e.fact, stops_now(phase, st, rec.h0)));
+    }
     watch.check(st, params, name, n);
     ++rec.steps;
     rec.wall_s = wall_before + seconds_since(t0);  // before the hook, which may save a checkpoint

@@ -41,7 +41,6 @@ struct Interrupted : std::runtime_error {
 
 // File names inside a run directory.
 inline constexpr const char* checkpoint_file = "checkpoint.qsck";
-inline constexpr const char* classes_file = "classes.csv";  // docs/physics.md 10.3, output.classes
 inline constexpr const char* prepared_sample_file = "sample.qsck";
 inline constexpr const char* run_lock_file = ".run.lock";
 
