@@ -651,6 +651,33 @@ TEST(RunSafety, VersionNamesTheSource) {
   EXPECT_EQ(nlohmann::json::parse(slurp(reference() / "summary.json"))["version"], version);
 }
 
+// summary.json's build: the version, the full commit of the source (git rev-parse HEAD) and
+// whether the tree was clean (as the version's "-dirty" says); nulls without git.
+TEST(RunSafety, SummaryNamesItsBuild) {
+  const auto shell = [](const std::string& cmd) {
+    std::string out;
+    if (std::FILE* p = ::popen(cmd.c_str(), "r")) {
+      char buf[256];
+      while (std::fgets(buf, sizeof buf, p)) out += buf;
+      if (::pclose(p) != 0) out.clear();
+    }
+    while (!out.empty() && out.back() == '\n') out.pop_back();
+    return out;
+  };
+  const std::string head = shell(std::string("git -C '") + QSDEM_SOURCE_DIR + "' rev-parse HEAD 2>/dev/null");
+  const nlohmann::json build = nlohmann::json::parse(slurp(reference() / "summary.json"))["build"];
+  const std::string version = QSDEM_VERSION;
+  EXPECT_EQ(build["version"], version);
+  if (head.empty()) {
+    EXPECT_TRUE(build["commit"].is_null()) << build;
+    EXPECT_TRUE(build["tree_clean"].is_null()) << build;
+  } else {
+    EXPECT_EQ(build["commit"], head);
+    const bool dirty = version.size() > 6 && version.substr(version.size() - 6) == "-dirty";
+    EXPECT_EQ(build["tree_clean"], !dirty) << build;
+  }
+}
+
 // A cell that shrinks below the size rule of SPEC 3 during compaction is a stop at run time
 // (RunError, exit 3) that keeps the checkpoints, not an input error that left them behind.
 TEST(RunSafety, CellShrinkingBelowTheSizeRuleIsARunTimeStop) {

@@ -671,6 +671,10 @@ TEST(StudyCli, RefusesAChangedCaseFileOrSample) {
   EXPECT_EQ(m["samples"][0]["case"], fs::weakly_canonical(dir / "case.toml").string());
   EXPECT_EQ(m["samples"][0]["case_fnv1a64"].get<std::string>().size(), 16u);
   ASSERT_TRUE(m["samples"][0].contains("compacted_fnv1a64"));
+  // The build that made it, once however often it worked on the study.
+  ASSERT_EQ(m["builds"].size(), 1u) << m["builds"];
+  EXPECT_EQ(m["builds"][0]["version"], QSDEM_VERSION);
+  EXPECT_TRUE(m["builds"][0].contains("commit") && m["builds"][0].contains("tree_clean")) << m["builds"];
   const std::string case_text = slurp(dir / "case.toml");
   write(dir / "case.toml", case_text + "# edited\n");
   r = study(file, out, dir / "log");
@@ -680,6 +684,7 @@ TEST(StudyCli, RefusesAChangedCaseFileOrSample) {
   write(dir / "case.toml", case_text);
   r = study(file, out, dir / "log");
   EXPECT_EQ(r.code, 0) << "restored: " << r.err;
+  EXPECT_EQ(manifest(out)["builds"].size(), 1u) << "the same build again is not listed twice";
   // The sample prepared anew with another seed, by hand.
   const fs::path sample = out / m["samples"][0]["dir"].get<std::string>();
   const Result again = run({binary, "prepare", (dir / "case.toml").string(), "--out", sample.string(), "--force",
@@ -693,6 +698,97 @@ TEST(StudyCli, RefusesAChangedCaseFileOrSample) {
   r = study(file, out, dir / "log");
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("the prepared sample"), std::string::npos) << r.err;
+  fs::remove_all(dir);
+}
+
+// The study's own copy of a case file: one edited (here: made unreadable) while the study runs
+// reaches none of its runs, which finish with the uninterrupted study's series.
+TEST(Study, ACaseFileEditedDuringTheStudyReachesNoRun) {
+  const Reference& ref = reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const fs::path dir = fresh_dir("edited");
+  write(dir / "case.toml", slurp(source_dir / "examples" / "spheres-A-small.toml"));
+  std::string text = slurp(tiny_study);
+  const std::string from = "case = \"../examples/spheres-A-small.toml\"";
+  text.replace(text.find(from), from.size(), "case = \"case.toml\"");
+  write(dir / "study.toml", text);
+  const fs::path out = dir / "out";
+  const pid_t pid = spawn({binary, "study", (dir / "study.toml").string(), "--out", out.string(), "--quiet"}, dir / "log");
+  ASSERT_GT(pid, 0);
+  const auto m = manifest(ref.dir);
+  const auto any_run_begun = [&] {
+    for (const auto& r : m["runs"])
+      if (fs::exists(out / r["dir"].get<std::string>() / "run.log")) return true;
+    return false;
+  };
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(3);
+  while (!any_run_begun() && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  ASSERT_TRUE(any_run_begun());
+  write(dir / "case.toml", "this is [ not a case\n");
+  const Result r = finish(pid, dir / "log");
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(slurp(out / "cases" / "tiny.toml"), slurp(source_dir / "examples" / "spheres-A-small.toml"));
+  for (const auto& run : m["runs"]) {
+    const std::string rel = run["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(out / rel)) << rel << "\n" << r.err;
+    EXPECT_EQ(slurp(out / rel), slurp(ref.dir / rel)) << rel;
+  }
+  fs::remove_all(dir);
+}
+
+// A child killed by a signal the study did not send (SIGKILL, as the OOM killer sends) is
+// continued, not failed: the study ends with every run and the uninterrupted study's series.
+TEST(Study, AChildKilledBySignalIsContinuedNotFailed) {
+  const Reference& ref = reference();
+  ASSERT_TRUE(completed(ref.result)) << ref.result.err;
+  const fs::path dir = fresh_dir("sigkill");
+  const fs::path out = dir / "study";
+  const pid_t pid = spawn({binary, "study", tiny_study.string(), "--out", out.string(), "--quiet"}, dir / "log");
+  ASSERT_GT(pid, 0);
+  const auto m = manifest(ref.dir);
+  // The pid of the child whose arguments name `run_dir` (run --out DIR, or resume DIR).
+  const auto child_of = [](const fs::path& run_dir) -> pid_t {
+    for (const auto& e : fs::directory_iterator("/proc")) {
+      const std::string name = e.path().filename().string();
+      if (name.find_first_not_of("0123456789") != std::string::npos) continue;
+      std::ifstream in(e.path() / "cmdline", std::ios::binary);
+      std::string arg;
+      bool study_child = false, names_dir = false;
+      while (std::getline(in, arg, '\0')) {
+        study_child = study_child || arg == "run" || arg == "resume";
+        names_dir = names_dir || arg == run_dir.string();
+      }
+      if (study_child && names_dir) return static_cast<pid_t>(std::stol(name));
+    }
+    return -1;
+  };
+  std::string killed;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(3);
+  while (killed.empty() && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    for (const auto& run : m["runs"]) {
+      const fs::path d = out / run["dir"].get<std::string>();
+      if (!fs::exists(d / "series.csv.partial") || fs::exists(d / "summary.json")) continue;
+      const std::string rows = slurp(d / "series.csv.partial");
+      if (std::count(rows.begin(), rows.end(), '\n') > 4) continue;  // most of the run still ahead
+      if (const pid_t child = child_of(d); child > 0 && ::kill(child, SIGKILL) == 0) {
+        killed = run["id"].get<std::string>();
+        break;
+      }
+    }
+  }
+  ASSERT_FALSE(killed.empty()) << "no run was caught in progress";
+  const Result r = finish(pid, dir / "log");
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("run " + killed + " was stopped by signal 9 (not by the study): continued"), std::string::npos)
+      << r.err;
+  EXPECT_FALSE(fs::exists(out / "failures.json"));
+  for (const auto& run : m["runs"]) {
+    const std::string rel = run["dir"].get<std::string>() + "/series.csv";
+    ASSERT_TRUE(fs::exists(out / rel)) << rel << "\n" << r.err;
+    EXPECT_EQ(slurp(out / rel), slurp(ref.dir / rel)) << rel;
+  }
   fs::remove_all(dir);
 }
 

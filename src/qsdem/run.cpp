@@ -534,6 +534,7 @@ class Execution {
     const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st_.particles.size());
     nlohmann::json s;
     s["version"] = QSDEM_VERSION;
+    s["build"] = build_record();
     s["case"] = params_.name;
     s["config"] = {{"resolved_si", to_json(params_)}, {"as_written", params_.as_written}};
     s["derived"] = {{"particles", st_.particles.size()},
@@ -965,6 +966,14 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
           {"damping_ratio", phase.damping.ratio},
           {"neighbor_builds", st.neighbor.builds - builds_before},
           {"stages", stage_json(st.timers, steps)}};
+}
+
+nlohmann::json build_record() {
+  const std::string commit = QSDEM_COMMIT;
+  const int clean = QSDEM_TREE_CLEAN;
+  return {{"version", QSDEM_VERSION},
+          {"commit", commit.empty() ? nlohmann::json() : nlohmann::json(commit)},
+          {"tree_clean", clean < 0 ? nlohmann::json() : nlohmann::json(clean == 1)}};
 }
 
 }  // namespace qsdem

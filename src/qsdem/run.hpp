@@ -51,6 +51,11 @@ inline constexpr const char* run_lock_file = ".run.lock";
 // locked (DIR/.run.lock) while the run lasts. Returns the summary.
 nlohmann::json run_case(const Params& params, const RunOptions& options);
 
+// The engine's build, as summary.json and study.json record it: version (QSDEM_VERSION), commit
+// (the full hash of the source's HEAD; null without git) and tree_clean (false when a tracked file
+// differed from that commit, as a "-dirty" version says; null without git).
+nlohmann::json build_record();
+
 // Continues the run in `dir` from its newest good checkpoint (and finishes a run stopped while
 // writing its results), with options.sets applied.
 nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& options);

@@ -185,6 +185,19 @@ bool holds_checkpoint(const fs::path& dir) {
   return fs::exists(dir / checkpoint_file) || fs::exists(dir / "checkpoint.qsck.prev");
 }
 
+// The copy of a sample's case file that its children run (study_dir/cases/<sample>.toml), written
+// from the bytes the study was loaded with: an edit of the case file during the study reaches none
+// of its runs (the next start refuses it, check_recorded).
+fs::path case_copy(const fs::path& study_dir, const StudySample& smp) { return study_dir / "cases" / (smp.name + ".toml"); }
+
+void write_case_copies(const Study& study, const fs::path& out) {
+  make_directories(out, "cases");
+  for (const StudySample& smp : study.samples) {
+    const fs::path copy = case_copy(out, smp);
+    if (read_regular_file(copy) != smp.case_text) write_file_atomic(copy, smp.case_text);
+  }
+}
+
 // A run with a checkpoint resumes from it; anything else starts afresh (--force clears what an
 // unfinished start left). An interrupted `prepare` restarts (a prepared sample of checkpoint format
 // 4 or older would be sheared by `resume`).
@@ -302,6 +315,12 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
   std::map<std::size_t, std::pair<double, double>> cost;  // group -> (wall s, steps) of finished runs
   std::size_t next = 0, done = 0;
   bool forwarded = false;
+  // Children killed by a signal the study did not send (the OOM killer, a kill by hand) are
+  // continued from their checkpoints, at most max_restarts times each: an incomplete sweep would
+  // make the next stage's pick.
+  constexpr int max_restarts = 3;
+  std::vector<std::size_t> again;
+  std::map<std::size_t, int> restarts;
   const auto t0 = clock::now();
   std::vector<char> done_before(jobs.size(), 0);  // finished before this pool: counted, timed, skipped
 
@@ -359,10 +378,16 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
       for (const auto& r : running) ::kill(r.pid, stop_signal);
       forwarded = true;
     }
-    while (stop_signal == 0 && running.size() < std::size_t(parallel) && next < jobs.size()) {
-      const std::size_t k = next++;
+    while (stop_signal == 0 && running.size() < std::size_t(parallel) && (!again.empty() || next < jobs.size())) {
+      std::size_t k = 0;
+      if (!again.empty()) {
+        k = again.front();
+        again.erase(again.begin());
+      } else {
+        k = next++;
+        if (done_before[k]) continue;
+      }
       const Job& j = jobs[k];
-      if (done_before[k]) continue;
       if (!j.needs.empty() && !fs::exists(j.needs / prepared_sample_file)) {
         fail(j, fmt::format("its sample {} was not prepared", j.needs.filename().string()), -1);
         continue;
@@ -374,7 +399,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
         fail(j, e.what(), -1);
       }
     }
-    if (running.empty() && (stop_signal != 0 || next == jobs.size())) break;
+    if (running.empty() && (stop_signal != 0 || (next == jobs.size() && again.empty()))) break;
     show();
     ::usleep(100'000);  // a signal cuts the nap short
     for (std::size_t r = 0; r < running.size();) {
@@ -383,14 +408,24 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
         ++r;
         continue;
       }
-      const Job& j = jobs[running[r].job];
+      const std::size_t k = running[r].job;
+      const Job& j = jobs[k];
       running.erase(running.begin() + std::ptrdiff_t(r));
       const int code = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+      const bool by_signal = WIFSIGNALED(status) || code == 130 || code == 143;  // killed, or stopped at a checkpoint
       if (code == 0 && finished(j)) {
         ++done;
         record_cost(j);
       } else if (stop_signal != 0 && (code == 130 || code == 143)) {
         // interrupted as asked: its checkpoint continues it next time
+      } else if (stop_signal == 0 && by_signal && restarts[k] < max_restarts) {
+        ++restarts[k];
+        again.push_back(k);
+        progress.message(fmt::format("{} {} was stopped by signal {} (not by the study): continued from its {} ({} of {})",
+                                     j.kind == Job::Kind::prepare ? "sample" : "run", j.id,
+                                     WIFSIGNALED(status) ? WTERMSIG(status) : code - 128,
+                                     j.kind == Job::Kind::run && holds_checkpoint(j.dir) ? "checkpoint" : "start",
+                                     restarts[k], max_restarts));
       } else {
         fail(j, log_tail(log_of(j), 3), code);
       }
@@ -505,9 +540,16 @@ void check_recorded(const Study& study, const fs::path& out, const nlohmann::jso
   }
 }
 
-// The manifest with the recorded hashes of the prepared samples kept.
+// The manifest with the recorded hashes of the prepared samples kept, and the builds that have
+// worked on the study (build_record), this one last when it is new.
 nlohmann::ordered_json manifest_keeping(const Study& study, const nlohmann::json& recorded) {
   nlohmann::ordered_json m = study_manifest(study);
+  m["builds"] = nlohmann::ordered_json::array();
+  const auto ordered = [](const nlohmann::json& j) { return nlohmann::ordered_json::parse(j.dump()); };
+  if (recorded.is_object() && recorded.contains("builds") && recorded["builds"].is_array())
+    for (const auto& b : recorded["builds"]) m["builds"].push_back(ordered(b));
+  const nlohmann::ordered_json self = ordered(build_record());
+  if (std::find(m["builds"].begin(), m["builds"].end(), self) == m["builds"].end()) m["builds"].push_back(self);
   if (recorded.is_object() && recorded.contains("samples"))
     for (auto& smp : m["samples"])
       for (const auto& old : recorded["samples"])
@@ -551,6 +593,7 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
   check_recorded(study, out, recorded);
   adopt_recorded_picks(study, recorded);
   if (!has_copy || copied != study.text) write_file_atomic(copy, study.text);  // new, or new comments
+  write_case_copies(study, out);
   write_file_atomic(out / "study.json", json_text(manifest_keeping(study, recorded)) + "\n");
 }
 
@@ -582,8 +625,10 @@ std::vector<Job> sample_jobs(const Study& study, const fs::path& out) {
     j.study_dir = out;
     j.dir = out / smp.dir;
     j.threads = study.threads_per_run;
-    j.fresh = {"prepare", smp.case_file.string()};
+    j.fresh = {"prepare", case_copy(out, smp).string()};
     for (const auto& s : smp.sets) j.fresh.insert(j.fresh.end(), {"--set", s});
+    // A relative sample.from of the case file is relative to the file, not to its copy.
+    if (!smp.from.empty()) j.fresh.insert(j.fresh.end(), {"--set", "sample.from=" + smp.from});
     j.fresh.insert(j.fresh.end(), {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force"});
     j.group = k;
     jobs.push_back(std::move(j));
@@ -605,7 +650,7 @@ std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level, co
     j.dir = out / run.dir;
     j.needs = out / smp.dir;
     j.threads = study.threads_per_run;
-    j.fresh = {"run", smp.case_file.string(), "--set", "sample.from=" + j.needs.string()};
+    j.fresh = {"run", case_copy(out, smp).string(), "--set", "sample.from=" + j.needs.string()};
     for (const auto& s : run.sets) j.fresh.insert(j.fresh.end(), {"--set", s});
     j.fresh.insert(j.fresh.end(), {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force"});
     j.expected_steps = steps_left(j.dir, run.expected_steps);

@@ -25,7 +25,9 @@ struct StudySample {
   std::uint64_t seed = 1;             // sample.seed it is prepared with
   std::string dir;                    // relative to the study directory: samples/<name>-seed<S>
   std::filesystem::path case_file;    // absolute
-  std::string case_hash;              // FNV-1a 64 of the case file's bytes, 16 hex digits
+  std::string case_text;              // its bytes as read when the study was loaded
+  std::string case_hash;              // FNV-1a 64 of case_text, 16 hex digits
+  std::string from;                   // sample.from as the case resolves it (absolute), or empty
   std::vector<std::string> sets;      // --set overrides of `qsdem prepare` (seed first)
   std::vector<std::string> run_sets;  // the sample's own overrides, also given to its runs
 };

@@ -339,6 +339,7 @@ void read_samples(const StudyReader& r, const toml::table& root, const std::vect
         throw InputError(fmt::format("{}: sample '{}'{}: {}", r.file(), sample_name, what, e.what()));
       }
     };
+    const std::string text = slurp(case_file);  // what the children run (case_copy), hashed once
     const Params base = check(own, "");
     const std::vector<std::uint64_t> sample_seeds = seeds.empty() ? std::vector{base.sample.seed} : seeds;
     for (const std::uint64_t seed : sample_seeds) {
@@ -347,11 +348,12 @@ void read_samples(const StudyReader& r, const toml::table& root, const std::vect
       smp.seed = seed;
       smp.dir = fmt::format("samples/{}-seed{}", sample_name, seed);
       smp.case_file = case_file;
-      smp.case_hash = fnv1a64_hex(slurp(case_file));
+      smp.case_text = text;
+      smp.case_hash = fnv1a64_hex(text);
       if (!seeds.empty()) smp.sets.push_back(fmt::format("sample.seed={}", seed));
       smp.sets.insert(smp.sets.end(), own.begin(), own.end());
       smp.run_sets = own;
-      check(smp.sets, fmt::format(" seed {}", seed));
+      smp.from = check(smp.sets, fmt::format(" seed {}", seed)).sample.from;
       s.samples.push_back(smp);
     }
   }
