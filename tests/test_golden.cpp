@@ -6,7 +6,7 @@
 // re-compacted to 390 kPa (its contact history is not in the packing), then sheared to 0.2 %
 // axial strain at eps' = 1e-5, 10 sample points: ~8400 + 626 steps, all stages, ellipsoid contacts.
 // Regenerate (after a change that is MEANT to change the physics, and say so in the commit):
-//   QSDEM_REGENERATE_GOLDEN=1 build/tests/qsdem_tests --gtest_filter='Golden.*'
+//   QSDEM_REGENERATE_GOLDEN=1 build/tests/qsdem_process_tests --gtest_filter='Golden.*'
 #include <gtest/gtest.h>
 
 #include <cmath>

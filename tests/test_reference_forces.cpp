@@ -1,6 +1,6 @@
 // The fast force stage (forces.cpp: lanes, blocks, threads, the vector clones) against the plain
 // one (reference_forces.cpp) on random mixed packings in triclinic cells, for each contact law.
-// This file is built twice: into qsdem_tests, where the CPU picks the AVX2 clones when it has AVX2,
+// This file is built twice: into qsdem_unit_tests, where the CPU picks the AVX2 clones when it has AVX2,
 // and into qsdem_tests_baseline with an engine built for the x86-64 baseline only
 // (QSDEM_BASELINE_ONLY): both must give the reference's results.
 #include <gtest/gtest.h>
