@@ -12,8 +12,9 @@ docs/results/paper-full/measures/builds.csv, one row per directory:
              analysis/ directory: its analysis.json's study.qsdem_version, the build of `qsdem
              analyze`; a version without "+commit" names no commit)
   build      summary.json's "version": the build that wrote the summary, i.e. finished the run
-  commit     the commit in that version string
-  dirty      true when the version ends in -dirty: the build's tree had uncommitted changes, so
+  commit     the commit in that version string (or the full hash of summary.json's "build" record,
+             which newer builds write with "tree_clean")
+  dirty      true when the version ends in -dirty (or "tree_clean" is false): the build's tree had uncommitted changes, so
              the engine's source at that build is not recoverable from git alone
   resumed_at_step, resume_changes
              summary.json's "resume_changes" (a run continued from a checkpoint records the step
@@ -56,6 +57,14 @@ def rows():
             s = json.load(f)
         version = s.get("version", "")
         m = VERSION.match(version)
+        commit = m.group(1) if m else ""
+        dirty = ("true" if m.group(2) else "false") if m else ""
+        record = s.get("build")  # newer summaries: {version, commit (full hash), tree_clean}
+        if isinstance(record, dict):
+            version = record.get("version") or version
+            commit = record.get("commit") or commit
+            if record.get("tree_clean") is not None:
+                dirty = "false" if record["tree_clean"] else "true"
         changes = s.get("resume_changes") or []
         steps_at = sorted({int(x) for c in changes for x in RESUME.findall(c)})
         rel = os.path.relpath(top, RESULTS)
@@ -64,8 +73,8 @@ def rows():
             "path": rel.replace(os.sep, "/"),
             "kind": "sample" if s.get("steps_cover") == "compaction" else "run",
             "build": version,
-            "commit": m.group(1) if m else "",
-            "dirty": ("true" if m.group(2) else "false") if m else "",
+            "commit": commit,
+            "dirty": dirty,
             "resumed_at_step": " ".join(str(x) for x in steps_at),
             "resume_changes": "; ".join(changes),
             "threads": s.get("derived", {}).get("threads", ""),
