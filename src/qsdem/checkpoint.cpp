@@ -22,7 +22,7 @@ constexpr char magic[8] = {'Q', 'S', 'D', 'E', 'M', 'C', 'K', 'P'};
 constexpr std::size_t header_size = 8 + 4 + 4 + 8 + 8;
 
 // Appends plain values and arrays of them to a byte buffer.
-class Writer {
+class BinaryWriter {
  public:
   template <class T>
   void pod(const T& v) {
@@ -52,10 +52,10 @@ class Writer {
   std::vector<char> out;
 };
 
-// Reads what Writer wrote; any overrun is a damaged file.
-class Reader {
+// Reads what BinaryWriter wrote; any overrun is a damaged file.
+class BinaryReader {
  public:
-  Reader(const char* data, std::size_t size, std::string file) : p_(data), end_(data + size), file_(std::move(file)) {}
+  BinaryReader(const char* data, std::size_t size, std::string file) : p_(data), end_(data + size), file_(std::move(file)) {}
   template <class T>
   void pod(T& v) {
     static_assert(std::is_trivially_copyable_v<T>);
@@ -307,7 +307,7 @@ void io_phase_state(IO& io, S& s) {
   io.vec(s.controller);
 }
 
-void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
+void io_run(BinaryWriter& w, const RunProgress& r, std::uint32_t version) {
   if (version < 7) {
     LegacyRun l = to_legacy(r);
     io_legacy_run(w, l, version);
@@ -336,7 +336,7 @@ void io_run(Writer& w, const RunProgress& r, std::uint32_t version) {
   }
 }
 
-void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
+void io_run(BinaryReader& in, RunProgress& r, std::uint32_t version) {
   if (version < 7) {
     LegacyRun l;
     io_legacy_run(in, l, version);
@@ -379,10 +379,10 @@ void io_run(Reader& in, RunProgress& r, std::uint32_t version) {
 
 // The contact history's layout, by its name (contact/law.hpp) from format 6 on; the formats
 // before hold Hertz-Mindlin's tangential force.
-void io_history_layout(Writer& w, const PairHistory& h, std::uint32_t version) {
+void io_history_layout(BinaryWriter& w, const PairHistory& h, std::uint32_t version) {
   if (version >= 6) w.str(std::string(h.layout->name));
 }
-void io_history_layout(Reader& r, PairHistory& h, std::uint32_t version) {
+void io_history_layout(BinaryReader& r, PairHistory& h, std::uint32_t version) {
   if (version < 6) {
     h.layout = &HertzMindlin::history;
     return;
@@ -441,7 +441,7 @@ void io_state(IO& io, S& st, std::uint32_t version = checkpoint_format_version) 
 // known here (check_checkpoint_case checks what depends on it).
 class ContentCheck {
  public:
-  ContentCheck(const Reader& r) : r_(r) {}
+  ContentCheck(const BinaryReader& r) : r_(r) {}
   template <class... A>
   void require(bool ok, fmt::format_string<A...> what, A&&... args) const {
     if (!ok) r_.damaged(fmt::format(what, std::forward<A>(args)...));
@@ -469,7 +469,7 @@ class ContentCheck {
   static constexpr long max_count = 1'000'000'000'000'000;
 
  private:
-  const Reader& r_;
+  const BinaryReader& r_;
 };
 
 void check_particles(const ContentCheck& c, const Particles& p, std::uint32_t version) {
@@ -635,7 +635,7 @@ void check_run(const ContentCheck& c, const RunProgress& r, const State& st, std
   c.all_finite(s.controller, "the current phase's controller's saved value");
 }
 
-void check_contents(const Checkpoint& ck, std::uint32_t version, const Reader& r) {
+void check_contents(const Checkpoint& ck, std::uint32_t version, const BinaryReader& r) {
   const ContentCheck c(r);
   const State& st = ck.state;
   check_particles(c, st.particles, version);
@@ -695,7 +695,7 @@ void fsync_dir(const std::filesystem::path& dir) {
 
 void save_checkpoint(const std::filesystem::path& path, const std::string& case_text, const std::string& case_source,
                      const State& state, const RunProgress& run, std::uint32_t format) {
-  Writer w;
+  BinaryWriter w;
   w.str(case_text);
   w.str(case_source);
   io_run(w, run, format);
@@ -756,7 +756,7 @@ Checkpoint parse_checkpoint(std::string_view bytes, const std::string& name, Sea
   const char* payload = bytes.data() + header_size;
   if (seal == Seal::verify && fnv1a64(payload, size) != h.sum)
     throw InputError(fmt::format("checkpoint '{}' is damaged: checksum mismatch", name));
-  Reader r(payload, size, name);
+  BinaryReader r(payload, size, name);
   Checkpoint c;
   r.str(c.case_text);
   r.str(c.case_source);

@@ -26,6 +26,7 @@
 #include "qsdem/damping/models.hpp"
 #include "qsdem/files.hpp"
 #include "qsdem/rate_control.hpp"
+#include "qsdem/toml_reader.hpp"
 #include "qsdem/units.hpp"
 
 namespace qsdem {
@@ -97,34 +98,11 @@ void apply_override(toml::table& root, const std::string& assignment) {
   }
 }
 
-// Shortest round trip (0.7, not 0.69999999999999996), with ".0" on a whole number: a float
-// written 7284.0 is not shown as the integer 7284.
-std::string format_float(double v) {
-  std::string t = fmt::format("{}", v);
-  if (std::isfinite(v) && t.find_first_of(".eE") == std::string::npos) t += ".0";
-  return t;
-}
-
-std::string describe(const toml::node& n) {
-  std::ostringstream os;
-  if (n.is_string())
-    os << '"' << *n.value<std::string>() << '"';
-  else if (n.is_table())
-    os << "(a table)";
-  else if (n.is_array())
-    os << "(an array)";
-  else if (n.is_floating_point())
-    os << format_float(*n.value<double>());
-  else
-    n.visit([&](auto&& v) { os << v; });
-  return os.str();
-}
-
 // Reads keys from the TOML tree, remembering which were read so that leftovers are reported
 // as unknown keys.
-class Reader {
+class Reader : public TomlSource {
  public:
-  Reader(const toml::table& root, std::string source) : root_(root), source_(std::move(source)) {}
+  Reader(const toml::table& root, std::string source) : TomlSource(std::move(source)), root_(root) {}
 
   const toml::node* find(const std::string& path) const {
     const toml::node* node = &root_;
@@ -139,20 +117,6 @@ class Reader {
       if (!node) return nullptr;
     }
     return node;
-  }
-
-  std::string where(const toml::node* n) const {
-    if (!n) return source_;
-    const auto& src = n->source();
-    if (src.path && src.path->rfind("--set", 0) == 0) return *src.path;  // a command-line override
-    if (src.begin.line > 0) return fmt::format("{}:{}", source_, src.begin.line);
-    return source_;
-  }
-
-  [[noreturn]] void fail(const std::string& path, const toml::node* n, const std::string& why) const {
-    if (n)
-      throw InputError(fmt::format("{}: key '{}' = {}: {}", where(n), path, describe(*n), why));
-    throw InputError(fmt::format("{}: key '{}': {}", source_, path, why));
   }
 
   const toml::node* get(const std::string& path, bool required) {
@@ -337,7 +301,6 @@ class Reader {
   }
 
   const toml::table& root_;
-  std::string source_;
   std::set<std::string> used_;
   std::set<std::string> asked_;
 };

@@ -13,9 +13,9 @@ namespace {
 
 // "schedule": at given sample points of the phase, a component's control value (its strain rate
 // eps' or its stress target) becomes the next of a list: a rate jump, a staged loading.
-class Schedule final : public Controller {
+class ValueSchedule final : public Controller {
  public:
-  Schedule(int component, std::vector<long> at, std::vector<double> values)
+  ValueSchedule(int component, std::vector<long> at, std::vector<double> values)
       : component_(component), at_(std::move(at)), values_(std::move(values)) {}
 
   bool at_sample(const SamplePoint& point, PhaseControls& controls) override {
@@ -68,7 +68,7 @@ ControllerFactory read_schedule(ControllerKeys& keys, const Phase& phase, double
   }
   if (values.size() != at.size())
     keys.fail("values", fmt::format("give one value per entry of at_sample ({})", at.size()));
-  return [c, at, values] { return std::make_unique<Schedule>(c, at, values); };
+  return [c, at, values] { return std::make_unique<ValueSchedule>(c, at, values); };
 }
 
 }  // namespace

@@ -26,6 +26,7 @@
 #include "qsdem/packing_io.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/step.hpp"
+#include "qsdem/stop_signals.hpp"
 #include "qsdem/version.hpp"
 #include "qsdem/vtk.hpp"
 
@@ -195,34 +196,6 @@ void check_out(const fs::path& dir, bool force, bool locked_here) {
     default: break;
   }
 }
-
-volatile std::sig_atomic_t stop_signal = 0;
-
-extern "C" void on_stop_signal(int sig) { stop_signal = sig; }
-
-// SIGINT and SIGTERM ask the run to checkpoint and stop; the old handlers come back after.
-class SignalGuard {
- public:
-  SignalGuard() {
-    stop_signal = 0;
-    struct sigaction sa {};
-    sa.sa_handler = on_stop_signal;
-    sigemptyset(&sa.sa_mask);
-    sigaction(SIGINT, &sa, &old_int_);
-    sigaction(SIGTERM, &sa, &old_term_);
-  }
-  ~SignalGuard() {
-    sigaction(SIGINT, &old_int_, nullptr);
-    sigaction(SIGTERM, &old_term_, nullptr);
-  }
-  SignalGuard(const SignalGuard&) = delete;
-  SignalGuard& operator=(const SignalGuard&) = delete;
-
- private:
-  struct sigaction old_int_ {}, old_term_ {};
-};
-
-const char* signal_name(int sig) { return sig == SIGINT ? "SIGINT" : "SIGTERM"; }
 
 // The name of phase p of the protocol (the last one's once all are done), for messages.
 const std::string& phase_name(const Params& params, std::int32_t p) {
@@ -395,8 +368,8 @@ class Execution {
 
   // After every step: stop on a signal, checkpoint every N sample points or M minutes, snapshots.
   void on_step(bool sample_point) {
-    if (stop_signal != 0) {
-      const int sig = stop_signal;
+    if (StopSignals::received() != 0) {
+      const int sig = StopSignals::received();
       save(dir_ / checkpoint_file);
       throw Interrupted(fmt::format("stopped by {} after {} step {}; checkpoint written: continue with `qsdem resume {}`",
                                     signal_name(sig), phase_name(params_, run_.phase), run_.current().steps - 1,
@@ -637,11 +610,10 @@ State load_sample(const Params& params, RunProgress& run) {
 State make_sample(const Params& params, RunProgress& run) {
   State st;
   if (params.sample.from.empty()) {
-    st = generate_loose_sample(params, [] { return stop_signal != 0; });
-    if (stop_signal != 0)
-      throw Interrupted(fmt::format("stopped by {} while generating the sample; nothing was written",
-                                    signal_name(stop_signal)),
-                        stop_signal);
+    st = generate_loose_sample(params, [] { return StopSignals::received() != 0; });
+    if (const int sig = StopSignals::received(); sig != 0)
+      throw Interrupted(
+          fmt::format("stopped by {} while generating the sample; nothing was written", signal_name(sig)), sig);
   } else {
     st = load_sample(params, run);
   }
@@ -692,7 +664,7 @@ void check_run_directory(const fs::path& dir, const RunProgress& run, const Para
 nlohmann::json run_case(const Params& params, const RunOptions& options) {
   const fs::path dir = options.out;
   require_utf8(dir.string(), "--out");
-  const SignalGuard signals;
+  const StopSignals signals;
   check_out(dir, options.force, false);
   std::error_code ec;
   if (!params.sample.from.empty() && fs::equivalent(params.sample.from, dir, ec))
@@ -721,7 +693,7 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
 nlohmann::json resume_run(const fs::path& dir, const RunOptions& options) {
   if (!fs::is_directory(dir)) throw InputError(fmt::format("'{}' is not a run directory", dir.string()));
   require_utf8(dir.string(), "the run directory");
-  const SignalGuard signals;
+  const StopSignals signals;
   const DirectoryLock lock = lock_run_directory(dir);
   if (fs::exists(dir / "summary.json") && !fs::exists(dir / checkpoint_file))
     throw InputError(fmt::format("'{}' holds a finished run: nothing to resume", dir.string()));

@@ -23,7 +23,9 @@
 
 #include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
+#include "qsdem/progress.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/stop_signals.hpp"
 #include "qsdem/study_analysis.hpp"
 #include "qsdem/types.hpp"
 
@@ -44,31 +46,6 @@ std::string read_bytes(const fs::path& p) {
 
 // ---------------------------------------------------------------------------------------------
 // Child processes: `qsdem prepare`, `qsdem run`, `qsdem resume`, one per sample or run.
-
-volatile std::sig_atomic_t stop_signal = 0;
-extern "C" void on_study_signal(int sig) { stop_signal = sig; }
-
-// SIGINT/SIGTERM set stop_signal while the study runs: children are told, then waited for.
-class StopSignals {
- public:
-  StopSignals() {
-    stop_signal = 0;
-    struct sigaction sa {};
-    sa.sa_handler = on_study_signal;
-    sigemptyset(&sa.sa_mask);
-    sigaction(SIGINT, &sa, &old_int_);
-    sigaction(SIGTERM, &sa, &old_term_);
-  }
-  ~StopSignals() {
-    sigaction(SIGINT, &old_int_, nullptr);
-    sigaction(SIGTERM, &old_term_, nullptr);
-  }
-  StopSignals(const StopSignals&) = delete;
-  StopSignals& operator=(const StopSignals&) = delete;
-
- private:
-  struct sigaction old_int_ {}, old_term_ {};
-};
 
 // How children are started: this binary, and the environment without the MPI launcher's
 // variables (a child is a plain process, not an MPI rank).
@@ -242,13 +219,6 @@ std::string plural(std::size_t n, const std::string& one, const std::string& man
   return fmt::format("{} {}", n, n == 1 ? one : many.empty() ? one + "s" : many);
 }
 
-std::string format_duration(double s) {
-  if (s < 90) return fmt::format("{:.0f} s", s);
-  if (s < 5400) return fmt::format("{:.0f} min", s / 60);
-  if (s < 2 * 86400) return fmt::format("{:.1f} h", s / 3600);
-  return fmt::format("{:.1f} days", s / 86400);
-}
-
 // The study's one progress display on stderr: a line redrawn in place on a terminal, a plain
 // line whenever the counts change otherwise.
 class StudyProgress {
@@ -374,11 +344,11 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
       record_cost(jobs[k]);
     }
   for (;;) {
-    if (stop_signal != 0 && !forwarded) {
-      for (const auto& r : running) ::kill(r.pid, stop_signal);
+    if (StopSignals::received() != 0 && !forwarded) {
+      for (const auto& r : running) ::kill(r.pid, StopSignals::received());
       forwarded = true;
     }
-    while (stop_signal == 0 && running.size() < std::size_t(parallel) && (!again.empty() || next < jobs.size())) {
+    while (StopSignals::received() == 0 && running.size() < std::size_t(parallel) && (!again.empty() || next < jobs.size())) {
       std::size_t k = 0;
       if (!again.empty()) {
         k = again.front();
@@ -399,7 +369,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
         fail(j, e.what(), -1);
       }
     }
-    if (running.empty() && (stop_signal != 0 || (next == jobs.size() && again.empty()))) break;
+    if (running.empty() && (StopSignals::received() != 0 || (next == jobs.size() && again.empty()))) break;
     show();
     ::usleep(100'000);  // a signal cuts the nap short
     for (std::size_t r = 0; r < running.size();) {
@@ -416,9 +386,9 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
       if (code == 0 && finished(j)) {
         ++done;
         record_cost(j);
-      } else if (stop_signal != 0 && (code == 130 || code == 143)) {
+      } else if (StopSignals::received() != 0 && (code == 130 || code == 143)) {
         // interrupted as asked: its checkpoint continues it next time
-      } else if (stop_signal == 0 && by_signal && restarts[k] < max_restarts) {
+      } else if (StopSignals::received() == 0 && by_signal && restarts[k] < max_restarts) {
         ++restarts[k];
         again.push_back(k);
         progress.message(fmt::format("{} {} was stopped by signal {} (not by the study): continued from its {} ({} of {})",
@@ -433,7 +403,7 @@ PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int p
   }
   show();
   progress.end_line();
-  result.signal = stop_signal;
+  result.signal = StopSignals::received();
   return result;
 }
 
@@ -467,7 +437,7 @@ bool mpi_wait_all(const Mpi& m) {
     int flag = 0;
     MPI_Test(&req, &flag, MPI_STATUS_IGNORE);
     if (flag) return true;
-    if (stop_signal != 0) return false;
+    if (StopSignals::received() != 0) return false;
     ::usleep(20'000);
   }
 }
@@ -827,7 +797,7 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   PoolResult r = run_pool(share(sample_jobs(study, out), mpi), "samples", study.parallel_runs, launcher, progress);
   failures.insert(failures.end(), r.failures.begin(), r.failures.end());
   if (r.signal != 0) return interrupted(mpi, r.signal, options, study_file.string());
-  if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options, study_file.string());
+  if (!mpi_wait_all(mpi)) return interrupted(mpi, StopSignals::received(), options, study_file.string());
   if (on_rank0([&] { record_samples(study, out); }) != 0) return status;
 
   // The stages, level by level: a stage that picks its ratios starts when its source has run and
@@ -850,7 +820,7 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
                  progress);
     failures.insert(failures.end(), r.failures.begin(), r.failures.end());
     if (r.signal != 0) return interrupted(mpi, r.signal, options, study_file.string());
-    if (!mpi_wait_all(mpi)) return interrupted(mpi, stop_signal, options, study_file.string());
+    if (!mpi_wait_all(mpi)) return interrupted(mpi, StopSignals::received(), options, study_file.string());
   }
 
   failures = mpi_gather_failures(mpi, failures);

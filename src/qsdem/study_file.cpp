@@ -20,6 +20,7 @@
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/files.hpp"
+#include "qsdem/toml_reader.hpp"
 #include "qsdem/types.hpp"
 #include "qsdem/units.hpp"
 
@@ -32,29 +33,9 @@ namespace fs = std::filesystem;
 // The study file (docs/study.md). Errors name file:line, the key, the value and what is allowed,
 // in the format of config.cpp.
 
-std::string describe(const toml::node& n) {
-  if (n.is_string()) return '"' + *n.value<std::string>() + '"';
-  if (n.is_table()) return "(a table)";
-  if (n.is_array()) return "(an array)";
-  if (n.is_floating_point()) return fmt::format("{}", *n.value<double>());
-  std::ostringstream os;
-  n.visit([&](auto&& v) { os << v; });
-  return os.str();
-}
-
-class StudyReader {
+class StudyReader : public TomlSource {
  public:
-  explicit StudyReader(std::string file) : file_(std::move(file)) {}
-
-  std::string where(const toml::node* n) const {
-    if (n && n->source().begin.line > 0) return fmt::format("{}:{}", file_, n->source().begin.line);
-    return file_;
-  }
-
-  [[noreturn]] void fail(const std::string& key, const toml::node* n, const std::string& why) const {
-    if (n) throw InputError(fmt::format("{}: key '{}' = {}: {}", where(n), key, describe(*n), why));
-    throw InputError(fmt::format("{}: key '{}': {}", file_, key, why));
-  }
+  explicit StudyReader(std::string file) : TomlSource(std::move(file)) {}
 
   // Every key of `t` must be one of `known` (a typo never passes silently).
   void only(const toml::table& t, const std::string& prefix, std::initializer_list<const char*> known) const {
@@ -132,10 +113,6 @@ class StudyReader {
     return out;
   }
 
-  const std::string& file() const { return file_; }
-
- private:
-  std::string file_;
 };
 
 std::string fnv1a64_hex(const std::string& bytes) { return fmt::format("{:016x}", fnv1a64(bytes.data(), bytes.size())); }
