@@ -14,7 +14,7 @@
 
 #include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/forces.hpp"
-#include "qsdem/reference_forces.hpp"
+#include "reference_forces.hpp"
 
 using namespace qsdem;
 

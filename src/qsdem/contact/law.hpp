@@ -1,6 +1,6 @@
 // What a contact law is (the pattern of HOOMD-blue's pair evaluators and of LAMMPS GRANULAR's
 // sub-models): a small struct on which the force stage's one pair driver (forces.cpp) and the
-// reference force stage (reference_forces.cpp) are instantiated. contact/hertz_mindlin.hpp is the
+// reference force stage (tests/support/reference_forces.cpp) are instantiated. contact/hertz_mindlin.hpp is the
 // documented example; contact/laws.hpp registers the laws. A law declares
 //
 //   static constexpr std::string_view name;        its value of the case key [contact] law

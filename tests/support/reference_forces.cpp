@@ -1,4 +1,4 @@
-#include "qsdem/reference_forces.hpp"
+#include "reference_forces.hpp"
 
 #include <cmath>
 #include <variant>
