@@ -1,0 +1,39 @@
+# The sources of the engine and of the run layer, listed once: the main build, the tests' second
+# engine (without the AVX2 clones) and the fuzz build (fuzz/CMakeLists.txt) all read these lists.
+set(QSDEM_ENGINE_SOURCES
+  src/qsdem/cell.cpp
+  src/qsdem/particles.cpp
+  src/qsdem/model.cpp
+  src/qsdem/contact/laws.cpp
+  src/qsdem/neighbor.cpp
+  src/qsdem/reorder.cpp
+  src/qsdem/schedule.cpp
+  src/qsdem/ellipsoid_contact.cpp
+  src/qsdem/forces.cpp
+  src/qsdem/integrator.cpp
+  src/qsdem/damping/models.cpp
+  src/qsdem/damping/stage.cpp
+  src/qsdem/servo.cpp
+  src/qsdem/measures.cpp
+  src/qsdem/step.cpp
+)
+set(QSDEM_RUN_SOURCES
+  src/qsdem/units.cpp
+  src/qsdem/toml_reader.cpp
+  src/qsdem/config.cpp
+  src/qsdem/phase.cpp
+  src/qsdem/controller.cpp
+  src/qsdem/path_control.cpp
+  src/qsdem/rate_control.cpp
+  src/qsdem/generate.cpp
+  src/qsdem/phase_model.cpp
+  src/qsdem/protocol.cpp
+  src/qsdem/files.cpp
+  src/qsdem/output.cpp
+  src/qsdem/packing_io.cpp
+  src/qsdem/progress.cpp
+  src/qsdem/stop_signals.cpp
+  src/qsdem/run.cpp
+  src/qsdem/checkpoint.cpp
+  src/qsdem/vtk.cpp
+)
