@@ -12,6 +12,7 @@
 #include <iostream>
 
 #include "qsdem/config.hpp"
+#include "qsdem/grading.hpp"
 #include "qsdem/converge.hpp"
 #include "qsdem/default_case.hpp"
 #include "qsdem/files.hpp"
@@ -251,6 +252,9 @@ int main(int argc, char** argv) {
       if (!quiet)
         std::fprintf(stderr, "qsdem %s: case %s -> %s (%d threads)\n", QSDEM_VERSION, params.source.c_str(),
                      out_dir.c_str(), omp_get_max_threads());
+      if (!quiet && params.sample.from.empty() && !params.sample.grading.empty())
+        std::fprintf(stderr, "qsdem: %s\n",
+                     qsdem::describe_grading(params.sample.grading, params.sample.total_particles, params.sample.seed).c_str());
       const auto summary = qsdem::run_case(params, {out_dir, quiet, bool(*prepare), force});
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << out_dir

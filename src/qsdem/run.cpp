@@ -20,6 +20,7 @@
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/files.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/grading.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/neighbor.hpp"
 #include "qsdem/output.hpp"
@@ -511,12 +512,15 @@ class Execution {
     s["case"] = params_.name;
     s["config"] = {{"resolved_si", to_json(params_)}, {"as_written", params_.as_written}};
     s["derived"] = {{"particles", st_.particles.size()},
-                    {"size_table", params_.sample.from.empty() ? size_table_json(params_) : nlohmann::json()},
+                    {"size_table", params_.sample.from.empty() && params_.sample.grading.empty() ? size_table_json(params_)
+                                                                                               : nlohmann::json()},
                     {"sample_from", params_.sample.from},
                     {"r_min_m", r_min},
                     {"critical_time_s", t_c},
                     {"dt_s", params_.step_ratio * t_c},
                     {"threads", omp_get_max_threads()}};
+    if (params_.sample.from.empty() && !params_.sample.grading.empty())
+      s["derived"]["grading"] = grading_json(params_.sample.grading, params_.sample.total_particles, params_.sample.seed);
     if (!params_.phase_list)
       s["derived"]["triaxial_strain_rate_per_s"] = params_.triaxial.strain_rate / t_c;
     if (!note.empty()) s["note"] = note;
@@ -581,7 +585,9 @@ class Execution {
   std::chrono::steady_clock::time_point last_save_ = std::chrono::steady_clock::now();
   SeriesWriter* rows_ = nullptr;  // the phase's file: on disk before each checkpoint counts its rows
   SeriesWriter* classes_rows_ = nullptr;  // classes.csv, the same
-  const std::vector<double> size_classes_ = size_classes(st_.particles);
+  const std::vector<double> size_classes_ = params_.sample.from.empty() && !params_.sample.grading.empty()
+                                                ? grading_classes(params_.sample.grading, st_.particles)
+                                                : size_classes(st_.particles);
 };
 
 nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
