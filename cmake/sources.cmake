@@ -37,4 +37,6 @@ set(QSDEM_RUN_SOURCES
   src/qsdem/run.cpp
   src/qsdem/checkpoint.cpp
   src/qsdem/vtk.cpp
+  src/qsdem/figures.cpp
+  src/qsdem/plot.cpp
 )

@@ -81,7 +81,8 @@ nlohmann::json size_table_json(const Params& params) {
 
 namespace fs = std::filesystem;
 
-// The files a run writes into its directory (besides vtk/ and its phases' files): what --force removes.
+// The files a run writes into its directory (besides vtk/, plot/ and its phases' files): what --force
+// removes.
 constexpr const char* run_files[] = {"summary.json",      "series.csv",      "series.csv.partial",
                                      classes_file,        "classes.csv.partial",
                                      "compaction.csv",    "compaction.csv.partial", "compacted.packing",
@@ -192,7 +193,7 @@ void check_out(const fs::path& dir, bool force, bool locked_here) {
         throw InputError(fmt::format(
             "'{}' is not empty and holds no qsdem run (no case.toml): choose a new or empty --out, or add --force "
             "(which removes only the files a run writes: {})",
-            dir.string(), "summary.json, series.csv, compaction.csv, classes.csv, *.packing, *.qsck, case.toml, vtk/"));
+            dir.string(), "summary.json, series.csv, compaction.csv, classes.csv, *.packing, *.qsck, case.toml, vtk/, plot/"));
       break;
     default: break;
   }
@@ -691,6 +692,7 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
     fs::remove(dir / (phase.output.file + ".partial"));
   }
   fs::remove_all(dir / "vtk");
+  fs::remove_all(dir / "plot");  // the page of the run replaced (`qsdem plot`)
   write_file_atomic(dir / "case.toml", params.case_text);
   run.case_digest = fnv1a64(params.case_text.data(), params.case_text.size());
   return execute(params, st, run, options, "");
