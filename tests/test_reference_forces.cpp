@@ -27,7 +27,8 @@ constexpr double kEps = std::numeric_limits<double>::epsilon();
 // triaxial ellipsoid shape (a run of spheres only takes the force stage's sphere path), with
 // random orientations, velocities and spins; a random velocity gradient L; a random stored
 // history on half of the listed pairs and random Perram-Wertheim warm starts.
-State random_packing(std::uint64_t seed, std::size_t n, bool spheres_only) {
+State random_packing(std::uint64_t seed, std::size_t n, bool spheres_only,
+                    const HistoryLayout& history = HertzMindlin::history) {
   std::mt19937_64 rng(seed);
   std::uniform_real_distribution<double> u(0, 1), c(-1, 1);
   std::vector<Vec3> shapes{Vec3::Constant(1.0e-3), Vec3::Constant(1.5e-3), Vec3::Constant(2.5e-3)};
@@ -54,7 +55,7 @@ State random_packing(std::uint64_t seed, std::size_t n, bool spheres_only) {
     p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
   }
   build_pairs(st.particles, st.cell, 0.5e-3, st.pairs, st.neighbor);
-  adopt_history(st.pairs, HertzMindlin::history);
+  adopt_history(st.pairs, history);
   for (std::size_t k = 0; k < st.pairs.size(); ++k) {
     if (u(rng) < 0.5)
       for (double& x : st.pairs.history.of(k)) x = 0.2 * c(rng);
@@ -69,6 +70,8 @@ Model model_for(const State& st, const char* law) {
   ContactSettings settings;
   settings.law = law;
   if (settings.law == "hertz_mindlin_dashpot") settings.values["restitution"] = 0.3;
+  if (settings.law == "hertz_mindlin_rolling")
+    settings.values = {{"rolling_friction", 0.2}, {"rolling_stiffness", 0.5}, {"rolling_damping_ratio", 0.3}};
   m.contact_law = make_contact_law(m.material, 0.4, settings);
   m.r_min = smallest_equiv_radius(st.particles);
   m.critical_time = critical_time(m.material, m.r_min);
@@ -102,10 +105,12 @@ TEST(ReferenceForces, FastStageEqualsThePlainOne) {
   );
   const int threads = omp_get_max_threads();
   omp_set_num_threads(2);
-  for (const char* law : {"hertz_mindlin", "hertz_mindlin_dashpot"}) {
+  for (const char* law : {"hertz_mindlin", "hertz_mindlin_dashpot", "hertz_mindlin_rolling"}) {
     for (const std::uint64_t seed : {1, 2, 3, 4}) {
       const bool spheres_only = seed == 4;
-      const State start = random_packing(seed, spheres_only ? 2400 : 1500, spheres_only);
+      const HistoryLayout& history =
+          std::string(law) == "hertz_mindlin_rolling" ? HertzMindlinRolling::history : HertzMindlin::history;
+      const State start = random_packing(seed, spheres_only ? 2400 : 1500, spheres_only, history);
       const Model model = model_for(start, law);
       ASSERT_GT(start.pairs.size(), parallel_threshold) << "the fast stage runs its blocks on two threads";
       const ReferenceForces ref = reference_contact_forces(model, start);

@@ -9,11 +9,12 @@
 
 #include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/contact/hertz_mindlin_dashpot.hpp"
+#include "qsdem/contact/hertz_mindlin_rolling.hpp"
 
 namespace qsdem {
 
 // Registration: one entry per law, the first is the default.
-using ContactLaw = std::variant<HertzMindlin, HertzMindlinDashpot>;
+using ContactLaw = std::variant<HertzMindlin, HertzMindlinDashpot, HertzMindlinRolling>;
 
 // The law that settings.law names, made from the constants (InputError for an unknown name).
 ContactLaw make_contact_law(const LawConstants& constants);
