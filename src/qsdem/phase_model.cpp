@@ -17,7 +17,8 @@ Model case_model(const Params& params, const Particles& particles) {
   m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
   m.r_min = smallest_equiv_radius(particles);
   m.critical_time = critical_time(m.material, m.r_min);
-  m.dt = params.step_ratio * m.critical_time;
+  m.step_gain = step_gain(particles);  // 1 without inertia scaling
+  m.dt = params.step_ratio * m.step_gain * m.critical_time;  // SPEC 5.6
   m.servo.proportional_gain = params.servo.proportional_gain;
   m.servo.integral_gain = params.servo.integral_gain;
   m.skin = params.neighbor.skin_ratio * m.r_min;
@@ -34,7 +35,8 @@ Model phase_model(const Params& params, const Phase& phase, const PhaseControls&
   Model m = case_model(params, particles);
   const PhaseDamping& d = phase.damping;
   m.contact_law = make_contact_law(m.material, phase.friction, phase_contact_settings(d.model, d.ratio, phase.contact));
-  m.damping = resolve_damping(d.model, {d.ratio, m.material.wave_speed(), m.r_min}, d.acts_on);
+  // od's highest frequency is that of the scaled sample, sqrt(E/rho) / (s R_min) (SPEC 5.6).
+  m.damping = resolve_damping(d.model, {d.ratio, m.material.wave_speed(), m.r_min * m.step_gain}, d.acts_on);
   double fastest = 0;  // the fastest strain-rate component (1/s)
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = controls.component[static_cast<std::size_t>(c)];
