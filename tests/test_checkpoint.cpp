@@ -9,6 +9,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstddef>
@@ -268,6 +269,7 @@ TEST(CheckpointFile, RoundTripIsExact) {
   Progress quiet(Progress::Mode::quiet);
   Params short_params = params;
   short_params.protocol[0].stop.max_steps = 3000;
+  short_params.protocol[0].inertia.target = InertiaScaling::Target::coarsest;  // mu_i and masses kept (SPEC 5.6)
   try {
     run_phase(short_params, st, run, {}, quiet, {});
   } catch (const RunError&) {
@@ -286,6 +288,10 @@ TEST(CheckpointFile, RoundTripIsExact) {
   EXPECT_EQ(c.state.particles.s, st.particles.s);
   EXPECT_EQ(c.state.particles.v, st.particles.v);
   EXPECT_EQ(c.state.particles.angmom, st.particles.angmom);
+  EXPECT_EQ(c.state.particles.inertia_scale, st.particles.inertia_scale);
+  EXPECT_EQ(c.state.particles.mass, st.particles.mass);
+  EXPECT_EQ(c.state.particles.inv_inertia, st.particles.inv_inertia);
+  EXPECT_GT(*std::max_element(st.particles.inertia_scale.begin(), st.particles.inertia_scale.end()), 1.4);
   EXPECT_EQ(c.state.pairs.history.values, st.pairs.history.values);
   EXPECT_EQ(c.state.pairs.history.layout, st.pairs.history.layout);
   EXPECT_EQ(c.state.pairs.image, st.pairs.image);
@@ -424,6 +430,8 @@ TEST(CheckpointFile, InconsistentContentsAreRefused) {
       {"quaternion", [](Checkpoint& c) { c.state.particles.q[2].coeffs() *= 2; }, "unit quaternion"},
       {"semi-axes", [](Checkpoint& c) { c.state.particles.semi_axes[5].setZero(); }, "semi-axes"},
       {"array length", [](Checkpoint& c) { c.state.particles.mass.pop_back(); }, "the particles' mass has"},
+      {"inertia scale", [](Checkpoint& c) { c.state.particles.inertia_scale[2] = 0.5; },
+       "particle 2 has an inertia scale that is not finite and >= 1"},
       {"ids", [](Checkpoint& c) { c.state.particles.id[1] = c.state.particles.id[0]; }, "the ids are not 0 to"},
       {"singular cell", [](Checkpoint& c) { c.state.cell.h.col(0).setZero(); }, "the cell matrix is not finite"},
       {"list reference", [](Checkpoint& c) { c.state.neighbor.s_at_build.resize(5); }, "reference holds 5 positions"},
