@@ -29,11 +29,14 @@ InertiaScaling scaling(Target target, double factor, double cap) {
   return s;
 }
 
-// The phase's Model as a run makes it (phase_model): fixed cell, the given friction and damping.
-Model model_of(const Particles& p, const Mat3& h, const std::string& damping, double ratio, double friction) {
+// The phase's Model as a run makes it (phase_model): fixed cell, the given friction, damping and
+// inertia scaling (which `p` must have been given).
+Model model_of(const Particles& p, const Mat3& h, const std::string& damping, double ratio, double friction,
+               const InertiaScaling& s = {}) {
   Params params;
   params.material = {kRho, kE, kNu};
   Phase phase;
+  phase.inertia = s;
   phase.friction = friction;
   phase.damping = {damping, ratio, DampedMotion::both};
   Model m = phase_model(params, phase, phase.controls, p, h);
@@ -104,7 +107,7 @@ TEST(InertiaScaling, StepGrowsByThePredictedFactor) {
       // Its own critical step 2 R_i sqrt(mu_i rho / E) is at least the scaled one.
       EXPECT_GE(critical_time({mu * kRho, kE, kNu}, p.equiv_radius[i]), c.gain * before.critical_time * (1 - 1e-14));
     }
-    const Model after = model_of(p, st.cell.h, "nd", 0.005, 0);
+    const Model after = model_of(p, st.cell.h, "nd", 0.005, 0, c.s);
     EXPECT_NEAR(step_gain(p), c.gain, 1e-14 * c.gain);
     EXPECT_NEAR(after.dt, 0.32 * c.gain * after.critical_time, 1e-14 * after.dt);
     EXPECT_EQ(after.critical_time, before.critical_time) << "t_c, the unit of eps', is the unscaled one";
@@ -112,7 +115,7 @@ TEST(InertiaScaling, StepGrowsByThePredictedFactor) {
       EXPECT_EQ(after.dt, before.dt) << "unscaled: the step's bits unchanged";
     }
     // od: the scaled sample's highest frequency sqrt(E/rho) / (s R_min) (SPEC 5.6).
-    const Model od = model_of(p, st.cell.h, "od", 0.1, 0);
+    const Model od = model_of(p, st.cell.h, "od", 0.1, 0, c.s);
     EXPECT_NEAR(std::get<GlobalMassDamping>(od.damping.law).alpha, 0.2 * std::sqrt(kE / kRho) / (c.gain * kRs),
                 1e-12 * std::get<GlobalMassDamping>(od.damping.law).alpha);
   }
@@ -142,7 +145,7 @@ TEST(InertiaScaling, LatticeInStaticEquilibriumStaysThereUnderAnyScaling) {
     SCOPED_TRACE("gain " + std::to_string(s.factor));
     State st = lattice(3);
     scale_inertia(st.particles, s, kRho);
-    const Model m = model_of(st.particles, st.cell.h, "nd", 0.05, 0);
+    const Model m = model_of(st.particles, st.cell.h, "nd", 0.05, 0, s);
     assign_damping(m, st.particles);
     const std::vector<Vec3> s0 = st.particles.s;
     for (int k = 0; k < 3000; ++k) step(m, st);
@@ -163,7 +166,7 @@ bool stable(const InertiaScaling& s, double dt) {
     st.particles.s[i] += st.cell.h_inv * (1e-9 * Vec3(std::sin(1.3 * k), std::sin(2.1 * k + 1), std::sin(0.7 * k + 2)));
   }
   scale_inertia(st.particles, s, kRho);
-  Model m = model_of(st.particles, st.cell.h, "none", 0, 0);
+  Model m = model_of(st.particles, st.cell.h, "none", 0, 0, s);
   m.dt = dt;
   assign_damping(m, st.particles);
   const std::vector<Vec3> s0 = st.particles.s;
@@ -220,7 +223,7 @@ TEST(InertiaScaling, PerturbedLatticeRelaxesToTheSameEquilibrium) {
     st.particles.s[1] += st.cell.h_inv * Vec3(0.4e-6, -0.3e-6, 0.2e-6);
     st.particles.s[6] += st.cell.h_inv * Vec3(-0.2e-6, 0.1e-6, 0.3e-6);
     scale_inertia(st.particles, s, kRho);
-    const Model m = model_of(st.particles, st.cell.h, "nd", 0.3, 0);
+    const Model m = model_of(st.particles, st.cell.h, "nd", 0.3, 0, s);
     assign_damping(m, st.particles);
     for (int k = 0; k < 20000; ++k) step(m, st);
     return st;
@@ -258,7 +261,7 @@ TEST(InertiaScaling, BinaryCollisionConservesTheScaledMomentum) {
   EXPECT_NEAR(p.inertia_scale[0], 1.69, 1e-14);
   p.v[0] = 0.1 * n + 0.05 * t;
   p.v[1] = -0.2 * n - 0.04 * t;
-  Model m = model_of(p, st.cell.h, "none", 0, 0.3);
+  Model m = model_of(p, st.cell.h, "none", 0, 0.3, scaling(Target::coarsest, 1, 100));
   m.track_energy = true;  // keeps each pair's overlap
   const auto momentum = [&](const Particles& masses) { return masses.mass[0] * p.v[0] + masses.mass[1] * p.v[1]; };
   const Vec3 scaled0 = momentum(p), true0 = momentum(solid);

@@ -17,8 +17,7 @@ Model case_model(const Params& params, const Particles& particles) {
   m.material = {params.material.density, params.material.young_modulus, params.material.poisson_ratio};
   m.r_min = smallest_equiv_radius(particles);
   m.critical_time = critical_time(m.material, m.r_min);
-  m.step_gain = step_gain(particles);  // 1 without inertia scaling
-  m.dt = params.step_ratio * m.step_gain * m.critical_time;  // SPEC 5.6
+  m.dt = params.step_ratio * m.critical_time;
   m.servo.proportional_gain = params.servo.proportional_gain;
   m.servo.integral_gain = params.servo.integral_gain;
   m.skin = params.neighbor.skin_ratio * m.r_min;
@@ -33,6 +32,12 @@ Model case_model(const Params& params, const Particles& particles) {
 Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
                   const Mat3& h0) {
   Model m = case_model(params, particles);
+  // The step of the scaled particles, dt = c_t s t_c (SPEC 5.6). A phase without scaling has every
+  // mu_i = 1 (its start set them), so s = 1: its model skips the pass over the particles.
+  if (phase.inertia.on()) {
+    m.step_gain = step_gain(particles);
+    m.dt = params.step_ratio * m.step_gain * m.critical_time;
+  }
   const PhaseDamping& d = phase.damping;
   m.contact_law = make_contact_law(m.material, phase.friction, phase_contact_settings(d.model, d.ratio, phase.contact));
   // od's highest frequency is that of the scaled sample, sqrt(E/rho) / (s R_min) (SPEC 5.6).
