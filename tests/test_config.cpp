@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
+#include <iterator>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -414,4 +415,20 @@ TEST(Config, InertiaScalingIsReadPerPhaseAndChecked) {
   expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { factor = 2 }\n[triaxial.rate_control]\n"
                                          "target = \"3 %\"\nmin_rate = 1e-6\nmax_rate = 1e-3")),
                   {"triaxial.inertia_scaling", "rate_control"});
+}
+
+// A [[phase]] entry with inertia_scaling is refused with the cyclic controller, which plans its
+// steps with time.step_ratio alone; the same phase with a step budget instead takes it.
+TEST(Config, PhaseInertiaScalingIsRefusedWithAStepPlanningController) {
+  std::ifstream in(examples / "cyclic-triaxial.toml");
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string controller = "controller = { kind = \"cyclic\"";
+  ASSERT_NE(text.find(controller), std::string::npos);
+  text.insert(text.find(controller), "inertia_scaling = { factor = 2 }\n");
+  expect_mentions(error_of(text), {"phase.1.inertia_scaling", "controller \"cyclic\"", "time.step_ratio"});
+  const std::size_t at = text.find(controller);
+  const Params p = parse_case(text.replace(at, text.find('\n', at) - at, "stop = { steps = 1000 }"), "case.toml");
+  EXPECT_EQ(p.protocol.at(1).inertia.target, InertiaScaling::Target::factor);
+  EXPECT_EQ(p.protocol.at(1).inertia.factor, 2);
+  EXPECT_FALSE(p.protocol.at(0).inertia.on());
 }
