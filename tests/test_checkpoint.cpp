@@ -9,6 +9,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstddef>
@@ -142,6 +143,41 @@ void kill_and_resume(int sig) {
 TEST(CheckpointProcess, SigtermResumesToTheSameSeries) { kill_and_resume(SIGTERM); }
 TEST(CheckpointProcess, SigkillBetweenCheckpointsResumesToTheSameSeries) { kill_and_resume(SIGKILL); }
 
+// Inertia scaling in both phases (SPEC 5.6: compaction factor 2, cap 4; triaxial to the coarser
+// class, s = 2.4/2): a run stopped by SIGTERM in the triaxial test and resumed writes the same
+// bits as the uninterrupted one, and the test takes c_t s eps' of strain per step.
+TEST(CheckpointProcess, ScaledInertiaResumesToTheSameSeries) {
+  const std::string scaled = qsdem_test::sample_200("checkpoint-scaled") + R"([compaction]
+inertia_scaling = { factor = 2, cap = 4 }
+[triaxial]
+strain_rate = 1e-4
+final_axial_strain = "2 %"
+sample_points = 40
+inertia_scaling = { target = "coarsest" }
+[checkpoint]
+every_sample_points = 4
+)";
+  const fs::path f = scratch("scaled-case") / "case.toml";
+  fs::create_directories(f.parent_path());
+  std::ofstream(f) << scaled;
+  const fs::path ref = scratch("scaled-reference"), d = scratch("scaled-killed");
+  ASSERT_EQ(run_cli({"run", f.string(), "--out", ref.string(), "--threads", "1", "--quiet"}, ref.string()), 0)
+      << read(ref.string() + ".err");
+  const pid_t pid = spawn({"run", f.string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  ASSERT_TRUE(wait_rows(d, 14, pid)) << "the run ended before it could be killed";
+  ::kill(pid, SIGTERM);
+  EXPECT_EQ(wait_exit(pid), 128 + SIGTERM) << read(d.string() + ".err");
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0)
+      << read(d.string() + "-resume.err");
+  EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
+  EXPECT_EQ(read(d / "compaction.csv"), read(ref / "compaction.csv"));
+  const auto scaled_summary = nlohmann::json::parse(read(ref / "summary.json"));
+  const auto plain_summary = nlohmann::json::parse(read(reference() / "summary.json"));
+  const long scaled_steps = scaled_summary["phases"][1]["steps"], plain_steps = plain_summary["phases"][1]["steps"];
+  EXPECT_EQ(scaled_steps - std::lround(0.02 / (0.32 * 1.2 * 1e-4)), plain_steps - std::lround(0.02 / (0.32 * 1e-4)));
+  EXPECT_EQ(scaled_summary["config"]["resolved_si"]["protocol"][1]["inertia_scaling"]["target"], "coarsest");
+}
+
 // SIGINT during compaction: compaction.csv continues from the checkpoint too.
 // A run begun by an engine that wrote no classes.csv (its checkpoint has rows, its directory no
 // classes.csv.partial) continues without it: the same series.csv, no classes.csv, and the summary
@@ -233,6 +269,7 @@ TEST(CheckpointFile, RoundTripIsExact) {
   Progress quiet(Progress::Mode::quiet);
   Params short_params = params;
   short_params.protocol[0].stop.max_steps = 3000;
+  short_params.protocol[0].inertia.target = InertiaScaling::Target::coarsest;  // mu_i and masses kept (SPEC 5.6)
   try {
     run_phase(short_params, st, run, {}, quiet, {});
   } catch (const RunError&) {
@@ -251,6 +288,10 @@ TEST(CheckpointFile, RoundTripIsExact) {
   EXPECT_EQ(c.state.particles.s, st.particles.s);
   EXPECT_EQ(c.state.particles.v, st.particles.v);
   EXPECT_EQ(c.state.particles.angmom, st.particles.angmom);
+  EXPECT_EQ(c.state.particles.inertia_scale, st.particles.inertia_scale);
+  EXPECT_EQ(c.state.particles.mass, st.particles.mass);
+  EXPECT_EQ(c.state.particles.inv_inertia, st.particles.inv_inertia);
+  EXPECT_GT(*std::max_element(st.particles.inertia_scale.begin(), st.particles.inertia_scale.end()), 1.4);
   EXPECT_EQ(c.state.pairs.history.values, st.pairs.history.values);
   EXPECT_EQ(c.state.pairs.history.layout, st.pairs.history.layout);
   EXPECT_EQ(c.state.pairs.image, st.pairs.image);
@@ -389,6 +430,8 @@ TEST(CheckpointFile, InconsistentContentsAreRefused) {
       {"quaternion", [](Checkpoint& c) { c.state.particles.q[2].coeffs() *= 2; }, "unit quaternion"},
       {"semi-axes", [](Checkpoint& c) { c.state.particles.semi_axes[5].setZero(); }, "semi-axes"},
       {"array length", [](Checkpoint& c) { c.state.particles.mass.pop_back(); }, "the particles' mass has"},
+      {"inertia scale", [](Checkpoint& c) { c.state.particles.inertia_scale[2] = 0.5; },
+       "particle 2 has an inertia scale that is not finite and >= 1"},
       {"ids", [](Checkpoint& c) { c.state.particles.id[1] = c.state.particles.id[0]; }, "the ids are not 0 to"},
       {"singular cell", [](Checkpoint& c) { c.state.cell.h.col(0).setZero(); }, "the cell matrix is not finite"},
       {"list reference", [](Checkpoint& c) { c.state.neighbor.s_at_build.resize(5); }, "reference holds 5 positions"},

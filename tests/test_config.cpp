@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
+#include <iterator>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -380,4 +381,54 @@ TEST(Config, SampleFromIsRelativeToTheCaseFile) {
   const Params q = load_case((dir / "case.toml").string(), {"sample.from=other.packing"});
   EXPECT_EQ(q.sample.from, (fs::current_path() / "other.packing").string());
   fs::remove_all(dir.parent_path());
+}
+
+// inertia_scaling (docs/config.md, SPEC 5.6): off by default; per phase, as [compaction] and
+// [triaxial] keys and in a [[phase]] entry; one of target and factor, the cap in [1, 10^6]; refused
+// with a controller that plans its steps with time.step_ratio alone.
+TEST(Config, InertiaScalingIsReadPerPhaseAndChecked) {
+  const Params off = parse_case(base_case(), "case.toml");
+  for (const Phase& ph : off.protocol) EXPECT_FALSE(ph.inertia.on());
+  const Params on = parse_case(base_case(), "case.toml",
+                               {"triaxial.inertia_scaling.target=coarsest", "compaction.inertia_scaling.factor=2.5",
+                                "compaction.inertia_scaling.cap=4"});
+  EXPECT_EQ(on.protocol.front().inertia.target, InertiaScaling::Target::factor);
+  EXPECT_EQ(on.protocol.front().inertia.factor, 2.5);
+  EXPECT_EQ(on.protocol.front().inertia.cap, 4);
+  EXPECT_EQ(on.protocol.back().inertia.target, InertiaScaling::Target::coarsest);
+  EXPECT_EQ(on.protocol.back().inertia.cap, 100) << "the default cap";
+
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { target = \"finest\" }")),
+                  {"case.toml:22", "triaxial.inertia_scaling.target", "\"finest\"", "\"coarsest\""});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { factor = 0.5 }")),
+                  {"triaxial.inertia_scaling.factor", "0.5", "(1, 1000]"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { target = \"coarsest\", cap = 0.5 }")),
+                  {"triaxial.inertia_scaling.cap", "0.5", "[1, 10^6]"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { target = \"coarsest\", factor = 2 }")),
+                  {"triaxial.inertia_scaling.factor", "one of target and factor"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { cap = 10 }")),
+                  {"triaxial.inertia_scaling", "needs target = \"coarsest\" or factor"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = \"coarsest\"")),
+                  {"triaxial.inertia_scaling", "expected a table"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { target = \"coarsest\", gain = 2 }")),
+                  {"unknown key", "triaxial.inertia_scaling.gain"});
+  expect_mentions(error_of(base_case(21, "strain_rate = 1e-5\ninertia_scaling = { factor = 2 }\n[triaxial.rate_control]\n"
+                                         "target = \"3 %\"\nmin_rate = 1e-6\nmax_rate = 1e-3")),
+                  {"triaxial.inertia_scaling", "rate_control"});
+}
+
+// A [[phase]] entry with inertia_scaling is refused with the cyclic controller, which plans its
+// steps with time.step_ratio alone; the same phase with a step budget instead takes it.
+TEST(Config, PhaseInertiaScalingIsRefusedWithAStepPlanningController) {
+  std::ifstream in(examples / "cyclic-triaxial.toml");
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::string controller = "controller = { kind = \"cyclic\"";
+  ASSERT_NE(text.find(controller), std::string::npos);
+  text.insert(text.find(controller), "inertia_scaling = { factor = 2 }\n");
+  expect_mentions(error_of(text), {"phase.1.inertia_scaling", "controller \"cyclic\"", "time.step_ratio"});
+  const std::size_t at = text.find(controller);
+  const Params p = parse_case(text.replace(at, text.find('\n', at) - at, "stop = { steps = 1000 }"), "case.toml");
+  EXPECT_EQ(p.protocol.at(1).inertia.target, InertiaScaling::Target::factor);
+  EXPECT_EQ(p.protocol.at(1).inertia.factor, 2);
+  EXPECT_FALSE(p.protocol.at(0).inertia.on());
 }

@@ -170,11 +170,12 @@ struct Collision {
   EnergyLedger ledger;
 };
 
+// `scaling`: the particles' inertia scaled (SPEC 5.6), the step and the damping those of the
+// scaled particles, as phase_model makes them; `law`: the contact law's settings.
 Collision collide(bool spheroids, const std::string& model, double ratio, double step_ratio,
-                  const ContactSettings& law = {}) {
+                  const InertiaScaling& scaling = {}, const ContactSettings& law = {}) {
   const double r1 = 1e-3, r2 = 1.3e-3;
   Model m = energy_model(model, ratio, r1, law);
-  m.dt = step_ratio * m.critical_time;
   State st;
   st.cell = make_cell(0.03 * Mat3::Identity());
   const Vec3 n = Vec3(1, 0.5, -0.25).normalized(), t = n.cross(Vec3(0, 0, 1)).normalized();
@@ -185,6 +186,10 @@ Collision collide(bool spheroids, const std::string& model, double ratio, double
   st.particles.add(1, kind, Vec3(stretch * r2, r2, r2), kRho, st.cell.h_inv * ((r1 + r2 + 1e-3 * r1) * n),
                    Quat::FromTwoVectors(Vec3::UnitX(), n.cross(t)));
   Particles& p = st.particles;
+  scale_inertia(p, scaling, kRho);
+  m.step_gain = step_gain(p);
+  m.dt = step_ratio * m.step_gain * m.critical_time;
+  m.damping = resolve_damping(model, {ratio, m.material.wave_speed(), r1 * m.step_gain});
   p.v[0] = 0.1 * n + 0.05 * t;
   p.v[1] = -0.2 * n - 0.04 * t;
   p.angmom[0] = p.inertia[0].x() * 40 * Vec3(0.3, -1, 0.5);
@@ -228,6 +233,30 @@ TEST(EnergyLedger, BinaryCollisionsBalanceTheirEnergy) {
   }
 }
 
+// The same collisions with the masses and moments scaled to the coarser particle's step (mu =
+// 1.69 on the smaller one, s = 1.3, SPEC 5.6), under every particle damping model, at the steps dt
+// of the unscaled test (c_t = 0.32/s and 0.08/s; the heavier particles' impact lasts longer, so it
+// takes more of them): the ledger, whose K and D_p use the scaled masses, balances within the
+// same bound and its error still falls with the step.
+TEST(EnergyLedger, BinaryCollisionsOfScaledParticlesBalanceTheirEnergy) {
+  const qsdem_test::SingleThread one_thread;
+  InertiaScaling coarsest;
+  coarsest.target = InertiaScaling::Target::coarsest;
+  for (const bool spheroids : {false, true}) {
+    for (const auto& [model, ratio] : {std::pair{"none", 0.0}, std::pair{"od", 0.005}, std::pair{"nd", 0.005},
+                                       std::pair{"local", 0.1}, std::pair{"contact", 0.2}}) {
+      SCOPED_TRACE(std::string(spheroids ? "spheroids, " : "spheres, ") + std::string(model));
+      const Collision c = collide(spheroids, model, ratio, 0.32 / 1.3, coarsest),
+                      fine = collide(spheroids, model, ratio, 0.08 / 1.3, coarsest);
+      std::printf("[ info ] scaled %s %s: error %.2e of K0, at c_t/4 %.2e\n", spheroids ? "spheroids" : "spheres",
+                  model, c.error / c.k0, fine.error / fine.k0);
+      EXPECT_EQ(std::abs(c.ledger.damping) > 1e-9 * c.k0, model != std::string("none") && model != std::string("contact"));
+      EXPECT_LT(std::abs(c.error), 5e-3 * c.k0);
+      EXPECT_LT(std::abs(fine.error), std::abs(c.error) / 3) << "the error is the time step's";
+    }
+  }
+}
+
 // The same collisions with rolling resistance (hertz_mindlin_rolling, physics.md 4.7.1): the rolling
 // slider's dissipation counts in the ledger's friction, the rolling dashpot's in its contact
 // damping, the rolling spring's energy in the stored energy; the ledger closes within the same
@@ -239,7 +268,8 @@ TEST(EnergyLedger, RollingResistanceBalancesItsEnergy) {
   rolling.values = {{"rolling_friction", 0.3}, {"rolling_damping_ratio", 0.3}};
   for (const bool spheroids : {false, true}) {
     SCOPED_TRACE(spheroids ? "spheroids" : "spheres");
-    const Collision c = collide(spheroids, "none", 0, 0.32, rolling), fine = collide(spheroids, "none", 0, 0.08, rolling);
+    const Collision c = collide(spheroids, "none", 0, 0.32, {}, rolling),
+                    fine = collide(spheroids, "none", 0, 0.08, {}, rolling);
     const Collision plain = collide(spheroids, "none", 0, 0.32);
     const EnergyLedger& e = c.ledger;
     std::printf("[ info ] rolling, %s: lost %.4g J (%.4g J without rolling resistance): friction %.3f, dashpot %.3f "

@@ -499,6 +499,8 @@ void check_particles(const ContentCheck& c, const Particles& p, std::uint32_t ve
               p.equiv_radius[i], r);
     c.require(std::isfinite(p.mass[i]) && p.mass[i] > 0 && p.inertia[i].allFinite() && p.inertia[i].minCoeff() > 0,
               "particle {} has a mass or moment of inertia that is not finite and > 0", i);
+    c.require(version < 11 || (std::isfinite(p.inertia_scale[i]) && p.inertia_scale[i] >= 1),
+              "particle {} has an inertia scale that is not finite and >= 1", i);
     c.require(std::isfinite(p.damping_translation[i]) && p.damping_translation[i] >= 0,
               "particle {} has a damping factor that is not finite and >= 0", i);
     // Unwrapped fractional centres (SPEC 3): within a million cell lengths, so that wrapping keeps
@@ -765,6 +767,8 @@ Checkpoint parse_checkpoint(std::string_view bytes, const std::string& name, Sea
   io_state(r, c.state, version);
   if (!r.at_end()) r.damaged("unexpected bytes after the state");
   check_contents(c, version, r);
+  // Before format 11 no phase scaled the particles' inertia (SPEC 5.6).
+  if (version < 11) c.state.particles.inertia_scale.assign(c.state.particles.size(), 1.0);
   c.state.particles.derive_inverses();
   // The rotation's damping factors are not kept: a phase sets both when it starts (damping/stage.hpp).
   c.state.particles.damping_rotation = c.state.particles.damping_translation;

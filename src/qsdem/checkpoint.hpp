@@ -20,7 +20,7 @@ namespace qsdem {
 // default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures);
 // 9: the energy ledger (State::energy, and each phase's at its start and last row); 10: the digests
 // of the run directory's case.toml and of the rows counted (RunProgress::case_digest, files)
-inline constexpr std::uint32_t checkpoint_format_version = 10;
+inline constexpr std::uint32_t checkpoint_format_version = 11;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

@@ -274,7 +274,8 @@ class Reader : public TomlSource {
         "phase.strain_rate", "phase.stress",  "phase.servo",
         "phase.stop",     "phase.stop.strain", "phase.stop.stress",
         "phase.stop.equilibrium", "phase.output", "phase.output.every_strain",
-        "phase.controller"};
+        "phase.controller", "compaction.inertia_scaling", "triaxial.inertia_scaling",
+        "phase.inertia_scaling"};
     std::string name;
     for (const auto& part : split_path(path))
       if (!is_index(part)) name += (name.empty() ? "" : ".") + part;
@@ -326,6 +327,27 @@ std::pair<std::string, double> damping_model(Reader& r, const std::string& model
 DampedMotion damped_motion(Reader& r, const std::string& path) {
   const std::string m = r.text(path, std::string("both"), {"both", "translation", "rotation"});
   return m == "translation" ? DampedMotion::translation : m == "rotation" ? DampedMotion::rotation : DampedMotion::both;
+}
+
+// `<k>.inertia_scaling` (SPEC 5.6): off when absent; on with target = "coarsest" or factor = F, and
+// the cap of mu_i. Its keys are asked whether or not the table is there (case_keys).
+InertiaScaling inertia_scaling(Reader& r, const std::string& k) {
+  const std::string key = k + ".inertia_scaling";
+  if (const toml::node* n = r.find(key); n && !n->is_table())
+    r.fail(key, n, "expected a table: { target = \"coarsest\" } or { factor = F }, optionally with cap = C");
+  InertiaScaling s;
+  const std::string target = r.text(key + ".target", std::string(), {"coarsest"});
+  const auto factor = r.optional_number(key + ".factor", [](double v) { return v > 1 && v <= 1e3; },
+                                        "must be in (1, 1000]: the target step over the unscaled one");
+  s.cap = r.number(key + ".cap", s.cap, [](double v) { return v >= 1 && v <= 1e6; },
+                   "must be in [1, 10^6]: the largest factor on a particle's mass");
+  if (!target.empty() && factor)
+    r.fail(key + ".factor", r.find(key + ".factor"), "give one of target and factor, not both");
+  if (!target.empty()) s.target = InertiaScaling::Target::coarsest;
+  if (factor) s.target = InertiaScaling::Target::factor, s.factor = *factor;
+  if (const toml::node* n = r.find(key); n && !s.on())
+    r.fail(key, n, "needs target = \"coarsest\" or factor = F (> 1)");
+  return s;
 }
 
 // [contact]: the law (contact/laws.hpp) and the keys it declares, checked by the law.
@@ -520,6 +542,7 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   std::tie(ph.damping.model, ph.damping.ratio) =
       damping_model(r, k + ".damping.model", k + ".damping.ratio", contact);
   ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
+  ph.inertia = inertia_scaling(r, k);
 
   bool any_rate = false;
   for (int c = 0; c < component_count; ++c) {
@@ -681,6 +704,9 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
       const std::string name = r.text(k + ".controller.component", std::nullopt, components);
       ph.rate_component = static_cast<int>(std::find(components.begin(), components.end(), name) - components.begin());
     }
+    if (ph.inertia.on() && (ph.controller == "cyclic" || ph.controller == "rate"))
+      r.fail(k + ".inertia_scaling", r.find(k + ".inertia_scaling"),
+             fmt::format("not with controller \"{}\", which plans its steps with time.step_ratio alone", ph.controller));
   }
   int planned = 2;
   for (int c = 0; c < 3; ++c)
@@ -699,6 +725,7 @@ Protocol default_protocol(const Params& p) {
   compaction.contact = p.contact;
   compaction.friction = c.friction;
   compaction.damping = {c.damping_model, c.damping_ratio, DampedMotion::both};
+  compaction.inertia = c.inertia;
   for (int k = 0; k < component_count; ++k)
     if (is_normal(k) || c.zero_shear_stress)
       compaction.controls.component[static_cast<std::size_t>(k)] = {ComponentControl::Kind::stress,
@@ -717,6 +744,7 @@ Protocol default_protocol(const Params& p) {
   triaxial.contact = p.contact;
   triaxial.friction = t.friction;
   triaxial.damping = {p.damping.model, p.damping.ratio, p.damping.acts_on};
+  triaxial.inertia = t.inertia;
   triaxial.controls.component[0] = {ComponentControl::Kind::stress, t.confining_stress};
   triaxial.controls.component[1] = {ComponentControl::Kind::stress, t.confining_stress};
   triaxial.controls.component[2] = {ComponentControl::Kind::strain_rate, t.strain_rate};
@@ -822,6 +850,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
   c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
   c.zero_shear_stress = r.boolean("compaction.zero_shear_stress", true);
+  c.inertia = inertia_scaling(r, "compaction");
 
   auto& t = p.triaxial;
   t.friction = r.number("triaxial.friction", 0.5, non_negative, "must be >= 0");
@@ -832,6 +861,7 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   t.sample_points = static_cast<int>(r.integer("triaxial.sample_points", 250, 1, 1'000'000));
   t.lateral_rate_factor = r.number("triaxial.lateral_rate_factor", 10.0, [](double v) { return v >= 1; }, "must be >= 1");
   t.zero_shear_stress = r.boolean("triaxial.zero_shear_stress", false);
+  t.inertia = inertia_scaling(r, "triaxial");
 
   p.servo.proportional_gain = r.number("servo.proportional_gain", 0.1, [](double v) { return v > 0 && v < 1; }, "must be in (0, 1)");
   p.servo.integral_gain = r.number("servo.integral_gain", 0.002, [](double v) { return v >= 0 && v <= 0.1; }, "must be in [0, 0.1]");
@@ -854,6 +884,9 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
       // The axial strain rate follows an index; the rows are spread by axial strain, so that each
       // stands for an equal strain increment whatever the rate (docs/config.md).
       Phase& triaxial = p.protocol.back();
+      if (t.inertia.on())
+        r.fail("triaxial.inertia_scaling", r.find("triaxial.inertia_scaling"),
+               "not with triaxial.rate_control, which plans its steps with time.step_ratio alone");
       ControllerTable table(r, "triaxial.rate_control");
       triaxial.controller = "rate";
       triaxial.make_controller = rate_control_factory(read_rate_control_settings(table, triaxial, 2, p.step_ratio));
@@ -1083,6 +1116,11 @@ nlohmann::json to_json(const Phase& ph) {
                       {"stop", stop},
                       {"output", output}};
   if (!ph.controller.empty()) j["controller"] = ph.controller;
+  if (ph.inertia.on()) {
+    const bool coarsest = ph.inertia.target == InertiaScaling::Target::coarsest;
+    j["inertia_scaling"] = {{"target", coarsest ? "coarsest" : "factor"}, {"cap", ph.inertia.cap}};
+    if (!coarsest) j["inertia_scaling"]["factor"] = ph.inertia.factor;
+  }
   return j;
 }
 

@@ -75,6 +75,7 @@ struct Params {
     long max_steps = 2'000'000;
     long check_interval = 200;
     bool zero_shear_stress = true;      // servo the shear stresses to zero too (servo.hpp)
+    InertiaScaling inertia;             // SPEC 5.6
   } compaction;
 
   struct Triaxial {
@@ -85,6 +86,7 @@ struct Params {
     int sample_points = 250;
     double lateral_rate_factor = 10.0;  // max lateral rate = factor * axial rate
     bool zero_shear_stress = false;     // hold the shear stresses at zero (a flexible boundary)
+    InertiaScaling inertia;             // SPEC 5.6
   } triaxial;
 
   struct Servo {

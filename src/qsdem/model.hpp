@@ -45,8 +45,9 @@ struct Model {
   // refuse a Model without one.
   std::optional<ContactLaw> contact_law;
   double r_min = 0;             // equal-volume radius of the smallest particle (m)
-  double critical_time = 0;     // t_c = 2 R_min sqrt(rho/E), SPEC 5
-  double dt = 0;                // c_t t_c
+  double critical_time = 0;     // t_c = 2 R_min sqrt(rho/E), SPEC 5, unscaled: the unit of eps'
+  double step_gain = 1;         // s, the particles' inertia scaling's gain of the step (SPEC 5.6)
+  double dt = 0;                // c_t s t_c
   ResolvedDamping damping;      // the particle damping and what it asks of the stages (damping/)
   std::array<AxisControl, 3> control{};        // the normal components 11, 22, 33
   std::array<AxisControl, 3> shear_control{};  // the shear components 12, 13, 23

@@ -19,8 +19,9 @@ struct Particles {
   std::vector<Vec3> semi_axes;         // a >= b >= c, body frame (m)
   std::vector<double> bound_radius;    // radius of the bounding sphere = a (m)
   std::vector<double> equiv_radius;    // R_i = (abc)^(1/3) (m), SPEC 2
-  std::vector<double> mass;            // kg
-  std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2)
+  std::vector<double> mass;            // kg: mu_i times the solid's (the dynamics' mass, SPEC 5.6)
+  std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2), mu_i times the solid's
+  std::vector<double> inertia_scale;   // mu_i, the phase's inertia scaling (1: none), SPEC 5.6
   std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
   std::vector<Vec3> inv_inertia;       // (the integrator multiplies instead of dividing)
   std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping/stage.hpp), SPEC 6
@@ -66,6 +67,7 @@ constexpr void for_each_field(P& p, F&& f) {
   f(p.equiv_radius, ParticleField{"equiv_radius", 1});
   f(p.mass, ParticleField{"mass", 1});
   f(p.inertia, ParticleField{"inertia", 1});
+  f(p.inertia_scale, ParticleField{"inertia_scale", 11});  // 1 in older formats (no scaling)
   f(p.inv_mass, ParticleField{"inv_mass", 0});
   f(p.inv_inertia, ParticleField{"inv_inertia", 0});
   f(p.damping_translation, ParticleField{"damping_translation", 1});
@@ -78,6 +80,14 @@ constexpr void for_each_field(P& p, F&& f) {
   f(p.force, ParticleField{"force", 1});
   f(p.torque, ParticleField{"torque", 1});
 }
+
+// Sets every particle's mu_i, mass and moments for `scaling` (SPEC 5.6): mu_i times those of the
+// solid of density rho (SPEC 2). Leaves the particles untouched when the scaling is off and every
+// mu_i is 1 already.
+void scale_inertia(Particles& p, const InertiaScaling& scaling, double density);
+
+// s = min_i R_i sqrt(mu_i) / R_min: the scaled critical step over the unscaled t_c (SPEC 5.6).
+double step_gain(const Particles& p);
 
 // Mass and principal moments of a solid ellipsoid (SPEC 2).
 double ellipsoid_volume(const Vec3& semi_axes);

@@ -99,6 +99,7 @@ struct Phase {
   ContactSettings contact;  // the contact law and its keys (contact/laws.hpp): the case's [contact]
   double friction = 0.5;
   PhaseDamping damping;
+  InertiaScaling inertia;  // the particles' inertia scaling during the phase (SPEC 5.6)
   PhaseControls controls;
   StopCriteria stop;
   PhaseOutput output;

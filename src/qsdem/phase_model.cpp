@@ -32,9 +32,16 @@ Model case_model(const Params& params, const Particles& particles) {
 Model phase_model(const Params& params, const Phase& phase, const PhaseControls& controls, const Particles& particles,
                   const Mat3& h0) {
   Model m = case_model(params, particles);
+  // The step of the scaled particles, dt = c_t s t_c (SPEC 5.6). A phase without scaling has every
+  // mu_i = 1 (its start set them), so s = 1: its model skips the pass over the particles.
+  if (phase.inertia.on()) {
+    m.step_gain = step_gain(particles);
+    m.dt = params.step_ratio * m.step_gain * m.critical_time;
+  }
   const PhaseDamping& d = phase.damping;
   m.contact_law = make_contact_law(m.material, phase.friction, phase_contact_settings(d.model, d.ratio, phase.contact));
-  m.damping = resolve_damping(d.model, {d.ratio, m.material.wave_speed(), m.r_min}, d.acts_on);
+  // od's highest frequency is that of the scaled sample, sqrt(E/rho) / (s R_min) (SPEC 5.6).
+  m.damping = resolve_damping(d.model, {d.ratio, m.material.wave_speed(), m.r_min * m.step_gain}, d.acts_on);
   double fastest = 0;  // the fastest strain-rate component (1/s)
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = controls.component[static_cast<std::size_t>(c)];

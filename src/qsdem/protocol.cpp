@@ -249,6 +249,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     rec.energy_start = st.energy;
     st.servo_integral.setZero();
     ps = fresh_state(phase);
+    scale_inertia(st.particles, phase.inertia, params.material.density);  // SPEC 5.6; resumed: as saved
   } else if (!ps.live) {
     ps = fresh_state(phase);  // a checkpoint of an older format: no controller changed anything
   }
@@ -260,6 +261,8 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
 
   Model model = phase_model(params, phase, ps.controls, st.particles, rec.h0);
   assign_damping(model, st.particles);
+  // A strain-rate component's strain grows by dt eps' / t_c = c_t s eps' per step (SPEC 3.4, 5.6).
+  const double step_ratio = params.step_ratio * model.step_gain;
   const PhaseRecord& ref = run.phases.at(static_cast<std::size_t>(sink.reference_phase));
   const std::optional<StopCriteria::Equilibrium>& equilibrium = phase.stop.equilibrium;
   const char* name = phase.name.c_str();
@@ -268,16 +271,16 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   const double p0 = run.phase > 0 ? run.phases.at(static_cast<std::size_t>(run.phase - 1)).final.mean_stress : 0.0;
   const double wall_before = rec.wall_s;
   const long steps_at_start = rec.steps;
-  long end = planned_end(phase, ps, params.step_ratio);
-  long sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
+  long end = planned_end(phase, ps, step_ratio);
+  long sample = next_sample(phase, ps, rec.rows, end, step_ratio);
   BlowUpWatch watch;
   Schedule schedule;  // the threads' shares of the step, kept over the phase
   progress.begin(phase.name, end >= 0 ? static_cast<double>(end - steps_at_start) : 0.0);
   const auto limit_reached = [&] { return phase.stop.max_steps > 0 && rec.steps >= phase.stop.max_steps; };
   const auto replan = [&](const PhaseControls& before, long n) {
-    controls_changed(before, ps, n, rec.rows, params.step_ratio);
+    controls_changed(before, ps, n, rec.rows, step_ratio);
     model = phase_model(params, phase, ps.controls, st.particles, rec.h0);
-    end = planned_end(phase, ps, params.step_ratio);
+    end = planned_end(phase, ps, step_ratio);
   };
   bool ended = false;
   while (!ended) {
@@ -297,7 +300,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       const PhaseControls before = ps.controls;
       if (controller->at_step(st, n, rec.h0, ps.controls)) {
         replan(before, n);
-        sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
+        sample = next_sample(phase, ps, rec.rows, end, step_ratio);
       }
       keep_controller();
       ended = ended || controller->done();
@@ -391,7 +394,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       if (controller->at_sample(point, ps.controls)) replan(before, n);
       keep_controller();
     }
-    if (row) sample = next_sample(phase, ps, rec.rows, end, params.step_ratio);
+    if (row) sample = next_sample(phase, ps, rec.rows, end, step_ratio);
     if (hook) hook(row);
     if (limit_reached()) break;
   }

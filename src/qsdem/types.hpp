@@ -41,6 +41,16 @@ inline const char* to_string(DampedMotion m) {
   return "?";
 }
 
+// Per-particle inertia (density) scaling of a phase (SPEC 5.6): each particle's mass and moments
+// are multiplied by mu_i = min(cap, (R* / R_i)^2) so that its critical step 2 R_i sqrt(mu_i rho / E)
+// reaches 2 R* sqrt(rho / E), with R* = R_max (coarsest) or factor R_min (factor).
+struct InertiaScaling {
+  enum class Target : std::uint8_t { none, coarsest, factor } target = Target::none;
+  double factor = 1;  // Target::factor: the target step over the unscaled t_c (> 1)
+  double cap = 100;   // the largest mu_i (>= 1)
+  bool on() const { return target != Target::none; }
+};
+
 // The [contact] table: the contact law (contact/laws.hpp) and the values of its own keys.
 struct ContactSettings {
   std::string law = "hertz_mindlin";

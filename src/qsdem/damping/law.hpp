@@ -47,7 +47,8 @@ struct RatioRange {
 struct DampingConstants {
   double ratio = 0;       // damping.ratio of the phase
   double wave_speed = 0;  // sqrt(E / rho) (m/s)
-  double r_min = 0;       // equal-volume radius of the smallest particle (m)
+  double r_min = 0;       // equal-volume radius of the smallest particle (m), times the step gain s
+                          // under inertia scaling (the radius of the scaled critical step, SPEC 5.6)
 };
 
 // What a per-step model reads of the last force evaluation: per particle, the sums over its
