@@ -12,6 +12,9 @@
 #include <climits>
 #include <cmath>
 #include <memory>
+#include <utility>
+
+#include "qsdem/damping/models.hpp"
 
 #include "qsdem/controller.hpp"
 #include "qsdem/run.hpp"
@@ -26,8 +29,14 @@ bool is_number(const py::handle& v) {
   return (py::isinstance<py::float_>(v) || py::isinstance<py::int_>(v)) && !py::isinstance<py::bool_>(v);
 }
 
+// What a callback changes besides the control values: the phase's friction and damping ratio.
+struct PhaseChange {
+  std::optional<double> friction, damping_ratio;
+};
+
 // One change `key: value` a sample-point callback returns, checked and applied to `next`.
-void apply_change(const std::string& key, const py::handle& value_obj, PhaseControls& next) {
+void apply_change(const std::string& key, const py::handle& value_obj, const Phase& phase, PhaseControls& next,
+                  PhaseChange& change) {
   if (!is_number(value_obj))
     throw py::type_error(fmt::format("on_sample: the value of '{}' must be a number, not {}", key,
                                      std::string(py::str(value_obj.get_type().attr("__name__")))));
@@ -39,10 +48,26 @@ void apply_change(const std::string& key, const py::handle& value_obj, PhaseCont
     (key == "max_strain_rate" ? next.max_strain_rate : next.rate_factor) = value;
     return;
   }
+  if (key == "friction") {
+    if (value < 0) throw py::value_error(fmt::format("on_sample: friction = {} is not allowed: give a number >= 0", value));
+    change.friction = value;
+    return;
+  }
+  if (key == "damping_ratio") {
+    bool on_ratio = false;
+    const std::string why = value < 0 ? "must be >= 0" : check_damping(phase.damping.model, value, phase.contact, on_ratio);
+    if (!why.empty())
+      throw py::value_error(fmt::format("on_sample: damping_ratio = {} is not allowed for damping model '{}': {}", value,
+                                        phase.damping.model, why));
+    change.damping_ratio = value;
+    return;
+  }
   const auto it = std::find(component_names.begin(), component_names.end(), key);
   if (it == component_names.end())
     throw py::value_error(fmt::format(
-        "on_sample: unknown control '{}' (allowed: 11, 22, 33, 12, 13, 23, max_strain_rate, rate_factor)", key));
+        "on_sample: unknown control '{}' (allowed: 11, 22, 33, 12, 13, 23, max_strain_rate, rate_factor, friction, "
+        "damping_ratio)",
+        key));
   const auto c = static_cast<int>(it - component_names.begin());
   ComponentControl& cc = next.component[static_cast<std::size_t>(c)];
   using Kind = ComponentControl::Kind;
@@ -56,11 +81,11 @@ void apply_change(const std::string& key, const py::handle& value_obj, PhaseCont
   cc.value = value;
 }
 
-// The changes a callback returns, {"33": value, "max_strain_rate": value, ...}: every entry is
-// checked before any applies (a bad one raises, naming it). True when a value changed.
-bool apply_changes(const py::dict& changes, PhaseControls& controls) {
+// The changes a callback returns, {"33": value, "friction": value, ...}: every entry is checked
+// before any applies (a bad one raises, naming it). True when a control value changed.
+bool apply_changes(const py::dict& changes, const Phase& phase, PhaseControls& controls, PhaseChange& change) {
   PhaseControls next = controls;
-  for (const auto& [key, value] : changes) apply_change(py::str(key), value, next);
+  for (const auto& [key, value] : changes) apply_change(py::str(key), value, phase, next, change);
   bool changed = next.max_strain_rate != controls.max_strain_rate || next.rate_factor != controls.rate_factor;
   for (std::size_t k = 0; k < component_count; ++k)
     changed = changed || next.component[k].value != controls.component[k].value;
@@ -71,7 +96,7 @@ bool apply_changes(const py::dict& changes, PhaseControls& controls) {
 // The phase's controller (if its case gives one), then the Python callback, at each sample point.
 class CallbackController : public Controller {
  public:
-  CallbackController(std::unique_ptr<Controller> inner, const Simulation& sim, int phase)
+  CallbackController(std::unique_ptr<Controller> inner, Simulation& sim, int phase)
       : inner_(std::move(inner)), sim_(sim), phase_(phase) {}
   bool at_sample(const SamplePoint& point, PhaseControls& controls) override;
   bool every_step() const override { return inner_ && inner_->every_step(); }
@@ -90,7 +115,7 @@ class CallbackController : public Controller {
 
  private:
   std::unique_ptr<Controller> inner_;
-  const Simulation& sim_;
+  Simulation& sim_;
   int phase_;
 };
 
@@ -104,12 +129,16 @@ bool CallbackController::at_sample(const SamplePoint& point, PhaseControls& cont
   d["measures"] = measures_dict(*point.measures);
   d["strain"] = std::vector<double>(point.strain.begin(), point.strain.end());
   d["critical_time"] = point.critical_time;
-  d["controls"] = controls_dict(controls);
+  d["controls"] = controls_dict(controls, sim_.params().protocol[static_cast<std::size_t>(phase_)]);
   const py::object r = sim_.callback(d);
   if (r.is_none()) return changed;
   if (!py::isinstance<py::dict>(r))
     throw py::type_error("on_sample: the callback returns None or a dict of new control values, e.g. {\"33\": 2e-5}");
-  return apply_changes(r.cast<py::dict>(), controls) || changed;
+  const Phase& phase = sim_.params().protocol[static_cast<std::size_t>(phase_)];
+  PhaseChange change;
+  const bool controls_changed = apply_changes(r.cast<py::dict>(), phase, controls, change);
+  if (change.friction || change.damping_ratio) sim_.change_phase(phase_, change.friction, change.damping_ratio);
+  return controls_changed || changed;
 }
 
 // The first phase that writes `p`'s file: a run measures the strains of its rows from its start.
@@ -135,30 +164,45 @@ Simulation::Simulation(Params params, bool progress)
   run_.phases.resize(params_.protocol.size());
 }
 
+void Simulation::change_phase(int phase, std::optional<double> friction, std::optional<double> damping_ratio) {
+  Phase& ph = params_.protocol[static_cast<std::size_t>(phase)];
+  if (friction) ph.friction = *friction;
+  if (damping_ratio) ph.damping.ratio = *damping_ratio;
+  rebuild_ = true;
+}
+
 long Simulation::step(long n) {
   if (n < 1) throw py::value_error(fmt::format("step(n): n = {} is not allowed: give a whole number >= 1", n));
   if (finished()) throw py::value_error("step(): every phase of the case has ended");
   const auto p = static_cast<std::size_t>(run_.phase);
   const long before = run_.phase_started ? run_.current().steps : 0;
+  const long target = n > LONG_MAX - before ? LONG_MAX : before + n;  // the phase's steps when step(n) returns
   const long max_steps = params_.protocol[p].stop.max_steps;
+  py::gil_scoped_release release;
   long hooks = 0;  // the hook follows every step but the phase's last
-  {
-    py::gil_scoped_release release;
+  const StepHook hook = [&](bool) {
+    if (++hooks % 256 == 0) {  // Ctrl-C in Python stops the stepping between two steps
+      py::gil_scoped_acquire gil;
+      if (PyErr_CheckSignals() != 0) throw py::error_already_set();
+    }
+    const long steps = run_.current().steps;
+    // At the step limit the loop itself stops (RunError), as in a run.
+    if ((steps >= target || rebuild_) && !(max_steps > 0 && steps >= max_steps)) throw Pause{};
+  };
+  for (;;) {
     try {
-      run_phase(params_, st_, run_, {nullptr, reference_phase(params_, p), {}, nullptr, nullptr}, progress_,
-                [&](bool) {
-                  if (++hooks % 256 == 0) {  // Ctrl-C in Python stops the stepping between two steps
-                    py::gil_scoped_acquire gil;
-                    if (PyErr_CheckSignals() != 0) throw py::error_already_set();
-                  }
-                  // At the step limit the loop itself stops (RunError), as in a run.
-                  if (hooks >= n && !(max_steps > 0 && run_.current().steps >= max_steps)) throw Pause{};
-                });
+      run_phase(params_, st_, run_, {nullptr, reference_phase(params_, p), {}, nullptr, nullptr}, progress_, hook);
       ++run_.phase;
       run_.phase_started = false;
       run_.state = {};
+      rebuild_ = false;
+      break;
     } catch (const Pause&) {
+      // Continued after a change of the phase: run_phase builds its model again from params_.
+      if (std::exchange(rebuild_, false) && run_.current().steps < target) continue;
+      break;
     } catch (const InputError& e) {  // what only the run could find, as run_case reports it
+      rebuild_ = false;
       throw RunError(fmt::format("{} stopped after {} step {}: {}", params_.protocol[p].name, params_.protocol[p].name,
                                  run_.phases[p].steps - 1, e.what()));
     }
@@ -205,8 +249,8 @@ void bind_simulation(py::module_& m) {
                                if (s.finished()) return py::dict();
                                const RunProgress& r = s.run();
                                const bool live = r.phase_started && r.state.live;
-                               return controls_dict(live ? r.state.controls
-                                                         : s.params().protocol[static_cast<std::size_t>(r.phase)].controls);
+                               const Phase& phase = s.params().protocol[static_cast<std::size_t>(r.phase)];
+                               return controls_dict(live ? r.state.controls : phase.controls, phase);
                              })
       .def("_set_callback", [](Simulation& s, py::object fn) { s.callback = std::move(fn); });
   bind_state(c);

@@ -5,6 +5,7 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -34,6 +35,10 @@ class Simulation {
   // released while stepping; Ctrl-C (a Python signal) stops it between two steps.
   long step(long n);
 
+  // The phase's friction and damping ratio, changed by a callback: the model is rebuilt with them
+  // from the next step (the loop pauses and continues, as after step(n)).
+  void change_phase(int phase, std::optional<double> friction, std::optional<double> damping_ratio);
+
   py::object callback;  // on_sample's function, or None
   const Params& params() const { return params_; }
   const State& state() const { return st_; }
@@ -44,12 +49,14 @@ class Simulation {
   State st_;
   RunProgress run_;
   Progress progress_;
+  bool rebuild_ = false;  // a callback changed the phase: pause after this step and continue
 };
 
 // state.cpp: the state and the measures as Python objects (copies).
 py::array_t<double> matrix(const Mat3& a);
 py::dict measures_dict(const Measures& m);
-py::dict controls_dict(const PhaseControls& c);
+// The control values and the phase's friction and damping ratio, as a callback reads and changes them.
+py::dict controls_dict(const PhaseControls& c, const Phase& phase);
 py::dict record_dict(const PhaseRecord& r);
 // The contacts of the last force evaluation, by particle id (docs/python.md).
 py::dict contacts_dict(const State& st);

@@ -86,12 +86,14 @@ py::dict measures_dict(const Measures& m) {
   return d;
 }
 
-py::dict controls_dict(const PhaseControls& c) {
+py::dict controls_dict(const PhaseControls& c, const Phase& phase) {
   py::dict d;
   for (std::size_t k = 0; k < component_count; ++k)
     d[component_names[k]] = py::make_tuple(kind_name(c.component[k].kind), c.component[k].value);
   d["max_strain_rate"] = c.max_strain_rate;
   d["rate_factor"] = c.rate_factor;
+  d["friction"] = phase.friction;
+  d["damping_ratio"] = phase.damping.ratio;
   return d;
 }
 

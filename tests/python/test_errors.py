@@ -105,3 +105,35 @@ def test_stepping_errors():
         sim.run_phase()
     sim.on_sample(None)
     assert sim.step(5) == 5
+
+
+STEP_UNTIL_INTERRUPTED = r"""
+import sys, qsdem
+sim = qsdem.Simulation(sys.argv[1], threads=1, triaxial__strain_rate=1e-9)  # 10^8 triaxial steps
+sim.run_phase()
+print("ready", flush=True)
+try:
+    sim.run_phase()
+except KeyboardInterrupt:
+    print("interrupted at", sim.phase_steps, flush=True)
+print("then", sim.step(5), sim.phase_steps, flush=True)
+"""
+
+
+def test_ctrl_c_stops_the_stepping_and_leaves_it_usable():
+    import signal
+    import subprocess
+    import sys
+    import time
+    p = subprocess.Popen([sys.executable, "-c", STEP_UNTIL_INTERRUPTED, str(TINY)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    assert p.stdout.readline() == "ready\n"
+    time.sleep(0.5)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 0, err
+    lines = out.splitlines()
+    assert lines[0].startswith("interrupted at ")
+    stopped = int(lines[0].split()[-1])
+    assert 0 < stopped < 10**8
+    assert lines[1] == f"then 5 {stopped + 5}"

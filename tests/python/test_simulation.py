@@ -150,3 +150,68 @@ def test_a_prepared_sample_starts_at_its_second_phase(tmp_path):
     assert sim.finished
     with pytest.raises(ValueError, match="every phase"):
         sim.step(1)
+
+
+def test_callback_changes_friction_from_the_next_step():
+    """friction = 0 from row 1 of the triaxial test (its force evaluation 25): Coulomb's bound
+    |ft| <= mu fn (SPEC 4) leaves no tangential force from the next force evaluation on."""
+    sim = qsdem.Simulation(TINY, threads=1)
+    sim.run_phase()
+    seen = []
+
+    def frictionless(point):
+        seen.append(point["controls"]["friction"])
+        if point["row"] == 1:
+            return {"friction": 0.0}
+
+    sim.on_sample(frictionless)
+    assert sim.step(26) == 26  # the steps of one call, though the loop paused for the change
+    before = sim.contacts()  # forces of force evaluation 25, before the change
+    assert np.max(before["ft"] / before["fn"]) > 0.1
+    x, h = sim.positions, sim.cell  # the geometry of the next force evaluation
+    sim.step(1)
+    after = sim.contacts()
+    l = x[after["j"]] + after["image"] @ h.T - x[after["i"]]
+    n = l / np.linalg.norm(l, axis=1)[:, None]  # spheres
+    f = after["force"]
+    fn = np.einsum("ka,ka->k", f, n)
+    assert np.all(fn > 0)
+    assert np.all(np.linalg.norm(f - fn[:, None] * n, axis=1) <= 1e-12 * fn)
+    sim.run_phase()
+    assert seen[0] == 0.5 and all(mu == 0.0 for mu in seen[1:]) and len(seen) == 9
+
+
+def test_a_change_to_the_same_values_changes_no_bit():
+    """A callback that returns the current damping ratio and friction pauses the loop and rebuilds
+    the phase's model at every sample point: the bits of a run without it."""
+    plain = qsdem.Simulation(TINY, threads=1)
+    plain.run()
+    same = qsdem.Simulation(TINY, threads=1)
+    same.on_sample(lambda point: {"damping_ratio": point["controls"]["damping_ratio"],
+                                  "friction": point["controls"]["friction"]})
+    same.run()
+    for name in ("positions", "velocities", "spins", "forces", "cell", "stress"):
+        assert np.array_equal(getattr(same, name), getattr(plain, name)), name
+    keys = ("steps", "rows", "peak_phi_deg", "final_e1", "final_ev", "mean_ufr")
+    assert [[r[k] for k in keys] for r in same.records] == [[r[k] for k in keys] for r in plain.records]
+
+
+def test_callback_changes_the_damping_ratio():
+    sim = qsdem.Simulation(TINY, threads=1)
+    sim.run_phase()
+    plain = qsdem.Simulation(TINY, threads=1)
+    plain.run_phase()
+    ratios = []
+
+    def more_damping(point):
+        ratios.append(point["controls"]["damping_ratio"])
+        return {"damping_ratio": 0.05}
+
+    sim.on_sample(more_damping)
+    sim.step(60)
+    plain.step(60)
+    assert ratios == [0.005, 0.05]
+    assert not np.array_equal(sim.velocities, plain.velocities)
+    sim.on_sample(lambda point: {"damping_ratio": -0.1})
+    with pytest.raises(ValueError, match="damping_ratio = -0.1"):
+        sim.run_phase()
