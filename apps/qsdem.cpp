@@ -1,4 +1,4 @@
-// qsdem command line: run a case, prepare a sample, resume, study, analyse, benchmark.
+// qsdem command line: run a case, prepare a sample, resume, plot, study, analyse, benchmark.
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 #include <omp.h>
@@ -12,9 +12,12 @@
 #include <iostream>
 
 #include "qsdem/config.hpp"
+#include "qsdem/grading.hpp"
 #include "qsdem/converge.hpp"
 #include "qsdem/default_case.hpp"
+#include "qsdem/figures.hpp"
 #include "qsdem/files.hpp"
+#include "qsdem/plot.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/study_analysis.hpp"
@@ -63,7 +66,28 @@ CLI::Validator thread_count() {
       fmt::format("INT in [0, {}]", max_threads));
 }
 
-constexpr const char* subcommands[] = {"run", "prepare", "resume", "bench", "study", "analyze", "converge"};
+constexpr const char* subcommands[] = {"run", "prepare", "resume", "plot", "bench", "study", "analyze", "converge"};
+
+// The page of a run that has just ended (`qsdem plot DIR`), when gnuplot is there: a run never
+// fails for want of its figures, it says how to draw them later.
+void draw_page(const std::string& dir, bool no_plot) {
+  const std::string later = fmt::format("qsdem plot {}", dir);
+  if (no_plot) {
+    std::cout << "Figures: " << later << "\n";
+    return;
+  }
+  if (!qsdem::gnuplot_available()) {
+    std::cout << "Figures: not drawn (gnuplot is not installed: apt-get install gnuplot-nox); then " << later << "\n";
+    return;
+  }
+  try {
+    const qsdem::PlotResult r = qsdem::plot_run(dir);
+    std::cout << "Figures in " << r.page.string() << "\n";
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "qsdem: the figures were not drawn: %s\n", e.what());
+    std::cout << "Figures: not drawn; " << later << " tries again\n";
+  }
+}
 
 }  // namespace
 
@@ -71,7 +95,7 @@ int main(int argc, char** argv) {
   // CLI11 answers an unknown subcommand with "A subcommand is required": name it instead.
   if (argc > 1 && argv[1][0] != '-' &&
       std::none_of(std::begin(subcommands), std::end(subcommands), [&](const char* c) { return std::strcmp(c, argv[1]) == 0; })) {
-    std::fprintf(stderr, "qsdem: unknown subcommand '%s' (allowed: run, prepare, resume, bench, study, analyze, converge; see "
+    std::fprintf(stderr, "qsdem: unknown subcommand '%s' (allowed: run, prepare, resume, plot, bench, study, analyze, converge; see "
                          "qsdem --help)\n", argv[1]);
     return 1;
   }
@@ -110,6 +134,10 @@ int main(int argc, char** argv) {
   run->add_flag("--quiet,-q", quiet, "No progress line");
   bool force = false;
   run->add_flag("--force,-f", force, "Overwrite a directory that holds a finished or unfinished run");
+  bool no_plot = false;
+  run->add_flag("--no-plot", no_plot,
+                "Do not draw the run's figures at its end (they are drawn into DIR/plot/ when gnuplot is installed; "
+                "`qsdem plot DIR` draws them later)");
 
   auto* prepare = app.add_subcommand(
       "prepare",
@@ -136,6 +164,17 @@ int main(int argc, char** argv) {
                      "summary.json (repeatable)");
   resume->add_option("--threads,-t", threads, "OpenMP threads (default: all cores)")->check(all_cores_or_count);
   resume->add_flag("--quiet,-q", quiet, "No progress line");
+  resume->add_flag("--no-plot", no_plot, "Do not draw the run's figures at its end (as for run)");
+
+  std::string plot_dir, plot_out;
+  auto* plot = app.add_subcommand(
+      "plot",
+      "Draw the figures of a run directory (docs/runs.md): for each series file, q/p, phi, ev and the void ratio "
+      "against e1, the stress path in p-q, the equilibrium indices UFR, Iuf, IMom and Cn, the fabric columns, the "
+      "loops of a cyclic phase, and the size classes of classes.csv; PNG and SVG with their data and gnuplot "
+      "scripts, and one page, DIR/plot/index.html. Needs gnuplot.");
+  plot->add_option("dir", plot_dir, "Directory of the run (its series.csv, compaction.csv, summary.json)")->required();
+  plot->add_option("--out,-o", plot_out, "Directory for the figures and the page (default: DIR/plot)");
 
   std::string bench_source;
   long steps = 1000;
@@ -251,10 +290,14 @@ int main(int argc, char** argv) {
       if (!quiet)
         std::fprintf(stderr, "qsdem %s: case %s -> %s (%d threads)\n", QSDEM_VERSION, params.source.c_str(),
                      out_dir.c_str(), omp_get_max_threads());
+      if (!quiet && params.sample.from.empty() && !params.sample.grading.empty())
+        std::fprintf(stderr, "qsdem: %s\n",
+                     qsdem::describe_grading(params.sample.grading, params.sample.total_particles, params.sample.seed).c_str());
       const auto summary = qsdem::run_case(params, {out_dir, quiet, bool(*prepare), force});
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << out_dir
                 << (*prepare ? "/ (compacted.packing, summary.json)\n" : "/ (series.csv, summary.json)\n");
+      if (!*prepare) draw_page(out_dir, no_plot);
     } else if (*resume) {
       qsdem::RunOptions options;
       options.out = resume_dir;
@@ -263,6 +306,14 @@ int main(int argc, char** argv) {
       const auto summary = qsdem::resume_run(resume_dir, options);
       std::cout << "\n" << qsdem::format_run_table(summary) << "\nTime per stage:\n"
                 << summary["stage_table"].get<std::string>() << "\nResults in " << resume_dir << "/\n";
+      // A resumed `qsdem prepare` (steps_cover: its compaction, physics.md 10.2) has no test to draw.
+      const std::string cover = summary.value("steps_cover", "");
+      if (cover != "compaction" && cover != "the first phase") draw_page(resume_dir, no_plot);
+    } else if (*plot) {
+      const qsdem::PlotResult r = qsdem::plot_run(plot_dir, plot_out);
+      for (const std::string& n : r.notes) std::cout << "not drawn: " << n << "\n";
+      std::cout << r.page.parent_path().string() << ": " << r.figures.size() << " figures; open " << r.page.string()
+                << "\n";
     } else if (*study) {
       qsdem::StudyOptions options;
       options.out = out_dir, options.quiet = quiet, options.parallel = parallel, options.order = order;

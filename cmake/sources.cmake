@@ -26,6 +26,7 @@ set(QSDEM_RUN_SOURCES
   src/qsdem/path_control.cpp
   src/qsdem/rate_control.cpp
   src/qsdem/generate.cpp
+  src/qsdem/grading.cpp
   src/qsdem/phase_model.cpp
   src/qsdem/protocol.cpp
   src/qsdem/files.cpp
@@ -36,4 +37,6 @@ set(QSDEM_RUN_SOURCES
   src/qsdem/run.cpp
   src/qsdem/checkpoint.cpp
   src/qsdem/vtk.cpp
+  src/qsdem/figures.cpp
+  src/qsdem/plot.cpp
 )

@@ -224,6 +224,7 @@ TEST(Docs, AnnotatedExampleIsTheDefaultCaseWithEveryKeyWritten) {
     if (not_taken.count(key)) continue;
     if (key.rfind("phase.", 0) == 0) continue;  // a [[phase]] list replaces [compaction] and [triaxial]
     if (key.rfind("triaxial.rate_control.", 0) == 0) continue;  // an optional table: writing it changes the case
+    if (key.rfind("sample.grading", 0) == 0) continue;  // a sieve curve replaces the size table
     std::string pointer = "/" + key;
     for (char& c : pointer) c = c == '.' ? '/' : c;
     if (key.rfind("sample.particles.", 0) == 0) pointer.insert(std::string("/sample/particles").size(), "/0");

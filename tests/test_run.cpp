@@ -1,16 +1,20 @@
 // A whole run (SPEC 8, 10): determinism (seed, thread count), the result files and the CLI.
 #include <fcntl.h>
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 #include <omp.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <nlohmann/json.hpp>
+#include <set>
+#include <map>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -18,6 +22,7 @@
 #include "qsdem/config.hpp"
 #include "qsdem/forces.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/grading.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/protocol.hpp"
@@ -494,5 +499,55 @@ TEST(Run, BenchPeakMemoryIsItsOwnUnderABigParent) {
   const double peak = b["peak_rss_kib"].get<double>(), state = b["state_kib"]["total"].get<double>();
   EXPECT_GT(peak, state);
   EXPECT_LT(peak, 128 * 1024) << "the parent's 256 MiB, not the bench's own peak";
+  fs::remove_all(dir);
+}
+
+// A run of examples/sieve-curve.toml (300 spheres from a sieve curve, 1 to 4 mm), cut short: its
+// opening lines and summary.json give D10 ... Cc of the curve and of the particles drawn, the
+// drawn particles are those of the run (their count per interval and their mass fractions), and
+// classes.csv has one class per sieve interval (docs/physics.md 8.6, 10.3).
+TEST(Run, SieveCurveCase) {
+  const fs::path dir = fresh_dir("sieve");
+  const std::string example = std::string(QSDEM_SOURCE_DIR) + "/examples/sieve-curve.toml";
+  const std::string sets = " --set triaxial.strain_rate=1.25e-4"
+                           " --set 'triaxial.final_axial_strain=\"0.2 %\"' --set triaxial.sample_points=4";
+  std::string out, err;
+  ASSERT_EQ(shell("'" + binary + "' run '" + example + "' -t 1 -o '" + (dir / "o").string() + "'" + sets, dir, out, err), 0)
+      << err;
+  const Params params = load_case(example);
+  const GradingSizes curve = curve_sizes(params.sample.grading);
+  EXPECT_NE(err.find(fmt::format("curve: D10 {:.4g} mm", 1e3 * curve.d10)), std::string::npos) << err;
+  EXPECT_NE(err.find(fmt::format("Cu {:.3f}, Cc {:.3f}", curve.cu, curve.cc)), std::string::npos) << err;
+
+  const nlohmann::json s = nlohmann::json::parse(slurp(dir / "o" / "summary.json"));
+  const nlohmann::json& g = s["derived"]["grading"];
+  EXPECT_EQ(s["derived"]["particles"].get<long>(), 300);
+  EXPECT_DOUBLE_EQ(g["curve"]["D10_m"].get<double>(), curve.d10);
+  EXPECT_DOUBLE_EQ(g["curve"]["Cc"].get<double>(), curve.cc);
+  const std::vector<double> d = draw_diameters(params.sample.grading, 300, params.sample.seed);
+  EXPECT_DOUBLE_EQ(g["sample"]["D60_m"].get<double>(), sample_sizes(d).d60);
+  const std::vector<long> counts = interval_counts(params.sample.grading, 300);
+  ASSERT_EQ(g["intervals"].size(), 4u);
+  double drawn = 0;
+  for (std::size_t k = 0; k < 4; ++k) {
+    EXPECT_EQ(g["intervals"][k]["count"].get<long>(), counts[k]);
+    drawn += g["intervals"][k]["sampled_mass_fraction"].get<double>();
+  }
+  EXPECT_NEAR(drawn, 1, 1e-12);
+  // classes.csv: 4 classes (every interval holds particles) at each of its sample points.
+  std::ifstream classes(dir / "o" / "classes.csv");
+  std::set<std::string> radii;
+  std::map<double, long> count_of;  // by radius, ascending
+  std::string line;
+  std::getline(classes, line);
+  ASSERT_EQ(split(line, ',')[5], "radius_mm");
+  while (std::getline(classes, line)) {
+    const std::vector<std::string> f = split(line, ',');
+    radii.insert(f[5]);
+    count_of[std::stod(f[5])] = std::stol(f[6]);
+  }
+  EXPECT_EQ(radii.size(), 4u);
+  long k = 0;
+  for (const auto& [radius, n] : count_of) EXPECT_EQ(n, counts[static_cast<std::size_t>(k++)]) << radius;
   fs::remove_all(dir);
 }

@@ -266,7 +266,7 @@ class Reader : public TomlSource {
   // A table the case may hold, named without its array indices ("phase.0.stop" -> "phase.stop").
   static bool known_section(const std::string& path) {
     static const std::set<std::string> sections{
-        "material",       "sample",           "sample.particles",
+        "material",       "sample",           "sample.particles",      "sample.grading",
         "time",           "contact",          "damping",
         "compaction",     "triaxial",         "triaxial.rate_control", "servo",
         "neighbor",       "checkpoint",       "limits",
@@ -361,6 +361,51 @@ ContactSettings read_contact(Reader& r) {
 // out of range (a 1e-320 m sphere has a mass of 0) long before the physics has a meaning.
 constexpr double min_particle_size = 1e-9, max_particle_size = 1e3;
 bool particle_size(double v) { return v >= min_particle_size && v <= max_particle_size; }
+
+// [[sample.grading]]: the points of a sieve curve (docs/physics.md 8.6), each a size and its
+// percent passing by mass; the shape of interval k = [d_k, d_k+1] from point k+1's `shape`, else
+// from sample.grading_shape.
+Grading read_grading(Reader& r, const toml::array& points) {
+  const std::string key = "sample.grading";
+  if (points.size() < 2)
+    r.fail(key, r.find(key), fmt::format("a sieve curve needs at least 2 points (it has {}): the smallest size "
+                                         "at 0 % passing and the largest at 100 %", points.size()));
+  // a/b of a shape: 1 for a sphere; a spheroid's own aspect_ratio, or the one it inherits.
+  const auto read_shape = [&](const std::string& shape_key, const std::string& ratio_key, double inherited) {
+    const std::string shape = r.text(shape_key, std::string(inherited > 1 ? "spheroid" : "sphere"), {"sphere", "spheroid"});
+    if (shape == "sphere") return 1.0;
+    return r.number(ratio_key, inherited > 1 ? std::optional(inherited) : std::nullopt,
+                    [](double v) { return v >= 1 && v <= 100; }, "must be in [1, 100] (a/b of a prolate spheroid, SPEC 2)");
+  };
+  const double whole = read_shape("sample.grading_shape", "sample.grading_aspect_ratio", 1);
+  Grading g;
+  for (std::size_t k = 0; k < points.size(); ++k) {
+    const std::string p = fmt::format("{}.{}.", key, k);
+    const double d = r.quantity(p + "size", Dimension::length, std::nullopt, particle_size, "must be from 1 nm to 1 km");
+    const double pass = r.quantity(p + "passing", Dimension::ratio, std::nullopt,
+                                   [](double v) { return v >= 0 && v <= 1; }, "must be from 0 % to 100 % (0 to 1 as a plain number)");
+    if (k > 0 && !(d > g.size.back()))
+      r.fail(p + "size", r.find(p + "size"),
+             fmt::format("the sizes must increase from point to point: point {}'s is {:g} mm", k - 1, 1e3 * g.size.back()));
+    if (k > 0 && pass < g.passing.back())
+      r.fail(p + "passing", r.find(p + "passing"),
+             fmt::format("the percent passing must not decrease from point to point: point {}'s is {:g} %", k - 1,
+                         100 * g.passing.back()));
+    if (k == 0 && pass != 0)
+      r.fail(p + "passing", r.find(p + "passing"),
+             "the first point is the sample's smallest size and must pass 0 %: add a point below the finest sieve");
+    if (k + 1 == points.size() && pass != 1)
+      r.fail(p + "passing", r.find(p + "passing"), "the last point is the sample's largest size and must pass 100 %");
+    for (const char* shape_key : {"shape", "aspect_ratio"})
+      if (k == 0 && r.find(p + shape_key))
+        r.fail(p + shape_key, r.find(p + shape_key),
+               "the first point opens the curve: a shape belongs to a later point, for the interval that ends there");
+    if (k > 0) g.aspect_ratio.push_back(read_shape(p + "shape", p + "aspect_ratio", whole));
+    g.size.push_back(d);
+    g.passing.push_back(pass);
+  }
+  return g;
+}
 
 SizeClass read_size_class(Reader& r, const std::string& p) {
   SizeClass c;
@@ -737,8 +782,20 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
     require_utf8(p.sample.from, "sample.from");  // with the working directory that made it absolute
     root["sample"].as_table()->insert_or_assign("from", p.sample.from);
   }
+  // A sieve curve instead of the size table: sample.total_particles particles drawn from it.
+  if (const toml::node* grading = r.get("sample.grading", false)) {
+    if (r.find("sample.particles"))
+      r.fail("sample.particles", r.find("sample.particles"),
+             "a case gives either the size table [[sample.particles]] or the sieve curve [[sample.grading]], not both");
+    if (!grading->is_array_of_tables())
+      r.fail("sample.grading", grading, "expected an array of tables ([[sample.grading]] entries, one per point)");
+    p.sample.grading = read_grading(r, *grading->as_array());
+    if (p.sample.total_particles == 0)
+      r.fail("sample.total_particles", r.find("sample.total_particles"),
+             "a sieve curve [[sample.grading]] needs the number of particles to draw from it: set it >= 1");
+  }
   // A given sample replaces the generated one: then the size table is not needed (nor read).
-  if (p.sample.from.empty() || r.find("sample.particles")) {
+  if (p.sample.grading.empty() && (p.sample.from.empty() || r.find("sample.particles"))) {
     const auto* table = r.array_of_tables("sample.particles");
     for (std::size_t k = 0; k < table->size(); ++k)
       p.sample.table.push_back(read_size_class(r, "sample.particles." + std::to_string(k)));
@@ -941,9 +998,25 @@ std::vector<std::string> case_keys() {
     stop = { strain = { 33 = 0.01 } }
     controller = { kind = "true_triaxial", p = "1 Pa", b = 0.5, intermediate = "11" }
   )"};
+  // A sieve curve with a shape for the whole curve and one for an interval.
+  static const char* const every_grading_key = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [sample]
+    total_particles = 10
+    grading_shape = "spheroid"
+    grading_aspect_ratio = 1.2
+    [[sample.grading]]
+    size = "1 m"
+    passing = 0
+    [[sample.grading]]
+    size = "2 m"
+    passing = 1
+    shape = "spheroid"
+    aspect_ratio = 1.5
+  )";
   std::set<std::string> asked;
   parse(every_shape, "<case_keys>", {}, {}, &asked);
-  for (const char* text : {every_phase_key, every_rate_key, every_triaxial_rate_key, every_path_key[0],
+  for (const char* text : {every_grading_key, every_phase_key, every_rate_key, every_triaxial_rate_key, every_path_key[0],
                            every_path_key[1], every_path_key[2]}) {
     std::set<std::string> more;
     parse(text, "<case_keys>", {}, {}, &more);
@@ -960,6 +1033,7 @@ std::vector<std::string> case_keys() {
   std::set<std::string> keys;
   for (const std::string& k : asked) {
     if (const auto row = unindexed(k, "sample.particles")) keys.insert(*row);
+    else if (const auto point = unindexed(k, "sample.grading")) keys.insert(*point);
     else if (const auto phase = unindexed(k, "phase")) keys.insert(*phase);
     else keys.insert(k);
   }
@@ -1024,7 +1098,7 @@ nlohmann::json to_json(const Params& p) {
   for (const Phase& ph : p.protocol) protocol.push_back(to_json(ph));
   nlohmann::json contact = {{"law", p.contact.law}};
   for (const auto& [key, value] : p.contact.values) contact[key] = value;
-  return {
+  nlohmann::json out = {
       {"name", p.name},
       {"source", p.source},
       {"material", {{"density_kg_m3", p.material.density}, {"young_modulus_Pa", p.material.young_modulus},
@@ -1052,6 +1126,9 @@ nlohmann::json to_json(const Params& p) {
       {"output", {{"vtk_every", p.output.vtk_every}, {"classes", p.output.classes}, {"energy", p.output.energy}}},
       {"protocol", protocol},
   };
+  if (const Grading& g = p.sample.grading; !g.empty())
+    out["sample"]["grading"] = {{"size_m", g.size}, {"passing", g.passing}, {"aspect_ratio", g.aspect_ratio}};
+  return out;
 }
 
 Params load_case(const std::string& path, const std::vector<std::string>& overrides) {

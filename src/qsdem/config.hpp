@@ -26,6 +26,14 @@ struct SizeClass {
   long count = 0;
 };
 
+// A sieve curve (docs/physics.md 8.6): the sample's sizes are drawn by mass from it.
+struct Grading {
+  std::vector<double> size;          // d_k, equal-volume diameters (m), increasing
+  std::vector<double> passing;       // P_k, mass fraction finer than d_k: 0 at the first point, 1 at the last
+  std::vector<double> aspect_ratio;  // a/b in interval k = [d_k, d_k+1]: 1 a sphere, > 1 a prolate spheroid
+  bool empty() const { return size.empty(); }
+};
+
 struct Params {
   std::string name;
   std::string source;  // file name, or "<built-in default>"
@@ -39,8 +47,9 @@ struct Params {
   struct Sample {
     std::uint64_t seed = 1;
     double initial_solid_fraction = 0.15;
-    long total_particles = 0;  // 0: the table's counts as written
+    long total_particles = 0;  // 0: the table's counts as written; with a grading, its particles
     std::vector<SizeClass> table;
+    Grading grading;           // [[sample.grading]], instead of the table
     std::string from;          // a prepared sample (directory of `qsdem prepare`) or a packing
                                // file: an absolute path (parse_case resolves it)
   } sample;

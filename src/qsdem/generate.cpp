@@ -10,6 +10,8 @@
 #include <string>
 #include <numeric>
 
+#include "qsdem/grading.hpp"
+
 namespace qsdem {
 
 Quat Random::orientation() {
@@ -20,6 +22,7 @@ Quat Random::orientation() {
 }
 
 std::vector<SizeClass> resolve_table(const Params::Sample& sample) {
+  if (!sample.grading.empty()) return grading_table(sample.grading, sample.total_particles, sample.seed);
   std::vector<SizeClass> table = sample.table;
   if (sample.total_particles <= 0) return table;
   const double written = std::accumulate(table.begin(), table.end(), 0.0,

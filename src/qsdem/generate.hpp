@@ -23,7 +23,8 @@ class Random {
 };
 
 // The table with counts rescaled to about `total_particles` (keeping the count ratios, hence
-// the mass fractions) when that is set; otherwise the table as written.
+// the mass fractions) when that is set; otherwise the table as written. With a grading, its
+// total_particles drawn from the sieve curve (grading_table).
 std::vector<SizeClass> resolve_table(const Params::Sample& sample);
 
 // Peak memory of a run of `particles` particles (bytes), estimated from the measured 1.9 KiB per

@@ -4,10 +4,137 @@
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
+#include <tuple>
+#include <utility>
 
 #include "qsdem/forces.hpp"
 
 namespace qsdem {
+
+namespace {
+
+using Vec6 = Eigen::Matrix<double, 6, 1>;
+
+// The entries xx, yy, zz, xy, xz, yz of w d d^T.
+Vec6 dyad(const Vec3& d, double w) {
+  Vec6 r;
+  r << w * d.x() * d.x(), w * d.y() * d.y(), w * d.z() * d.z(), w * d.x() * d.y(), w * d.x() * d.z(), w * d.y() * d.z();
+  return r;
+}
+
+// The symmetric tensor of the entries e (as dyad's) over `total`.
+Mat3 tensor(const Vec6& e, double total) {
+  Mat3 t;
+  t << e[0], e[3], e[4], e[3], e[1], e[5], e[4], e[5], e[2];
+  return t / total;
+}
+
+// Q = R diag(a^2, b^2, c^2) R^T (SPEC 4.3).
+Mat3 shape_matrix(const Vec3& axes, const Quat& q) {
+  const Mat3 r = q.toRotationMatrix();
+  return r * axes.cwiseProduct(axes).asDiagonal() * r.transpose();
+}
+
+// The unit normal, from i to j, of listed pair k at the current positions: l/|l| for two spheres
+// (SPEC 4.2), otherwise the Perram-Wertheim normal Q(lambda)^-1 l / |Q(lambda)^-1 l| (SPEC 4.5) at the
+// pair's lambda, the maximiser the last force evaluation found (4.9), or without one the cold start of 4.4.
+Vec3 contact_normal(const State& st, std::size_t k) {
+  const Particles& p = st.particles;
+  const std::uint32_t i = st.pairs.i[k], j = st.pairs.j[k];
+  const Vec3 l = branch_vector(st.cell, p.s[i], p.s[j], st.pairs.image[k]);
+  if (!(l.squaredNorm() > 0)) return Vec3::UnitZ();  // coincident centres, as sphere_sphere
+  if (p.shape[i] == ShapeKind::sphere && p.shape[j] == ShapeKind::sphere) return l.normalized();
+  const Mat3 qi = shape_matrix(p.semi_axes[i], p.q[i]), qj = shape_matrix(p.semi_axes[j], p.q[j]);
+  double lambda = st.pairs.pw_lambda[k];
+  if (!(lambda > 0 && lambda < 1)) {
+    const Vec3 e = l.normalized();
+    const double hi = std::sqrt(e.dot(qi * e)), hj = std::sqrt(e.dot(qj * e));
+    lambda = hi / (hi + hj);
+  }
+  return ((1 - lambda) * qi + lambda * qj).ldlt().solve(l).normalized();
+}
+
+// fabric_deviator and the 33 entry of a network's tensor, NaN for an empty network.
+std::pair<double, double> network(const Vec6& e, double total) {
+  if (!(total > 0)) return {Measures::undefined, Measures::undefined};
+  const Mat3 t = tensor(e, total);
+  return {fabric_deviator(t), t(2, 2)};
+}
+
+// The contact fabrics of SPEC 7.1 from the contact forces by pair: phi over all contacts, over the
+// strong and the weak network, and weighted by f_n. Per pair in parallel, summed in fixed blocks.
+void contact_fabric(const State& state, const std::vector<Vec3>& force, Measures& m) {
+  const PairList& pairs = state.pairs;
+  const std::size_t np = pairs.size();
+  std::vector<Vec3> normal(np, Vec3::Zero());
+  std::vector<double> fn(np, 0.0);
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
+  for (std::size_t k = 0; k < np; ++k) {
+    if (pairs.overlap[k] <= 0) continue;
+    normal[k] = contact_normal(state, k);
+    fn[k] = force[k].dot(normal[k]);  // F on j, n from i to j: compression positive
+  }
+  using Sums = Eigen::Matrix<double, 27, 1>;  // all, strong, weak, f_n-weighted (6 each); n_c, n_strong, sum f_n
+  const Vec3 counts = blocked_sum<Vec3>(np, Vec3::Zero(), [&](std::size_t k) {
+    return pairs.overlap[k] > 0 ? Vec3(1.0, fn[k], 0.0) : Vec3(Vec3::Zero());
+  });
+  if (!(counts[0] > 0)) return;
+  const double mean_fn = counts[1] / counts[0];
+  const Sums s = blocked_sum<Sums>(np, Sums::Zero(), [&](std::size_t k) {
+    Sums r = Sums::Zero();
+    if (pairs.overlap[k] <= 0) return r;
+    const Vec6 d = dyad(normal[k], 1.0);
+    const bool strong = fn[k] > mean_fn;  // Radjai et al. (1998): strong above the mean, weak the rest
+    r.segment<6>(0) = d;
+    r.segment<6>(strong ? 6 : 12) = d;
+    r.segment<6>(18) = fn[k] * d;
+    r[24] = 1, r[25] = strong ? 1 : 0, r[26] = fn[k];
+    return r;
+  });
+  m.fabric = tensor(s.segment<6>(0), s[24]);
+  m.fabric_dev = fabric_deviator(m.fabric);
+  const Eigen::SelfAdjointEigenSolver<Mat3> eig(m.fabric);  // ascending
+  m.fabric_major = eig.eigenvalues()[2];
+  m.fabric_tilt_deg = std::acos(std::min(1.0, std::abs(eig.eigenvectors()(2, 2)))) * 180 / pi;
+  std::tie(m.fabric_strong_dev, m.fabric_strong_33) = network(s.segment<6>(6), s[25]);
+  std::tie(m.fabric_weak_dev, m.fabric_weak_33) = network(s.segment<6>(12), s[24] - s[25]);
+  std::tie(m.fabric_force_dev, m.fabric_force_33) = network(s.segment<6>(18), s[26]);
+  m.strong_fraction = s[25] / s[24];
+}
+
+// <a a^T> over the particles with a > b (their major axis is defined; SPEC 7.1), a = R e_x.
+void orientation_fabric(const Particles& p, Measures& m) {
+  using Sums = Eigen::Matrix<double, 7, 1>;
+  const Sums s = blocked_sum<Sums>(p.size(), Sums::Zero(), [&](std::size_t i) {
+    Sums r = Sums::Zero();
+    if (!(p.semi_axes[i].x() > p.semi_axes[i].y() * (1 + 1e-9))) return r;  // a = b within rounding: no axis
+    r.head<6>() = dyad(p.q[i] * Vec3::UnitX(), 1.0);
+    r[6] = 1;
+    return r;
+  });
+  std::tie(m.orient_dev, m.orient_33) = network(s.head<6>(), s[6]);
+}
+
+// Z_m = (2 n_c - N_1) / (n_p - N_0 - N_1), N_k the particles with k contacts (Thornton 2000):
+// the rattlers with no or one contact left out. Serial, in pair order.
+double mechanical_coordination(const State& state) {
+  const PairList& pairs = state.pairs;
+  std::vector<std::uint32_t> contacts(state.particles.size(), 0);
+  long nc = 0;
+  for (std::size_t k = 0; k < pairs.size(); ++k)
+    if (pairs.overlap[k] > 0) ++contacts[pairs.i[k]], ++contacts[pairs.j[k]], ++nc;
+  long n0 = 0, n1 = 0;
+  for (const std::uint32_t c : contacts) n0 += c == 0, n1 += c == 1;
+  const long rest = static_cast<long>(contacts.size()) - n0 - n1;
+  return rest > 0 ? static_cast<double>(2 * nc - n1) / static_cast<double>(rest) : Measures::undefined;
+}
+
+}  // namespace
+
+double fabric_deviator(const Mat3& phi) {
+  const Mat3 dev = phi - phi.trace() / 3 * Mat3::Identity();
+  return std::sqrt(1.5 * dev.squaredNorm());  // squaredNorm: phi'_ij phi'_ij
+}
 
 Measures measure(const State& state) {
   const Particles& p = state.particles;
@@ -60,6 +187,9 @@ Measures measure(const State& state) {
   m.ekin_rot = s[4];
   m.solid_volume = s[5];
   m.void_ratio = (m.volume - m.solid_volume) / m.solid_volume;
+  contact_fabric(state, force, m);  // SPEC 7.1
+  orientation_fabric(p, m);
+  m.z_mech = mechanical_coordination(state);
   return m;
 }
 

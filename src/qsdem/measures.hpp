@@ -1,5 +1,7 @@
 // The measures of SPEC 7, evaluated at sample points from the last force evaluation.
 #pragma once
+#include <limits>
+
 #include "qsdem/model.hpp"
 #include "qsdem/state.hpp"
 
@@ -23,9 +25,26 @@ struct Measures {
   double volume = 0;           // V (m^3)
   double solid_volume = 0;     // sum of particle volumes (m^3)
   double void_ratio = 0;       // (V - V_s)/V_s
+  // Fabric (SPEC 7.1), NaN where undefined (no contact, no particle of the kind). n the unit normal
+  // of a contact, f_n = F . n its normal force, <.> the mean over the n_c contacts.
+  static constexpr double undefined = std::numeric_limits<double>::quiet_NaN();
+  Mat3 fabric = Mat3::Constant(undefined);  // phi = <n n^T> (Satake 1982, Oda 1982)
+  double fabric_major = undefined;          // its largest eigenvalue
+  double fabric_tilt_deg = undefined;       // angle between its major direction and x3
+  double fabric_dev = undefined;            // sqrt(3/2 phi'_ij phi'_ij)
+  double fabric_strong_33 = undefined, fabric_strong_dev = undefined;  // contacts with f_n > <f_n>
+  double fabric_weak_33 = undefined, fabric_weak_dev = undefined;      // f_n <= <f_n> (Radjai et al. 1998)
+  double strong_fraction = undefined;       // share of the contacts in the strong network
+  double fabric_force_33 = undefined, fabric_force_dev = undefined;  // sum f_n n n^T / sum f_n
+  double orient_33 = undefined, orient_dev = undefined;  // <a a^T>, a the major axis of a particle with a > b
+  double z_mech = undefined;                // (2 n_c - N_1) / (n_p - N_0 - N_1) (Thornton 2000)
 };
 
 Measures measure(const State& state);
+
+// The deviatoric invariant sqrt(3/2 phi'_ij phi'_ij), phi' = phi - tr(phi)/3 I, of a fabric tensor
+// (SPEC 7.1): phi_1 - phi_3 when two principal values are equal, as q of the stress.
+double fabric_deviator(const Mat3& phi);
 
 // The size classes of a sample: its distinct equal-volume radii R_i (SPEC 2), ascending; radii
 // within a relative 1e-9 of a class's smallest are in that class (the rows of a size table give equal radii

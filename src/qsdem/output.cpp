@@ -29,8 +29,8 @@ std::vector<std::string> split_fields(const std::string& line) {
   }
 }
 
-// The columns, in order: SPEC 10's (10.1), then phi_al_deg and tilt_deg (SPEC 7). Each appends its
-// value; the header and the rows are made from this one list.
+// The columns, in order: SPEC 10's (10.1), then phi_al_deg and tilt_deg (SPEC 7), then the fabric
+// (SPEC 7.1). Each appends its value; the header and the rows are made from this one list.
 struct Column {
   const char* name;
   void (*write)(fmt::memory_buffer& out, const SeriesRow& r);
@@ -61,6 +61,36 @@ constexpr Column base_columns[] = {
        fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.friction_angle_al_deg);
      }},
     {"tilt_deg", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.principal_tilt_deg); }},
+    {"fabric_11", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric(0, 0)); }},
+    {"fabric_22", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric(1, 1)); }},
+    {"fabric_33", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric(2, 2)); }},
+    {"fabric_dev", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_dev); }},
+    {"fabric_1", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_major); }},
+    {"fabric_tilt_deg", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_tilt_deg);
+     }},
+    {"fabric_strong_33", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_strong_33);
+     }},
+    {"fabric_strong_dev", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_strong_dev);
+     }},
+    {"fabric_weak_33", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_weak_33); }},
+    {"fabric_weak_dev", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_weak_dev);
+     }},
+    {"strong_fraction", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.strong_fraction);
+     }},
+    {"fabric_force_33", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_force_33);
+     }},
+    {"fabric_force_dev", [](auto& o, const SeriesRow& r) {
+       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_force_dev);
+     }},
+    {"orient_33", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.orient_33); }},
+    {"orient_dev", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.orient_dev); }},
+    {"z_mech", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.z_mech); }},
 };
 
 }  // namespace

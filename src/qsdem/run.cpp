@@ -20,6 +20,7 @@
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/files.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/grading.hpp"
 #include "qsdem/measures.hpp"
 #include "qsdem/neighbor.hpp"
 #include "qsdem/output.hpp"
@@ -80,7 +81,8 @@ nlohmann::json size_table_json(const Params& params) {
 
 namespace fs = std::filesystem;
 
-// The files a run writes into its directory (besides vtk/ and its phases' files): what --force removes.
+// The files a run writes into its directory (besides vtk/, plot/ and its phases' files): what --force
+// removes.
 constexpr const char* run_files[] = {"summary.json",      "series.csv",      "series.csv.partial",
                                      classes_file,        "classes.csv.partial",
                                      "compaction.csv",    "compaction.csv.partial", "compacted.packing",
@@ -191,7 +193,7 @@ void check_out(const fs::path& dir, bool force, bool locked_here) {
         throw InputError(fmt::format(
             "'{}' is not empty and holds no qsdem run (no case.toml): choose a new or empty --out, or add --force "
             "(which removes only the files a run writes: {})",
-            dir.string(), "summary.json, series.csv, compaction.csv, classes.csv, *.packing, *.qsck, case.toml, vtk/"));
+            dir.string(), "summary.json, series.csv, compaction.csv, classes.csv, *.packing, *.qsck, case.toml, vtk/, plot/"));
       break;
     default: break;
   }
@@ -511,12 +513,15 @@ class Execution {
     s["case"] = params_.name;
     s["config"] = {{"resolved_si", to_json(params_)}, {"as_written", params_.as_written}};
     s["derived"] = {{"particles", st_.particles.size()},
-                    {"size_table", params_.sample.from.empty() ? size_table_json(params_) : nlohmann::json()},
+                    {"size_table", params_.sample.from.empty() && params_.sample.grading.empty() ? size_table_json(params_)
+                                                                                               : nlohmann::json()},
                     {"sample_from", params_.sample.from},
                     {"r_min_m", r_min},
                     {"critical_time_s", t_c},
                     {"dt_s", params_.step_ratio * t_c},
                     {"threads", omp_get_max_threads()}};
+    if (params_.sample.from.empty() && !params_.sample.grading.empty())
+      s["derived"]["grading"] = grading_json(params_.sample.grading, params_.sample.total_particles, params_.sample.seed);
     if (!params_.phase_list)
       s["derived"]["triaxial_strain_rate_per_s"] = params_.triaxial.strain_rate / t_c;
     if (!note.empty()) s["note"] = note;
@@ -581,7 +586,9 @@ class Execution {
   std::chrono::steady_clock::time_point last_save_ = std::chrono::steady_clock::now();
   SeriesWriter* rows_ = nullptr;  // the phase's file: on disk before each checkpoint counts its rows
   SeriesWriter* classes_rows_ = nullptr;  // classes.csv, the same
-  const std::vector<double> size_classes_ = size_classes(st_.particles);
+  const std::vector<double> size_classes_ = params_.sample.from.empty() && !params_.sample.grading.empty()
+                                                ? grading_classes(params_.sample.grading, st_.particles)
+                                                : size_classes(st_.particles);
 };
 
 nlohmann::json execute(const Params& params, State& st, RunProgress& run, const RunOptions& options,
@@ -687,6 +694,7 @@ nlohmann::json run_case(const Params& params, const RunOptions& options) {
     fs::remove(dir / (phase.output.file + ".partial"));
   }
   fs::remove_all(dir / "vtk");
+  fs::remove_all(dir / "plot");  // the page of the run replaced (`qsdem plot`)
   write_file_atomic(dir / "case.toml", params.case_text);
   run.case_digest = fnv1a64(params.case_text.data(), params.case_text.size());
   return execute(params, st, run, options, "");

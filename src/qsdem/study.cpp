@@ -180,7 +180,7 @@ void write_case_copies(const Study& study, const fs::path& out) {
 // 4 or older would be sheared by `resume`).
 std::vector<std::string> command(const Job& j) {
   if (j.kind == Job::Kind::run && holds_checkpoint(j.dir))
-    return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet"};
+    return {"resume", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--no-plot"};
   return j.fresh;
 }
 
@@ -622,7 +622,9 @@ std::vector<Job> run_jobs(const Study& study, const fs::path& out, int level, co
     j.threads = study.threads_per_run;
     j.fresh = {"run", case_copy(out, smp).string(), "--set", "sample.from=" + j.needs.string()};
     for (const auto& s : run.sets) j.fresh.insert(j.fresh.end(), {"--set", s});
-    j.fresh.insert(j.fresh.end(), {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force"});
+    // The study's report draws its runs; a page per run would cost each of them a second or two.
+    j.fresh.insert(j.fresh.end(),
+                   {"--out", j.dir.string(), "--threads", std::to_string(j.threads), "--quiet", "--force", "--no-plot"});
     j.expected_steps = steps_left(j.dir, run.expected_steps);
     j.group = run.sample;
     jobs.push_back(std::move(j));

@@ -243,7 +243,7 @@ AnalysisSettings analysis_settings_from_json(const nlohmann::json& j) {
 }
 
 void require_gnuplot() {
-  if (std::system("gnuplot --version > /dev/null 2>&1") != 0)
+  if (!gnuplot_available())
     throw std::runtime_error(
         "qsdem study analysis: gnuplot is needed for the figures but could not be run; install the "
         "Debian package gnuplot-nox (apt-get install gnuplot-nox)");
@@ -1300,7 +1300,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
   std::vector<Figure> figs = make_figures(an);
   std::vector<bool> drawn;
   for (Figure& f : figs) {
-    drawn.push_back(render(figdir, f));
+    drawn.push_back(render_figure(figdir, f, "SPEC 9"));
     a["figures"].push_back({{"name", f.name},
                             {"title", f.title},
                             {"drawn", drawn.back()},

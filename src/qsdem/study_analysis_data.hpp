@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 
 #include "qsdem/convergence.hpp"
+#include "qsdem/figures.hpp"
 #include "qsdem/study_analysis.hpp"
 
 namespace qsdem::analysis {
@@ -252,25 +253,6 @@ struct Table {
   bool detail = false;  // folded (<details>) in the report
 };
 
-// A figure: panels of curves, drawn by gnuplot from NAME.dat with NAME.gp.
-struct Curve {
-  std::string title;  // empty: no key entry
-  std::vector<double> x, y;
-  std::string style;  // gnuplot `with ...` clause
-};
-
-struct Panel {
-  std::string title, xlabel, ylabel;
-  bool logx = false, logy = false;
-  std::vector<Curve> curves;
-  std::string extra = "";  // more gnuplot commands before `plot` (ranges)
-};
-
-struct Figure {
-  std::string name, title, caption;
-  std::vector<Panel> panels;  // 1, or 2 per row
-};
-
 // Numbers in tables: NaN shown as a dash.
 std::string sig(double v, int digits = 3);
 std::string pct(double v, int digits = 3);  // a fraction in percent
@@ -293,9 +275,6 @@ Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceToleran
 std::vector<Table> make_tables(const Analysis& a);
 std::string to_markdown(const Table& t);
 std::vector<Figure> make_figures(const Analysis& a);
-// Writes NAME.dat and NAME.gp into figdir and runs gnuplot there (.svg and .png).
-// Returns false (and nothing is drawn) when the figure has no usable point.
-bool render(const fs::path& figdir, Figure& f);
 std::string report_html(const json& a, const AnalysisSettings& settings, const std::vector<Table>& tables,
                         const std::vector<Figure>& figs, const std::vector<bool>& drawn, const std::vector<Run>& runs,
                         const std::string& toml);

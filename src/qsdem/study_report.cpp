@@ -2,19 +2,15 @@
 // figures drawn by gnuplot (paper Figs. 3-19), and the one-page HTML report. docs/analysis.md.
 #include <algorithm>
 #include <cctype>
-#include <cerrno>
 #include <cmath>
-#include <cstdlib>
-#include <cstring>
 #include <optional>
-#include <stdexcept>
 #include <string>
 #include <tuple>
 #include <vector>
 
 #include <fmt/format.h>
-#include <stdlib.h>
 
+#include "qsdem/figures.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/study_analysis_data.hpp"
 #include "qsdem/version.hpp"
@@ -23,41 +19,10 @@ namespace qsdem::analysis {
 
 namespace {
 
-std::string html_escape(const std::string& s) {
-  std::string r;
-  for (char c : s) {
-    switch (c) {
-      case '&': r += "&amp;"; break;
-      case '<': r += "&lt;"; break;
-      case '>': r += "&gt;"; break;
-      case '"': r += "&quot;"; break;
-      case '\'': r += "&#39;"; break;
-      default: r += c;
-    }
-  }
-  return r;
-}
-
 std::string md_escape(const std::string& s) {
   std::string r;
   for (char c : s) r += c == '|' ? std::string("\\|") : std::string(1, c);
   return r;
-}
-
-// A double-quoted gnuplot string (terminals run with `noenhanced`, so only \ and " matter).
-std::string gp_str(const std::string& s) {
-  std::string r = "\"";
-  for (char c : s) {
-    if (c == '\\' || c == '"') r += '\\';
-    r += c;
-  }
-  return r + "\"";
-}
-
-std::string shell_quote(const std::string& s) {
-  std::string r = "'";
-  for (char c : s) r += c == '\'' ? std::string("'\\''") : std::string(1, c);
-  return r + "'";
 }
 
 // File-name-safe tag for sample/model names.
@@ -350,44 +315,6 @@ Table table_missing(const Analysis& a) {
 // ---------------------------------------------------------------------------------------------
 // Figures (gnuplot; paper Figs. 3-19)
 // ---------------------------------------------------------------------------------------------
-
-bool usable(double v, bool log) { return std::isfinite(v) && (!log || v > 0); }
-
-// Drops points a log axis cannot show (SPEC 9: NaN and zero are skipped, never plotted as 0).
-void clean(Panel& p) {
-  for (Curve& c : p.curves) {
-    Curve k{c.title, {}, {}, c.style};
-    for (std::size_t i = 0; i < c.x.size() && i < c.y.size(); ++i)
-      if (usable(c.x[i], p.logx) && usable(c.y[i], p.logy)) k.x.push_back(c.x[i]), k.y.push_back(c.y[i]);
-    c = std::move(k);
-  }
-  std::erase_if(p.curves, [](const Curve& c) { return c.x.empty(); });
-}
-
-std::string panel_commands(const Panel& p, const std::string& datafile, std::size_t& block) {
-  std::string s;
-  s += "set title " + gp_str(p.title) + "\n";
-  s += "set xlabel " + gp_str(p.xlabel) + "\nset ylabel " + gp_str(p.ylabel) + "\n";
-  s += p.logx ? "set logscale x\nset format x '%g'\n" : "unset logscale x\nset format x '%g'\n";
-  s += p.logy ? "set logscale y\nset format y '%g'\n" : "unset logscale y\nset format y '%g'\n";
-  // Margins so that points do not sit on the frame (graph units work on log axes too).
-  s += "set autoscale\nset offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06\n" + p.extra;
-  if (p.curves.empty()) {
-    // An empty panel of a multiplot: say so instead of failing on "all points undefined".
-    s += "set xrange [1:10]\nset yrange [1:10]\nset label 99 'no data' at graph 0.5,0.5 center\n"
-         "plot 1/0 notitle\nunset label 99\nset autoscale\n";
-    return s;
-  }
-  s += "plot ";
-  for (std::size_t i = 0; i < p.curves.size(); ++i) {
-    const Curve& c = p.curves[i];
-    s += fmt::format("{}'{}' index {} using 1:2 with {} {}", i ? ", \\\n     " : "", datafile, block++, c.style,
-                     c.title.empty() ? std::string("notitle") : "title " + gp_str(c.title));
-  }
-  return s + "\n";
-}
-
-std::string lc(std::size_t i) { return fmt::format("lc {}", i + 1); }
 
 std::vector<std::string> samples_of(const std::vector<Law>& laws) {
   std::vector<std::string> samples;
@@ -809,64 +736,6 @@ std::vector<Table> make_tables(const Analysis& a) {
   return tables;
 }
 
-bool render(const fs::path& figdir, Figure& f) {
-  for (Panel& p : f.panels) clean(p);
-  if (std::all_of(f.panels.begin(), f.panels.end(), [](const Panel& p) { return p.curves.empty(); })) return false;
-  std::string dat;
-  for (const Panel& p : f.panels)
-    for (const Curve& c : p.curves) {
-      dat += "# " + c.title + "\n";
-      for (std::size_t i = 0; i < c.x.size(); ++i) dat += fmt::format("{:.9g} {:.9g}\n", c.x[i], c.y[i]);
-      dat += "\n\n";  // two blank lines: a new gnuplot `index`
-    }
-  // gnuplot writes its figures, and the shell its log, by name: in a directory of their own, made
-  // afresh (mkdtemp, mode 0700: no name there can have been planted), whence they are renamed
-  // into figdir.
-  std::string work_name = (figdir / ".render-XXXXXX").string();
-  if (!::mkdtemp(work_name.data()))
-    throw std::runtime_error(fmt::format("cannot create a directory in {}: {}", figdir.string(), std::strerror(errno)));
-  const fs::path work = work_name;
-  struct RemoveAll {
-    fs::path dir;
-    ~RemoveAll() {
-      std::error_code ec;
-      fs::remove_all(dir, ec);
-    }
-  } remove_work{work};
-  const auto move_out = [&](const std::string& name) { fs::rename(work / name, figdir / name); };
-  write_file_atomic(work / (f.name + ".dat"), dat);
-  const bool multi = f.panels.size() > 1;
-  const std::size_t rows = (f.panels.size() + 1) / 2;
-  std::string body = "reset\nset grid\nset key top left Left reverse samplen 2 font ',9'\n";
-  if (multi) body += fmt::format("set multiplot layout {},2 title {}\n", rows, gp_str(f.title));
-  std::size_t block = 0;
-  for (const Panel& p : f.panels) body += panel_commands(p, f.name + ".dat", block);
-  if (multi) body += "unset multiplot\n";
-  const std::string size = multi ? fmt::format("1100,{}", 410 * rows) : "820,560";
-  std::string gp = "# " + f.title + " (generated by qsdem, SPEC 9)\nset encoding utf8\n";
-  gp += "set terminal svg size " + size + " noenhanced font 'DejaVu Sans,12' background '#ffffff'\n";
-  gp += "set output '" + f.name + ".svg'\n" + body + "unset output\n";
-  gp += "set terminal pngcairo size " + size + " noenhanced font 'DejaVu Sans,10' background '#ffffff'\n";
-  gp += "set output '" + f.name + ".png'\n" + body + "unset output\n";
-  write_file_atomic(work / (f.name + ".gp"), gp);
-  const std::string cmd = fmt::format("cd {} && gnuplot {} > {} 2>&1", shell_quote(work.string()),
-                                      shell_quote(f.name + ".gp"), shell_quote(f.name + ".log"));
-  if (std::system(cmd.c_str()) != 0) {
-    std::string log;
-    try {
-      log = read_text(work / (f.name + ".log"));
-    } catch (...) {
-    }
-    for (const char* ext : {".dat", ".gp"}) move_out(f.name + ext);
-    throw std::runtime_error(fmt::format("gnuplot failed on {}: {}", (figdir / (f.name + ".gp")).string(), log));
-  }
-  for (const char* ext : {".svg", ".png"})
-    if (!fs::is_regular_file(fs::symlink_status(work / (f.name + ext))) || fs::file_size(work / (f.name + ext)) == 0)
-      throw std::runtime_error("gnuplot wrote no " + (figdir / (f.name + ext)).string());
-  for (const char* ext : {".dat", ".gp", ".svg", ".png"}) move_out(f.name + ext);
-  return true;
-}
-
 std::vector<Figure> make_figures(const Analysis& a) {
   std::vector<Figure> figs;
   for (const Law& l : a.laws)
@@ -890,24 +759,7 @@ std::string report_html(const json& a, const AnalysisSettings& settings, const s
                         const std::vector<Figure>& figs, const std::vector<bool>& drawn, const std::vector<Run>& runs,
                         const std::string& toml) {
   const std::string name = a["study"]["name"];
-  std::string h = "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<title>qsdem study " +
-                  html_escape(name) + "</title>\n<style>\n"
-                  "body{font-family:'DejaVu Sans',Arial,sans-serif;margin:2em auto;max-width:1200px;color:#222}\n"
-                  "table{border-collapse:collapse;margin:0.5em 0 1.5em;font-size:0.9em}\n"
-                  "th,td{border:1px solid #bbb;padding:0.25em 0.5em;text-align:right}\n"
-                  "th{background:#eee}td:first-child{text-align:left}\n"
-                  "figure{margin:1em 0 2em}img{max-width:100%;border:1px solid #ddd}\n"
-                  ".note{color:#555;font-size:0.9em}pre{background:#f6f6f6;padding:1em;overflow:auto}\n"
-                  "summary{font-weight:bold;margin:0.4em 0;cursor:pointer}\n"
-                  "</style>\n</head>\n";
-  // Counts the images that really decoded, for the headless-browser test (tests/test_study_analysis).
-  h += "<body data-images-loaded=\"pending\" data-images-total=\"pending\">\n"
-       "<script>\nwindow.addEventListener('load', function () {\n"
-       "  var imgs = Array.prototype.slice.call(document.images);\n"
-       "  var ok = imgs.filter(function (im) { return im.complete && im.naturalWidth > 0; }).length;\n"
-       "  document.body.setAttribute('data-images-loaded', String(ok));\n"
-       "  document.body.setAttribute('data-images-total', String(imgs.length));\n"
-       "});\n</script>\n";
+  std::string h = html_head("qsdem study " + name);
   h += "<h1>qsdem study: " + html_escape(name) + "</h1>\n";
   h += "<p>Study date: " + html_escape(a["study"]["date"].get<std::string>()) +
        ". Analysed: " + html_escape(a["study"]["analysed_at"].get<std::string>()) + ". Runs: " +
@@ -946,10 +798,7 @@ std::string report_html(const json& a, const AnalysisSettings& settings, const s
       h += "<p class=\"note\">" + html_escape(f.title) + ": no data to plot.</p>\n";
       continue;
     }
-    h += "<figure id=\"" + f.name + "\"><img src=\"analysis/figures/" + f.name + ".png\" alt=\"" +
-         html_escape(f.title) + "\"><figcaption>" + html_escape(f.caption) + " <a href=\"analysis/figures/" +
-         f.name + ".svg\">SVG</a> · <a href=\"analysis/figures/" + f.name +
-         ".dat\">data</a> · <a href=\"analysis/figures/" + f.name + ".gp\">gnuplot script</a></figcaption></figure>\n";
+    h += figure_html(f, "analysis/figures/");
   }
   h += "<h2 id=\"missing\">Missing runs</h2>\n";
   int missing = 0;
