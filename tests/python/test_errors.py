@@ -137,3 +137,30 @@ def test_ctrl_c_stops_the_stepping_and_leaves_it_usable():
     stopped = int(lines[0].split()[-1])
     assert 0 < stopped < 10**8
     assert lines[1] == f"then 5 {stopped + 5}"
+
+
+RUN_UNTIL_INTERRUPTED = r"""
+import sys, qsdem
+print("ready", flush=True)
+try:
+    qsdem.run(sys.argv[1], out=sys.argv[2], threads=1, triaxial__strain_rate=1e-9)
+except qsdem.Interrupted as e:
+    print("interrupted:", isinstance(e, KeyboardInterrupt), flush=True)
+"""
+
+
+def test_ctrl_c_stops_a_run_with_its_checkpoint(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+    out = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-c", RUN_UNTIL_INTERRUPTED, str(TINY), str(out)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    assert p.stdout.readline() == "ready\n"
+    time.sleep(2)
+    p.send_signal(signal.SIGINT)
+    stdout, err = p.communicate(timeout=60)
+    assert p.returncode == 0, err
+    assert stdout == "interrupted: True\n"
+    assert (out / "checkpoint.qsck").exists() and not (out / "summary.json").exists()
