@@ -83,6 +83,14 @@ py::dict measures_dict(const Measures& m) {
   d["contacts"] = m.contacts, d["coordination"] = m.coordination;
   d["ekin_trans"] = m.ekin_trans, d["ekin_rot"] = m.ekin_rot;
   d["volume"] = m.volume, d["solid_volume"] = m.solid_volume, d["void_ratio"] = m.void_ratio;
+  // Fabric (SPEC 7.1), NaN where undefined.
+  d["fabric"] = matrix(m.fabric);
+  d["fabric_major"] = m.fabric_major, d["fabric_tilt_deg"] = m.fabric_tilt_deg, d["fabric_dev"] = m.fabric_dev;
+  d["fabric_strong_33"] = m.fabric_strong_33, d["fabric_strong_dev"] = m.fabric_strong_dev;
+  d["fabric_weak_33"] = m.fabric_weak_33, d["fabric_weak_dev"] = m.fabric_weak_dev;
+  d["strong_fraction"] = m.strong_fraction;
+  d["fabric_force_33"] = m.fabric_force_33, d["fabric_force_dev"] = m.fabric_force_dev;
+  d["orient_33"] = m.orient_33, d["orient_dev"] = m.orient_dev, d["z_mech"] = m.z_mech;
   return d;
 }
 

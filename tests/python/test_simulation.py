@@ -31,6 +31,7 @@ def test_sample_points_are_the_rows_of_the_cli_run(cli_run):
         assert f"{m['friction_angle_deg']:.8g}" == row["phi_deg"]
         assert f"{m['ufr']:.8g}" == row["ufr"]
         assert f"{m['void_ratio']:.8g}" == row["void_ratio"]
+        assert f"{m['fabric_dev']:.8g}" == row["fabric_dev"] and f"{m['z_mech']:.8g}" == row["z_mech"]
     assert sim.finished
     assert sim.records[1]["rows"] == 10
 
