@@ -668,6 +668,8 @@ void check_run_directory(const fs::path& dir, const RunProgress& run, const Para
 
 }  // namespace
 
+State new_sample(const Params& params, RunProgress& run) { return make_sample(params, run); }
+
 nlohmann::json run_case(const Params& params, const RunOptions& options) {
   const fs::path dir = options.out;
   require_utf8(dir.string(), "--out");

@@ -14,6 +14,9 @@
 
 namespace qsdem {
 
+struct RunProgress;
+struct State;
+
 struct RunOptions {
   std::filesystem::path out;
   bool quiet = false;
@@ -50,6 +53,12 @@ inline constexpr const char* run_lock_file = ".run.lock";
 // Checkpoints go to DIR/checkpoint.qsck. Input errors are found before DIR is touched; DIR is
 // locked (DIR/.run.lock) while the run lasts. Returns the summary.
 nlohmann::json run_case(const Params& params, const RunOptions& options);
+
+// The sample a new run of `params` starts from, as run_case makes it: generated, or read from
+// sample.from (a prepared sample sets `run` to continue after its first phase). Throws InputError
+// when it cannot run (too big for the memory, its largest particle not smaller than half the cell,
+// a bad sample.from).
+State new_sample(const Params& params, RunProgress& run);
 
 // The engine's build, as summary.json and study.json record it: version (QSDEM_VERSION), commit
 // (the full hash of the source's HEAD; null without git) and tree_clean (false when a tracked file

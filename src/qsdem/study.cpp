@@ -47,17 +47,17 @@ std::string read_bytes(const fs::path& p) {
 // ---------------------------------------------------------------------------------------------
 // Child processes: `qsdem prepare`, `qsdem run`, `qsdem resume`, one per sample or run.
 
-// How children are started: this binary, and the environment without the MPI launcher's
-// variables (a child is a plain process, not an MPI rank).
+// How children are started: this binary (or StudyOptions::executable), and the environment
+// without the MPI launcher's variables (a child is a plain process, not an MPI rank).
 struct Launcher {
   std::string exe;
   std::vector<std::string> env;
 };
 
-Launcher make_launcher() {
+Launcher make_launcher(const std::string& executable) {
   Launcher l;
   std::error_code ec;
-  l.exe = fs::read_symlink("/proc/self/exe", ec).string();
+  l.exe = executable.empty() ? fs::read_symlink("/proc/self/exe", ec).string() : executable;
   if (ec) throw RunError("cannot find this program's path (/proc/self/exe): " + ec.message());
   for (char** e = environ; *e; ++e) {
     const std::string_view v(*e);
@@ -783,7 +783,7 @@ int study_main(const fs::path& study_file, const StudyOptions& options, const Mp
   if (on_rank0([&] { setup_directory(study, out, lock); }) != 0) return status;
 
   const StopSignals signals;
-  const Launcher launcher = make_launcher();
+  const Launcher launcher = make_launcher(options.executable);
   StudyProgress progress(options.quiet, mpi.active ? fmt::format("[rank {}/{}] ", mpi.rank, mpi.size) : "");
   if (!options.quiet && mpi.rank == 0)
     std::fprintf(stderr, "qsdem study %s: %s, %s%s, %s x %s%s -> %s\n", study.name.c_str(),

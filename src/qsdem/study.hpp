@@ -159,6 +159,9 @@ struct StudyOptions {
   std::string order;  // "longest_first" or "shortest_first": overrides execution.order
   std::vector<std::string> stages;  // non-empty: only the runs of these stages run (samples all do)
   std::string again;  // the command that continues it, for the message on SIGINT/SIGTERM
+  // The qsdem program the child processes run; empty: this program (/proc/self/exe). The Python
+  // module, whose process is the interpreter, names the CLI.
+  std::string executable;
 };
 
 // Runs (or continues) the study described by `study_file` in options.out, then analyses it.

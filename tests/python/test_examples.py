@@ -1,0 +1,62 @@
+"""Every example of examples/python runs (on the tiny case, with one thread) and does what it says."""
+import os
+import pathlib
+import subprocess
+import sys
+
+from conftest import TINY, cli
+
+EXAMPLES = pathlib.Path(__file__).resolve().parents[2] / "examples" / "python"
+TESTED = {"triaxial.py", "stepping.py"}
+
+
+def run_example(name, *args):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    p = subprocess.run([sys.executable, EXAMPLES / name, *map(str, args)], capture_output=True, text=True, env=env)
+    assert p.returncode == 0, p.stderr
+    return p.stdout
+
+
+def test_every_example_is_tested():
+    assert {p.name for p in EXAMPLES.glob("*.py")} == TESTED
+
+
+def test_triaxial_writes_the_cli_series(tmp_path, cli_run):
+    out = run_example("triaxial.py", tmp_path / "ex", TINY)
+    assert "10 rows" in out
+    assert (tmp_path / "ex" / "series.csv").read_bytes() == (cli_run / "series.csv").read_bytes()
+
+
+def test_triaxial_passes_its_overrides(tmp_path):
+    run_example("triaxial.py", tmp_path / "ex", TINY, "triaxial.sample_points=5", "damping.model=od")
+    lines = (tmp_path / "ex" / "series.csv").read_text().splitlines()
+    assert len(lines) == 1 + 5
+    assert "model = 'od'" in (tmp_path / "ex" / "case.toml").read_text()
+
+
+def test_stepping_slows_the_loading_when_unbalanced():
+    """A UFR bound of 0 is exceeded at every sample point: each of the 9 rows before the last halves
+    eps', and the test still ends at its planned axial strain, 1 %."""
+    out = run_example("stepping.py", TINY, 0, 500).splitlines()
+    assert out[0].startswith("compacted: p = 39")  # 390 kPa (compaction.stress)
+    halvings = [line for line in out if line.startswith("row ")]
+    assert len(halvings) == 9
+    rate = 1.25e-4
+    for line in halvings:
+        before, after = (float(v) for v in line.rsplit("eps' ", 1)[1].split(" -> "))
+        assert before == float(f"{rate:.4g}") and after == float(f"{rate / 2:.4g}")
+        rate /= 2
+    assert any(line.startswith("step ") for line in out)
+    assert out[-1].startswith("triaxial: ") and "10 rows" in out[-1] and "final e1 1.000 %" in out[-1]
+
+
+def test_triaxial_of_the_default_case_writes_the_cli_series(tmp_path):
+    """The built-in default case (examples/spheres-A-small.toml, about 25 s a run on two cores)."""
+    cli("run", "--out", tmp_path / "cli", "--quiet")
+    env = {**os.environ}
+    env.pop("OMP_NUM_THREADS", None)  # all cores, as the CLI (no result depends on it)
+    p = subprocess.run([sys.executable, EXAMPLES / "triaxial.py", tmp_path / "py"], capture_output=True, text=True,
+                       env=env)
+    assert p.returncode == 0, p.stderr
+    assert "250 rows" in p.stdout
+    assert (tmp_path / "py" / "series.csv").read_bytes() == (tmp_path / "cli" / "series.csv").read_bytes()
