@@ -13,6 +13,7 @@
 #include "qsdem/config.hpp"
 #include "qsdem/default_case.hpp"
 #include "qsdem/files.hpp"
+#include "qsdem/plot.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/study_analysis.hpp"
@@ -64,6 +65,20 @@ int study_py(const std::string& file, const std::string& out, bool progress, int
   return run_study(file, options);
 }
 
+// `qsdem plot`: the page and the figures drawn, and the ones left out with why.
+py::dict plot_py(const std::string& dir, const std::string& out) {
+  PlotResult r;
+  {
+    py::gil_scoped_release release;
+    r = plot_run(dir, out);
+  }
+  py::dict d;
+  d["page"] = r.page.string();
+  d["figures"] = r.figures;
+  d["notes"] = r.notes;
+  return d;
+}
+
 std::string analyze_py(const std::string& dir) {
   py::gil_scoped_release release;
   return json_text(analyze_study(dir), -1);
@@ -109,5 +124,6 @@ PYBIND11_MODULE(_qsdem, m) {
   m.def("resume", &resume_py);
   m.def("study", &study_py);
   m.def("analyze", &analyze_py);
+  m.def("plot", &plot_py);
   bind_simulation(m);
 }

@@ -14,7 +14,7 @@ import numpy as np
 from . import _qsdem
 from ._qsdem import CaseError, Interrupted, RunError, __version__
 
-__all__ = ["run", "prepare", "resume", "study", "analyze", "check_case", "load", "Run", "Simulation",
+__all__ = ["run", "prepare", "resume", "study", "analyze", "plot", "check_case", "load", "Run", "Simulation",
            "CaseError", "RunError", "Interrupted", "default_case", "__version__"]
 
 default_case = _qsdem.default_case_toml  # examples/spheres-A-small.toml, built in
@@ -131,6 +131,13 @@ def study(file, out, *, parallel=0, order="", progress=False, executable=None):
         raise RunError(f"study {os.fspath(out)}: runs or the analysis failed (exit code {code}; see its logs)")
     path = os.path.join(os.fspath(out), "analysis", "analysis.json")
     return json.load(open(path)) if os.path.exists(path) else {}
+
+
+def plot(dir, out=None):
+    """`qsdem plot`: draws the figures of the run directory `dir` (into `out`, by default DIR/plot) and
+    its page; returns {"page": path of index.html, "figures": names drawn, "notes": figures left out
+    and why}. Needs gnuplot (RunError when it is missing or fails; CaseError when `dir` is no run's)."""
+    return _qsdem.plot(os.fspath(dir), os.fspath(out) if out else "")
 
 
 def analyze(dir):

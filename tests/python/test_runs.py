@@ -1,5 +1,6 @@
 """Whole runs from Python give the CLI's files, bit for bit; load() reads them back."""
 import json
+import shutil
 import pathlib
 
 import numpy as np
@@ -101,3 +102,17 @@ def test_study_and_analyze(tmp_path):
     bad.write_text('name = "bad"\n[design]\nmodels = ["xd"]\n')
     with pytest.raises(qsdem.CaseError):
         qsdem.study(bad, tmp_path / "bad-study")
+
+
+@pytest.mark.skipif(shutil.which("gnuplot") is None, reason="gnuplot absent")
+def test_plot_draws_the_figures_the_cli_draws(tmp_path, cli_run, py_run):
+    out, _ = py_run
+    drawn = qsdem.plot(out, tmp_path / "plot")
+    assert pathlib.Path(drawn["page"]) == tmp_path / "plot" / "index.html"
+    assert pathlib.Path(drawn["page"]).read_text().count("<img ") == len(drawn["figures"])
+    cli_figures = sorted(p.stem for p in (cli_run / "plot").glob("*.png"))
+    assert sorted(drawn["figures"]) == cli_figures
+    for name in drawn["figures"]:
+        assert (tmp_path / "plot" / (name + ".png")).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(qsdem.CaseError, match="is not a run directory"):
+        qsdem.plot(tmp_path / "plot")
