@@ -16,8 +16,11 @@
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/particles.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
+using qsdem_test::error_of;
+using qsdem_test::expect_mentions;
 
 namespace {
 
@@ -53,23 +56,6 @@ std::string base_case(int line = 0, const std::string& replacement = "") {
   for (std::size_t k = 0; k < base_lines.size(); ++k)
     out += (static_cast<int>(k) + 1 == line ? replacement : base_lines[k]) + "\n";
   return out;
-}
-
-// The message of the InputError that parsing throws ("" if none).
-std::string error_of(const std::string& toml, const std::vector<std::string>& overrides = {}) {
-  try {
-    parse_case(toml, "case.toml", overrides);
-  } catch (const InputError& e) {
-    return e.what();
-  }
-  return "";
-}
-
-// HasSubstr-style check of every fragment.
-void expect_mentions(const std::string& message, std::initializer_list<std::string> fragments) {
-  EXPECT_FALSE(message.empty()) << "expected an InputError";
-  for (const auto& f : fragments)
-    EXPECT_NE(message.find(f), std::string::npos) << "message lacks \"" << f << "\":\n  " << message;
 }
 
 // Equal-volume sphere diameter of a prolate spheroid (a, b, b): d = 2 (a b^2)^(1/3) (SPEC 2).

@@ -194,14 +194,7 @@ TEST(DashpotLaw, CaseKeysAreChecked) {
   const std::string base =
       "[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\npoisson_ratio = 0.3\n"
       "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 100\n[contact]\nlaw = \"hertz_mindlin_dashpot\"\n";
-  const auto error_of = [&](const std::string& extra) {
-    try {
-      parse_case(base + extra, "case.toml");
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string();
-  };
+  const auto error_of = [&](const std::string& extra) { return qsdem_test::error_of(base + extra); };
   const Params p = parse_case(base + "restitution = 0.5\n", "case.toml");
   EXPECT_EQ(p.contact.law, "hertz_mindlin_dashpot");
   EXPECT_EQ(p.contact.value("restitution"), 0.5);

@@ -10,6 +10,7 @@
 
 #include "qsdem/config.hpp"
 #include "qsdem/contact/laws.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
 
@@ -183,14 +184,7 @@ TEST(RollingLaw, CaseKeysAreChecked) {
   const std::string base =
       "[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\npoisson_ratio = 0.3\n"
       "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 100\n[contact]\nlaw = \"hertz_mindlin_rolling\"\n";
-  const auto error_of = [&](const std::string& extra) {
-    try {
-      parse_case(base + extra, "case.toml");
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string();
-  };
+  const auto error_of = [&](const std::string& extra) { return qsdem_test::error_of(base + extra); };
   const Params p = parse_case(base + "rolling_friction = 0.1\nrolling_damping_ratio = \"30 %\"\n", "case.toml");
   EXPECT_EQ(p.contact.law, "hertz_mindlin_rolling");
   EXPECT_EQ(p.contact.value("rolling_friction"), 0.1);

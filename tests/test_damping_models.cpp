@@ -417,14 +417,7 @@ TEST(ContactDampingModel, CaseKeys) {
   const Params p = parse_case(base + "[damping]\nmodel = \"contact\"\nratio = \"20 %\"\n", "case.toml");
   EXPECT_EQ(p.damping.model, "contact");
   EXPECT_EQ(p.damping.ratio, 0.2);
-  const auto error_of = [&](const std::string& extra) {
-    try {
-      parse_case(base + extra, "case.toml");
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string();
-  };
+  const auto error_of = [&](const std::string& extra) { return qsdem_test::error_of(base + extra); };
   const std::string ratio = error_of("[damping]\nmodel = \"contact\"\nratio = 1\n");
   EXPECT_NE(ratio.find("case.toml:10"), std::string::npos) << ratio;
   EXPECT_NE(ratio.find("[0, 1)"), std::string::npos) << ratio;

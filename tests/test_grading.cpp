@@ -12,8 +12,11 @@
 #include "qsdem/generate.hpp"
 #include "qsdem/grading.hpp"
 #include "qsdem/particles.hpp"
+#include "test_support.hpp"
 
 using namespace qsdem;
+using qsdem_test::error_of;
+using qsdem_test::expect_mentions;
 
 namespace {
 
@@ -43,21 +46,6 @@ std::string graded_case(const std::string& sample = "total_particles = 300", con
   std::string out = material + "[sample]\n" + sample + "\n";
   for (const std::string& p : points) out += "[[sample.grading]]\n" + p + "\n";
   return out + extra;
-}
-
-std::string error_of(const std::string& toml) {
-  try {
-    parse_case(toml, "case.toml");
-  } catch (const InputError& e) {
-    return e.what();
-  }
-  return "";
-}
-
-void expect_mentions(const std::string& message, std::initializer_list<std::string> fragments) {
-  EXPECT_FALSE(message.empty()) << "expected an InputError";
-  for (const auto& f : fragments)
-    EXPECT_NE(message.find(f), std::string::npos) << "message lacks \"" << f << "\":\n  " << message;
 }
 
 }  // namespace
