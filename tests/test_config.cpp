@@ -16,7 +16,7 @@
 #include "qsdem/config.hpp"
 #include "qsdem/generate.hpp"
 #include "qsdem/particles.hpp"
-#include "test_support.hpp"
+#include "case_errors.hpp"
 
 using namespace qsdem;
 using qsdem_test::error_of;

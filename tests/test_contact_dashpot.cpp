@@ -10,6 +10,7 @@
 #include "qsdem/contact/laws.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/step.hpp"
+#include "case_errors.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

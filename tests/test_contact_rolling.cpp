@@ -10,7 +10,7 @@
 
 #include "qsdem/config.hpp"
 #include "qsdem/contact/laws.hpp"
-#include "test_support.hpp"
+#include "case_errors.hpp"
 
 using namespace qsdem;
 

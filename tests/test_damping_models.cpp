@@ -14,6 +14,7 @@
 #include "qsdem/integrator.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/step.hpp"
+#include "case_errors.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -12,7 +12,7 @@
 #include "qsdem/generate.hpp"
 #include "qsdem/grading.hpp"
 #include "qsdem/particles.hpp"
-#include "test_support.hpp"
+#include "case_errors.hpp"
 
 using namespace qsdem;
 using qsdem_test::error_of;

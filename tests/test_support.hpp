@@ -15,29 +15,9 @@
 #include <sstream>
 #include <string>
 #include <thread>
-#include <initializer_list>
 #include <vector>
 
-#include "qsdem/config.hpp"
-
 namespace qsdem_test {
-
-// The message of the InputError that parsing the case `toml` throws ("" if none).
-inline std::string error_of(const std::string& toml, const std::vector<std::string>& overrides = {}) {
-  try {
-    qsdem::parse_case(toml, "case.toml", overrides);
-  } catch (const qsdem::InputError& e) {
-    return e.what();
-  }
-  return "";
-}
-
-// That `message` is an error's and holds every fragment.
-inline void expect_mentions(const std::string& message, std::initializer_list<std::string> fragments) {
-  EXPECT_FALSE(message.empty()) << "expected an InputError";
-  for (const auto& f : fragments)
-    EXPECT_NE(message.find(f), std::string::npos) << "message lacks \"" << f << "\":\n  " << message;
-}
 
 // The small cases of the process-level tests, as TOML text that a test extends with its own tables.
 // Their material, that of the examples.
