@@ -16,9 +16,6 @@
 
 namespace qsdem {
 
-namespace {
-
-// The fields of a CSV line the engine wrote (no quoting: no field holds a comma), empty ones kept.
 std::vector<std::string> split_fields(const std::string& line) {
   std::vector<std::string> fields;
   for (std::size_t at = 0;;) {
@@ -28,6 +25,8 @@ std::vector<std::string> split_fields(const std::string& line) {
     at = comma + 1;
   }
 }
+
+namespace {
 
 // The columns, in order: SPEC 10's (10.1), then phi_al_deg and tilt_deg (SPEC 7), then the fabric
 // (SPEC 7.1). Each appends its value; the header and the rows are made from this one list.

@@ -73,6 +73,9 @@ struct FileDigest {
 std::string read_regular_file(const std::filesystem::path& path, std::uint64_t max_bytes,
                               std::uint64_t* size = nullptr);
 
+// The fields of a CSV line the engine wrote (no quoting: no field holds a comma), empty ones kept.
+std::vector<std::string> split_fields(const std::string& line);
+
 // The header line of a file that is not series.csv's (SeriesWriter's second constructor).
 struct CsvHeader {
   std::string text;

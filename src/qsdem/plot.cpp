@@ -49,15 +49,6 @@ struct Csv {
   void derive(const std::string& name, std::vector<double> v) { names.push_back(name), cols.push_back(std::move(v)); }
 };
 
-std::vector<std::string> split(const std::string& line) {
-  std::vector<std::string> cells;
-  std::string cell;
-  std::istringstream s(line);
-  while (std::getline(s, cell, ',')) cells.push_back(cell);
-  if (!line.empty() && line.back() == ',') cells.emplace_back();
-  return cells;
-}
-
 // The rows of a file; a row shorter than the header (the last of a file still being written) is
 // left out. Derived columns: q/p, and the deviator q_axial = s33 - (s11 + s22)/2 of the cyclic
 // controller's bounds (docs/loading-paths.md), both when their columns are there.
@@ -69,11 +60,11 @@ Csv read_csv(const fs::path& p) {
   std::string line;
   Csv c;
   if (!std::getline(in, line)) return c;
-  c.names = split(line);
+  c.names = split_fields(line);
   c.cols.resize(c.names.size());
   const auto phase_at = std::find(c.names.begin(), c.names.end(), "phase");
   while (std::getline(in, line)) {
-    const std::vector<std::string> cells = split(line);
+    const std::vector<std::string> cells = split_fields(line);
     if (cells.size() < c.names.size()) continue;
     for (std::size_t k = 0; k < c.names.size(); ++k) {
       char* end = nullptr;
