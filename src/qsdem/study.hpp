@@ -30,6 +30,10 @@ struct StudySample {
   std::string from;                   // sample.from as the case resolves it (absolute), or empty
   std::vector<std::string> sets;      // --set overrides of `qsdem prepare` (seed first)
   std::vector<std::string> run_sets;  // the sample's own overrides, also given to its runs
+  // The sample axes of [design] (NaN: not varied): design.confining_stresses sets compaction.stress
+  // and triaxial.confining_stress, design.compaction_frictions compaction.friction (the density).
+  double confining_stress = std::numeric_limits<double>::quiet_NaN();     // Pa
+  double compaction_friction = std::numeric_limits<double>::quiet_NaN();
 };
 
 // One entry of the model axis: a damping model's name ("nd"), or a label with case overrides
@@ -103,7 +107,9 @@ struct Study {
   std::string name;
   std::filesystem::path file;  // the study file as given
   std::string text;            // its contents (copied to DIR/study.toml)
-  std::vector<std::string> sample_names;  // the [[sample]] tables, in file order
+  // The [[sample]] tables in file order, each expanded over the sample axes of [design]
+  // (confining stress, compaction friction): "A-p100kPa-cf0" is sample A at 100 kPa, friction 0.
+  std::vector<std::string> sample_names;
   std::vector<StudySample> samples;       // one per [[sample]] and seed
   std::vector<StudyModel> models;
   std::vector<StudyStage> stages;

@@ -210,6 +210,10 @@ nlohmann::ordered_json to_json(const AnalysisSettings& s) {
   j["convergence"] = {{"phi_tolerance_deg", s.convergence.phi_rms_deg},
                       {"ev_tolerance", s.convergence.ev_rms},
                       {"within_seed_scatter", s.convergence.within_seed_scatter}};
+  if (s.critical_state.on)
+    j["critical_state"] = {{"from", s.critical_state.from},
+                           {"ev_slope", s.critical_state.ev_slope},
+                           {"stress_ratio_slope", s.critical_state.stress_ratio_slope}};
   return j;
 }
 
@@ -238,6 +242,13 @@ AnalysisSettings analysis_settings_from_json(const nlohmann::json& j) {
     s.convergence.ev_rms = number(c, "ev_tolerance", s.convergence.ev_rms);
     if (c.contains("within_seed_scatter") && c["within_seed_scatter"].is_boolean())
       s.convergence.within_seed_scatter = c["within_seed_scatter"];
+  }
+  if (j.contains("critical_state") && j["critical_state"].is_object()) {
+    const auto& c = j["critical_state"];
+    s.critical_state.on = true;
+    s.critical_state.from = number(c, "from", s.critical_state.from);
+    s.critical_state.ev_slope = number(c, "ev_slope", s.critical_state.ev_slope);
+    s.critical_state.stress_ratio_slope = number(c, "stress_ratio_slope", s.critical_state.stress_ratio_slope);
   }
   return s;
 }

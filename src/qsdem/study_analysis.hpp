@@ -73,6 +73,16 @@ CurveDeviation curve_deviation(std::span<const double> e1_ref, std::span<const d
                                std::span<const double> e1, std::span<const double> y,
                                std::span<const double> at_strains);
 
+// The critical state of each run and the critical state line ([analysis] critical_state,
+// docs/analysis.md section 12): the window of axial strain the critical values are the means of,
+// and the slopes under which the run counts as at the critical state there.
+struct CriticalStateSettings {
+  bool on = false;
+  double from = 0.30;               // the window: e1 >= from, to the end of the run
+  double ev_slope = 0.05;           // |d ev / d e1| over the window (least squares), at most
+  double stress_ratio_slope = 0.5;  // |d(q/p') / d e1| / mean(q/p') over the window, at most
+};
+
 // The study's analysis settings ([analysis] of the study file, study.json "analysis").
 struct AnalysisSettings {
   static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
@@ -87,6 +97,7 @@ struct AnalysisSettings {
   double ev_tolerance = 0.005;     // RMS deviation of ev(e1), volumetric strain as a fraction
   double cn_tolerance = nan;       // RMS deviation of the coordination number; NaN: not checked
   ConvergenceTolerances convergence;  // the certificate of the ladders (section 11)
+  CriticalStateSettings critical_state;
 };
 
 nlohmann::ordered_json to_json(const AnalysisSettings& s);

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <limits>
 #include <optional>
 #include <set>
 #include <sstream>
@@ -280,22 +281,87 @@ void read_execution(const StudyReader& r, const toml::table& root, Study& s) {
   s.parallel_runs = static_cast<int>(parallel);
 }
 
-// [[sample]]: one StudySample per table and seed, each case checked with its overrides.
-void read_samples(const StudyReader& r, const toml::table& root, const std::vector<std::uint64_t>& seeds, Study& s) {
+// A sample axis of [design]: a list of distinct values, each named by a directory-safe label.
+struct SampleAxis {
+  std::vector<double> values;  // empty: the axis is not varied
+  std::vector<std::string> labels;
+};
+
+// design.confining_stresses: stresses ("100 kPa" or Pa), > 0; labelled "p<kPa>kPa".
+SampleAxis read_confining_stresses(const StudyReader& r, const toml::table& design) {
+  SampleAxis axis;
+  const toml::array* a = r.array(design, "confining_stresses", "design.confining_stresses", false);
+  if (!a) return axis;
+  if (a->empty()) r.fail("design.confining_stresses", design.get("confining_stresses"), "expected at least one stress (or leave the key out)");
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const toml::node* e = a->get(i);
+    const std::string key = fmt::format("design.confining_stresses.{}", i);
+    double v = 0;
+    if (e->is_string()) {
+      try {
+        v = parse_quantity(*e->value<std::string>(), Dimension::stress);
+      } catch (const InputError& err) {
+        r.fail(key, e, err.what());
+      }
+    } else if (e->is_floating_point() || e->is_integer()) {
+      v = *e->value<double>();
+    } else {
+      r.fail(key, e, "expected a stress: \"100 kPa\" or a number in Pa");
+    }
+    if (!std::isfinite(v) || v <= 0) r.fail(key, e, "out of range: must be > 0");
+    const std::string label = fmt::format("p{:g}kPa", v / 1e3);
+    if (std::find(axis.labels.begin(), axis.labels.end(), label) != axis.labels.end())
+      r.fail(key, e, fmt::format("listed twice (it names the samples '-{}')", label));
+    axis.values.push_back(v);
+    axis.labels.push_back(label);
+  }
+  return axis;
+}
+
+// design.compaction_frictions: compaction.friction values, >= 0; labelled "cf<mu>".
+SampleAxis read_compaction_frictions(const StudyReader& r, const toml::table& design) {
+  SampleAxis axis;
+  const toml::array* a = r.array(design, "compaction_frictions", "design.compaction_frictions", false);
+  if (!a) return axis;
+  if (a->empty()) r.fail("design.compaction_frictions", design.get("compaction_frictions"), "expected at least one friction coefficient (or leave the key out)");
+  for (std::size_t i = 0; i < a->size(); ++i) {
+    const toml::node* e = a->get(i);
+    const std::string key = fmt::format("design.compaction_frictions.{}", i);
+    if (!(e->is_floating_point() || e->is_integer())) r.fail(key, e, "expected a number >= 0 (compaction.friction)");
+    const double v = *e->value<double>();
+    if (!std::isfinite(v) || v < 0) r.fail(key, e, "out of range: must be >= 0");
+    const std::string label = fmt::format("cf{:g}", v);
+    if (std::find(axis.labels.begin(), axis.labels.end(), label) != axis.labels.end())
+      r.fail(key, e, fmt::format("listed twice (it names the samples '-{}')", label));
+    axis.values.push_back(v);
+    axis.labels.push_back(label);
+  }
+  return axis;
+}
+
+// The keys no override may set: the study's own (run_keys) and those of the varied sample axes.
+std::set<std::string> axis_keys(const SampleAxis& stresses, const SampleAxis& frictions) {
+  std::set<std::string> keys = run_keys;
+  if (!stresses.values.empty()) keys.insert({"compaction.stress", "triaxial.confining_stress"});
+  if (!frictions.values.empty()) keys.insert("compaction.friction");
+  return keys;
+}
+
+// [[sample]]: one StudySample per table, value of each sample axis and seed, each case checked
+// with its overrides.
+void read_samples(const StudyReader& r, const toml::table& root, const std::vector<std::uint64_t>& seeds,
+                  const SampleAxis& stresses, const SampleAxis& frictions, Study& s) {
   const toml::node* sn = root.get("sample");
   if (!sn) r.fail("sample", nullptr, "is required but missing: one [[sample]] table per sample (name, case)");
   const toml::array* sample_arr = sn->as_array();
   if (!sample_arr || sample_arr->empty() || !sample_arr->is_array_of_tables())
-    r.fail("sample", sn, "expected [[sample]] tables (name = \"...\", case = \"...\")");
+    r.fail("sample", sn, "expected [[sample]] tables (name, case)");
   for (std::size_t i = 0; i < sample_arr->size(); ++i) {
     const toml::table& t = *sample_arr->get(i)->as_table();
     const std::string p = fmt::format("sample.{}.", i);
     r.only(t, p, {"name", "case", "set"});
-    const std::string sample_name = r.text(t, "name", p + "name", std::nullopt);
-    check_name(r, p + "name", t.get("name"), sample_name);
-    if (std::find(s.sample_names.begin(), s.sample_names.end(), sample_name) != s.sample_names.end())
-      r.fail(p + "name", t.get("name"), "two samples have this name");
-    s.sample_names.push_back(sample_name);
+    const std::string table_name = r.text(t, "name", p + "name", std::nullopt);
+    check_name(r, p + "name", t.get("name"), table_name);
     const std::string case_text = r.text(t, "case", p + "case", std::nullopt);
     fs::path case_file = case_text;
     if (case_file.is_relative()) case_file = s.file.parent_path() / case_file;  // relative to the study file
@@ -304,35 +370,63 @@ void read_samples(const StudyReader& r, const toml::table& root, const std::vect
     if (!fs::is_regular_file(case_file))
       r.fail(p + "case", t.get("case"), fmt::format("no such case file ('{}'; a relative path is relative to the study file)",
                                                     case_file.string()));
-    std::set<std::string> reserved = run_keys;
+    std::set<std::string> reserved = axis_keys(stresses, frictions);
     if (!seeds.empty()) reserved.insert("sample.seed");
     const std::vector<std::string> own = r.sets(t, p + "set", reserved);
-
-    // Check the case with the sample's overrides now, not after hours of other runs.
-    const auto check = [&](const std::vector<std::string>& sets, const std::string& what) {
-      try {
-        return load_case(case_file.string(), sets);
-      } catch (const InputError& e) {
-        throw InputError(fmt::format("{}: sample '{}'{}: {}", r.file(), sample_name, what, e.what()));
-      }
-    };
     const std::string text = slurp(case_file);  // what the children run (case_copy), hashed once
-    const Params base = check(own, "");
-    const std::vector<std::uint64_t> sample_seeds = seeds.empty() ? std::vector{base.sample.seed} : seeds;
-    for (const std::uint64_t seed : sample_seeds) {
-      StudySample smp;
-      smp.name = sample_name;
-      smp.seed = seed;
-      smp.dir = fmt::format("samples/{}-seed{}", sample_name, seed);
-      smp.case_file = case_file;
-      smp.case_text = text;
-      smp.case_hash = fnv1a64_hex(text);
-      if (!seeds.empty()) smp.sets.push_back(fmt::format("sample.seed={}", seed));
-      smp.sets.insert(smp.sets.end(), own.begin(), own.end());
-      smp.run_sets = own;
-      smp.from = check(smp.sets, fmt::format(" seed {}", seed)).sample.from;
-      s.samples.push_back(smp);
-    }
+
+    // The sample axes' values: one pass with NaN for an axis that is not varied.
+    const auto or_none = [](const std::vector<double>& v) {
+      return v.empty() ? std::vector{std::numeric_limits<double>::quiet_NaN()} : v;
+    };
+    const std::vector<double> stress_values = or_none(stresses.values), friction_values = or_none(frictions.values);
+    for (std::size_t a = 0; a < stress_values.size(); ++a)
+      for (std::size_t b = 0; b < friction_values.size(); ++b) {
+        std::string sample_name = table_name;
+        std::vector<std::string> axis_sets;
+        if (std::isfinite(stress_values[a])) {
+          sample_name += "-" + stresses.labels[a];
+          axis_sets.push_back(fmt::format("compaction.stress=\"{} Pa\"", exact(stress_values[a])));
+          axis_sets.push_back(fmt::format("triaxial.confining_stress=\"{} Pa\"", exact(stress_values[a])));
+        }
+        if (std::isfinite(friction_values[b])) {
+          sample_name += "-" + frictions.labels[b];
+          axis_sets.push_back("compaction.friction=" + exact(friction_values[b]));
+        }
+        check_name(r, p + "name", t.get("name"), sample_name);
+        if (std::find(s.sample_names.begin(), s.sample_names.end(), sample_name) != s.sample_names.end())
+          r.fail(p + "name", t.get("name"), fmt::format("two samples have the name '{}'", sample_name));
+        s.sample_names.push_back(sample_name);
+        std::vector<std::string> sample_sets = own;
+        sample_sets.insert(sample_sets.end(), axis_sets.begin(), axis_sets.end());
+
+        // Check the case with the sample's overrides now, not after hours of other runs.
+        const auto check = [&](const std::vector<std::string>& sets, const std::string& what) {
+          try {
+            return load_case(case_file.string(), sets);
+          } catch (const InputError& e) {
+            throw InputError(fmt::format("{}: sample '{}'{}: {}", r.file(), sample_name, what, e.what()));
+          }
+        };
+        const Params base = check(sample_sets, "");
+        const std::vector<std::uint64_t> sample_seeds = seeds.empty() ? std::vector{base.sample.seed} : seeds;
+        for (const std::uint64_t seed : sample_seeds) {
+          StudySample smp;
+          smp.name = sample_name;
+          smp.seed = seed;
+          smp.dir = fmt::format("samples/{}-seed{}", sample_name, seed);
+          smp.case_file = case_file;
+          smp.case_text = text;
+          smp.case_hash = fnv1a64_hex(text);
+          smp.confining_stress = stress_values[a];
+          smp.compaction_friction = friction_values[b];
+          if (!seeds.empty()) smp.sets.push_back(fmt::format("sample.seed={}", seed));
+          smp.sets.insert(smp.sets.end(), sample_sets.begin(), sample_sets.end());
+          smp.run_sets = sample_sets;
+          smp.from = check(smp.sets, fmt::format(" seed {}", seed)).sample.from;
+          s.samples.push_back(smp);
+        }
+      }
   }
 }
 
@@ -598,7 +692,8 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
   if (!t) return;
   s.has_analysis = true;
   r.only(*t, "analysis.",
-         {"baseline", "imom_target", "reference", "phi_tolerance_deg", "ev_tolerance", "cn_tolerance", "convergence"});
+         {"baseline", "imom_target", "reference", "phi_tolerance_deg", "ev_tolerance", "cn_tolerance", "convergence",
+          "critical_state"});
   a.baseline = r.text(*t, "baseline", "analysis.baseline", labels.front());
   if (index_of(labels, a.baseline) == labels.size())
     r.fail("analysis.baseline", t->get("baseline"), "not a model of design.models");
@@ -639,6 +734,25 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
     if (const toml::node* n = ct->get("within_seed_scatter")) {
       if (!n->is_boolean()) r.fail("analysis.convergence.within_seed_scatter", n, "expected true or false");
       tol.within_seed_scatter = *n->value<bool>();
+    }
+  }
+  if (const toml::node* c = t->get("critical_state")) {
+    const toml::table* ct = c->as_table();
+    if (!ct) r.fail("analysis.critical_state", c, "expected a table { from = \"30 %\", ev_slope = 0.05, stress_ratio_slope = 0.5 }");
+    r.only(*ct, "analysis.critical_state.", {"from", "ev_slope", "stress_ratio_slope"});
+    CriticalStateSettings& cs = a.critical_state;
+    cs.on = true;
+    if (const toml::node* n = ct->get("from")) {
+      cs.from = read_ratio(r, n, "analysis.critical_state.from");
+      if (!(cs.from > 0 && cs.from < 0.5)) r.fail("analysis.critical_state.from", n, "out of range: must be in (0, 50 %) of axial strain");
+    }
+    for (auto [key, out] : {std::pair{"ev_slope", &cs.ev_slope}, std::pair{"stress_ratio_slope", &cs.stress_ratio_slope}}) {
+      const toml::node* n = ct->get(key);
+      if (!n) continue;
+      const std::string path = std::string("analysis.critical_state.") + key;
+      if (!(n->is_floating_point() || n->is_integer())) r.fail(path, n, "expected a number");
+      *out = *n->value<double>();
+      if (!std::isfinite(*out) || *out <= 0) r.fail(path, n, "out of range: must be > 0");
     }
   }
   const toml::node* ref = t->get("reference");
@@ -831,12 +945,14 @@ Study load_study(const fs::path& file) {
   const toml::table* design = r.table(root, "design", "design");
   if (!design)
     r.fail("design", nullptr, "is required but missing: a [design] table with models, damping_ratios, strain_rates");
-  r.only(*design, "design.", {"models", "damping_ratios", "strain_rates", "rate_control", "seeds", "set"});
+  r.only(*design, "design.", {"models", "damping_ratios", "strain_rates", "rate_control", "seeds",
+                              "confining_stresses", "compaction_frictions", "set"});
   s.models = read_models(r, *design);
   const std::vector<std::uint64_t> seeds = read_seeds(r, *design);
-  s.design_sets = r.sets(*design, "design.set", run_keys);
+  const SampleAxis stresses = read_confining_stresses(r, *design), frictions = read_compaction_frictions(r, *design);
+  s.design_sets = r.sets(*design, "design.set", axis_keys(stresses, frictions));
   read_execution(r, root, s);
-  read_samples(r, root, seeds, s);
+  read_samples(r, root, seeds, stresses, frictions, s);
   check_models(r, *design, s);
   read_stages(r, root, *design, s);
   read_analysis(r, root, s);
@@ -924,12 +1040,16 @@ nlohmann::ordered_json study_manifest(const Study& study) {
     }
   }
   m["samples"] = ojson::array();
-  for (const auto& smp : study.samples)
-    m["samples"].push_back({{"name", smp.name},
-                            {"seed", smp.seed},
-                            {"dir", smp.dir},
-                            {"case", smp.case_file.string()},
-                            {"case_fnv1a64", smp.case_hash}});
+  for (const auto& smp : study.samples) {
+    ojson j = {{"name", smp.name},
+               {"seed", smp.seed},
+               {"dir", smp.dir},
+               {"case", smp.case_file.string()},
+               {"case_fnv1a64", smp.case_hash}};
+    if (std::isfinite(smp.confining_stress)) j["confining_stress_Pa"] = smp.confining_stress;
+    if (std::isfinite(smp.compaction_friction)) j["compaction_friction"] = smp.compaction_friction;
+    m["samples"].push_back(j);
+  }
   m["runs"] = ojson::array();
   for (const auto& run : study.runs) {
     const StudySample& smp = study.samples[run.sample];
