@@ -346,6 +346,11 @@ Series read_series(const fs::path& p) {
     s.imom.push_back(v[col["imom"]]);
     s.ekin.push_back(v[col["ekin_J"]]);
     s.q_over_p.push_back(col.count("q_Pa") && col.count("p_Pa") ? v[col["q_Pa"]] / v[col["p_Pa"]] : nan);
+    const auto optional = [&](const char* name) { return col.count(name) ? v[col[name]] : nan; };
+    s.p.push_back(optional("p_Pa"));
+    s.q.push_back(optional("q_Pa"));
+    s.void_ratio.push_back(optional("void_ratio"));
+    s.fabric_dev.push_back(optional("fabric_dev"));
   }
   return s;
 }
@@ -394,6 +399,10 @@ Run load_run(const fs::path& dir, const json& m) {
     r.wall_s = num(s, "wall_s");
     r.psps = num(s, "particle_steps_per_s");
     if (s.contains("derived")) r.particles = num(s["derived"], "particles");
+    if (s.contains("compaction") && s["compaction"].contains("final")) {
+      r.e0 = num(s["compaction"]["final"], "void_ratio");
+      r.p0 = num(s["compaction"]["final"], "p_Pa");
+    }
     if (r.controlled && s.contains("triaxial") && s["triaxial"].contains("controller")) {
       const json& c = s["triaxial"]["controller"];
       Control& k = r.control;
@@ -1161,6 +1170,13 @@ void build_analysis(Analysis& a, const fs::path& dir, const json& manifest) {
   a.settings = analysis_settings_from_json(manifest.contains("analysis") ? manifest["analysis"] : json());
   if (manifest.contains("runs") && manifest["runs"].is_array())
     for (const json& m : manifest["runs"]) a.runs.push_back(load_run(dir, m));
+  if (manifest.contains("samples") && manifest["samples"].is_array())
+    for (const json& smp : manifest["samples"])
+      for (Run& r : a.runs)
+        if (r.sample == smp.value("name", std::string()) && r.seed == smp.value("seed", -1L)) {
+          r.confining_stress = num(smp, "confining_stress_Pa");
+          r.compaction_friction = num(smp, "compaction_friction");
+        }
   if (a.settings.baseline.empty() && !a.runs.empty()) a.settings.baseline = a.runs.front().model;  // the design's first
   a.groups = make_groups(a.runs);
   a.laws = make_laws(a.groups, a.settings.imom_target);
@@ -1174,6 +1190,7 @@ void build_analysis(Analysis& a, const fs::path& dir, const json& manifest) {
   a.controls = make_controls(a.runs);
   a.pairs = make_listed_pairs(a.stages, a.runs);
   a.ladders = make_ladders(a.runs, a.settings.convergence);
+  if (a.settings.critical_state.on) a.critical = make_critical_groups(a.runs, a.settings.critical_state);
 }
 
 }  // namespace
@@ -1269,6 +1286,7 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
   a["damping_dependence"] = damping_json(an);
   a["listed_pairs"] = listed_pairs_json(an);
   a["convergence"] = ladders_json(an.ladders, an.settings.convergence);
+  if (an.settings.critical_state.on) a["critical_state"] = critical_json(an.critical, an.settings.critical_state);
   a["paper_reference"] = paper_reference_json();
 
   // Tables and CSVs first: they are useful even when gnuplot is missing.
@@ -1297,6 +1315,12 @@ nlohmann::json analyze_study(const std::filesystem::path& dir) {
     a["files"]["convergence_csv"] = "analysis/convergence.csv";
   } else {
     fs::remove(adir / "convergence.csv");
+  }
+  if (an.settings.critical_state.on) {
+    write_file_atomic(adir / "critical_state.csv", critical_csv(an.critical));
+    a["files"]["critical_state_csv"] = "analysis/critical_state.csv";
+  } else {
+    fs::remove(adir / "critical_state.csv");
   }
   if (an.settings.has_reference) {
     write_file_atomic(adir / "deviation.csv", deviation_csv(an.devs));

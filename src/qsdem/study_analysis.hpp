@@ -3,6 +3,7 @@
 // response (deviation from a reference run), tables, figures (gnuplot) and an HTML report.
 // The choices (fits, averaging, flags, tolerances) are documented in docs/analysis.md.
 #pragma once
+#include <cmath>
 #include <filesystem>
 #include <limits>
 #include <span>
@@ -82,6 +83,57 @@ struct CriticalStateSettings {
   double ev_slope = 0.05;           // |d ev / d e1| over the window (least squares), at most
   double stress_ratio_slope = 0.5;  // |d(q/p') / d e1| / mean(q/p') over the window, at most
 };
+
+// The curves of one drained run that its critical state is read from (series.csv columns).
+struct DrainedCurves {
+  std::span<const double> e1, ev, phi_deg, p, q, void_ratio;
+  std::span<const double> fabric_dev;  // empty or NaN: not written
+  double e0 = std::numeric_limits<double>::quiet_NaN();  // the state the shearing starts from (the
+  double p0 = std::numeric_limits<double>::quiet_NaN();  // first row's when NaN)
+};
+
+// The critical state of one run (docs/analysis.md section 12): its start, peak and dilatancy, and
+// the means over the window e1 >= from.
+struct RunCriticalState {
+  static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
+  double e0 = nan, p0 = nan;                             // void ratio and p' (Pa) at the start
+  double peak_phi_deg = nan, peak_e1 = nan;              // the largest phi and its axial strain
+  double max_dilatancy_deg = nan, max_dilatancy_e1 = nan;  // psi_max (triaxial_dilatancy_angle_deg)
+  int rows = 0;                                          // rows in the window
+  double phi_deg = nan, stress_ratio = nan, void_ratio = nan, p = nan, fabric_dev = nan;  // window means
+  double ev_slope = nan, stress_ratio_slope = nan;  // d ev/d e1 and d(q/p')/d e1 / mean(q/p') (least squares)
+  bool reached = false;  // rows >= 3 and both slopes within the settings' bounds
+};
+
+// The half width (axial strain) of the window of the local dilatancy slope.
+constexpr double dilatancy_half_window = 0.01;
+
+// The dilatancy angle of a drained triaxial compression (Schanz & Vermeer 1996), from the slope
+// d ev/d e1 of the engineering strains (ev dilation positive, e1 compression positive) at (e1, ev):
+// with the natural increments dv = d ev/(1 + ev) and d eps1 = d e1/(1 - e1),
+// sin psi = dv / (2 d eps1 + dv). Degrees; NaN when the slope gives |sin psi| > 1.
+double triaxial_dilatancy_angle_deg(double dev_de1, double e1, double ev);
+
+RunCriticalState critical_state_of(const DrainedCurves& c, const CriticalStateSettings& settings);
+
+// The critical state line e_c = Gamma - lambda ln(p'_c / 1 kPa) by least squares over the runs' window
+// means, and M = q/p' at the critical state (the mean of the runs' stress ratios).
+struct CriticalStateLine {
+  static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
+  int n = 0;                                   // runs used
+  double gamma = nan, lambda = nan;            // e at p' = 1 kPa; slope against ln p'
+  double gamma_se = nan, lambda_se = nan;      // standard errors (n >= 3)
+  double r2 = nan, rms_residual = nan;         // of e_c about the line
+  double p_lo = nan, p_hi = nan;               // the range of p'_c (Pa)
+  double M = nan, M_sd = nan;                  // mean and standard deviation of (q/p')_c
+  double phi_cs_deg = nan;                     // from M: sin phi = 3 M / (6 + M)
+  bool ok = false;                             // n >= 2 and the p'_c differ by more than 1 %
+  std::string note;
+  double void_ratio_at(double p) const { return gamma - lambda * std::log(p / 1e3); }
+};
+
+CriticalStateLine fit_critical_state_line(std::span<const double> p, std::span<const double> void_ratio,
+                                          std::span<const double> stress_ratio);
 
 // The study's analysis settings ([analysis] of the study file, study.json "analysis").
 struct AnalysisSettings {

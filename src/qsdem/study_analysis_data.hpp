@@ -36,6 +36,7 @@ inline bool has_name(const std::vector<std::string>& v, const std::string& x) { 
 struct Series {
   std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
   std::vector<double> q_over_p;  // q_Pa / p_Pa
+  std::vector<double> p, q, void_ratio, fabric_dev;  // p_Pa, q_Pa, void_ratio, fabric_dev (NaN: no column)
 };
 
 // A controlled run's controller: study.json "rate_control", summary.json triaxial.controller
@@ -55,6 +56,7 @@ struct Run {
   std::string damping_model;  // the case's damping.model (the label's own name for a bare model)
   std::string stage;          // the first stage that lists it ("" without stages)
   long seed = 0;
+  double confining_stress = nan, compaction_friction = nan;  // the sample axes (study.json "samples")
   double xi = nan, rate = nan;  // a controlled run: the start rate
   bool controlled = false;      // its rate followed an index: kept out of the groups and fits
   Control control;
@@ -63,6 +65,7 @@ struct Run {
   double mean_imom = nan, mean_ufr = nan, mean_iuf = nan, peak_phi = nan, final_ev = nan;
   double mean_ekin = nan, ekin_norm = nan;  // mean ekin_J, and divided by eps'^2 (paper Table 6)
   double steps = nan, wall_s = nan, particles = nan, psps = nan;
+  double e0 = nan, p0 = nan;  // void ratio and p (Pa) where the shearing starts (summary.json compaction.final)
   Series s;
 };
 
@@ -216,6 +219,21 @@ struct Ladder {
   double steps = 0, wall_s = 0;                 // of every run of the complete rungs
 };
 
+// The critical state of the constant-rate runs of one (model, ratio, rate) over the samples, and
+// their critical state line (docs/analysis.md section 12).
+struct CriticalGroup {
+  std::string model;
+  double xi = nan, rate = nan;
+  struct Member {
+    const Run* run = nullptr;
+    RunCriticalState cs;
+    double state_parameter = nan;  // e0 - e_c(p0) on the group's line (Been & Jefferies 1985)
+    double off_line = nan;         // e_c - e_c(p'_c) on the line
+  };
+  std::vector<Member> runs;
+  CriticalStateLine line;  // over the members that reached the critical state
+};
+
 // Everything the tables, figures and files are made from; groups, laws and deviations point
 // into `runs`, so an Analysis is filled in place and never copied.
 struct Analysis {
@@ -237,6 +255,7 @@ struct Analysis {
   std::vector<ControlComparison> controls;
   std::vector<ListedPair> pairs;
   std::vector<Ladder> ladders;
+  std::vector<CriticalGroup> critical;  // with [analysis] critical_state
 
   const Run* reference_of(const std::string& sample) const {  // the first seed's (for figures)
     for (const auto& [key, r] : refs)
@@ -270,6 +289,14 @@ std::vector<Ladder> make_ladders(const std::vector<Run>& runs, const Convergence
 json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
 std::string ladders_csv(const std::vector<Ladder>& ladders);
 Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
+
+// The critical state of each (model, ratio, rate) (study_critical_state.cpp), its JSON, CSV,
+// tables and figures.
+std::vector<CriticalGroup> make_critical_groups(const std::vector<Run>& runs, const CriticalStateSettings& settings);
+json critical_json(const std::vector<CriticalGroup>& groups, const CriticalStateSettings& settings);
+std::string critical_csv(const std::vector<CriticalGroup>& groups);
+std::vector<Table> critical_tables(const std::vector<CriticalGroup>& groups, const CriticalStateSettings& settings);
+void add_critical_figures(std::vector<Figure>& figs, const std::vector<CriticalGroup>& groups);
 
 // Rendering (study_report.cpp).
 std::vector<Table> make_tables(const Analysis& a);

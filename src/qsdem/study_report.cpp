@@ -732,6 +732,8 @@ std::vector<Table> make_tables(const Analysis& a) {
   }
   if (!a.pairs.empty()) tables.push_back(table_listed_pairs(a));
   if (!a.ladders.empty()) tables.push_back(table_ladders(a.ladders, a.settings.convergence));
+  if (a.settings.critical_state.on)
+    for (Table& t : critical_tables(a.critical, a.settings.critical_state)) tables.push_back(std::move(t));
   tables.push_back(table_missing(a));
   return tables;
 }
@@ -752,6 +754,7 @@ std::vector<Figure> make_figures(const Analysis& a) {
     if (a.settings.has_reference) figs.push_back(deviation_figure(a, s));
   }
   add_ladder_figures(figs, a);
+  add_critical_figures(figs, a.critical);
   return figs;
 }
 
