@@ -282,6 +282,22 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
        sample + stage_design + sweep + "[[stage]]\nname = \"c\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
                                        "rate_control = { target = \"150 %\", min_rate = 1e-7, max_rate = 1e-4 }\n",
        {"stage.1.rate_control", "refuses it", "target", "(0, 100 %)"}},
+      {"a confining stress without a unit", sample + design + "confining_stresses = [\"100 kPa\", \"200\"]\n",
+       {"design.confining_stresses.1", "\"200\"", "unit"}},
+      {"a confining stress listed twice", sample + design + "confining_stresses = [\"100 kPa\", 100000]\n",
+       {"design.confining_stresses.1", "listed twice", "p100kPa"}},
+      {"a negative compaction friction", sample + design + "compaction_frictions = [0.1, -0.2]\n",
+       {"design.compaction_frictions.1", "-0.2", ">= 0"}},
+      {"the axis' key in sample.set",
+       "[[sample]]\nname = \"s\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
+           "\"\nset = [\"compaction.friction=0.3\"]\n" + design + "compaction_frictions = [0.1]\n",
+       {"sample.0.set.0", "compaction.friction", "set by the study"}},
+      {"the axis' key in design.set", sample + design + "confining_stresses = [\"1 MPa\"]\nset = [\"triaxial.confining_stress=\\\"2 MPa\\\"\"]\n",
+       {"design.set.0", "triaxial.confining_stress", "set by the study"}},
+      {"critical_state window out of range", sample + design + "[analysis]\ncritical_state = { from = \"60 %\" }\n",
+       {"analysis.critical_state.from", "(0, 50 %)"}},
+      {"critical_state key misspelt", sample + design + "[analysis]\ncritical_state = { ev_slop = 0.1 }\n",
+       {"analysis.critical_state.ev_slop"}},
       {"two controllers of one index and target at one start rate",
        sample + stage_design +
            "[[stage]]\nname = \"c1\"\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
@@ -306,6 +322,7 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
 // The shipped studies are valid: every case and every override of every run is checked.
 TEST(StudyCli, ShippedStudiesAreValid) {
   for (const char* name : {"paper.toml", "paper-small.toml", "tiny.toml", "paper-full.toml", "tiny-staged.toml", "damping-small.toml",
+                           "critical-state-small.toml", "tiny-critical-state.toml",
                            "damping-small-B.toml", "damping-seeds.toml", "adaptive-small.toml"}) {
     SCOPED_TRACE(name);
     qsdem::Study s;
@@ -340,6 +357,87 @@ TEST(StudyCli, SeedsAndManifest) {
   EXPECT_EQ(m["runs"][1]["xi"], 0.0012);
   EXPECT_EQ(m["runs"][1]["rate"], 1e-5);
   EXPECT_EQ(s.samples[1].sets.front(), "sample.seed=7");
+  fs::remove_all(dir);
+}
+
+// The sample axes: every [[sample]] is prepared at each confining stress and compaction friction,
+// named by them, with both stresses and the friction set for `qsdem prepare` and for the runs.
+TEST(StudyCli, SampleAxesNameSamplesAndSetTheirKeys) {
+  const fs::path dir = fresh_dir("axes");
+  write(dir / "s.toml", "[[sample]]\nname = \"A\"\ncase = \"" + (source_dir / "examples/spheres-A-small.toml").string() +
+                            "\"\n[design]\nmodels = [\"nd\"]\ndamping_ratios = [\"0.5 %\"]\nstrain_rates = [1e-5]\n"
+                            "confining_stresses = [\"100 kPa\", 1.6e6]\ncompaction_frictions = [0, 0.25]\nseeds = [2]\n");
+  const qsdem::Study s = qsdem::load_study(dir / "s.toml");
+  const std::vector<std::string> names = {"A-p100kPa-cf0", "A-p100kPa-cf0.25", "A-p1600kPa-cf0", "A-p1600kPa-cf0.25"};
+  EXPECT_EQ(s.sample_names, names);
+  ASSERT_EQ(s.samples.size(), 4u);
+  const qsdem::StudySample& last = s.samples[3];
+  EXPECT_EQ(last.dir, "samples/A-p1600kPa-cf0.25-seed2");
+  EXPECT_EQ(last.confining_stress, 1.6e6);
+  EXPECT_EQ(last.compaction_friction, 0.25);
+  const std::vector<std::string> sets = {"sample.seed=2", "compaction.stress=\"1600000 Pa\"",
+                                         "triaxial.confining_stress=\"1600000 Pa\"", "compaction.friction=0.25"};
+  EXPECT_EQ(last.sets, sets);
+  ASSERT_EQ(s.runs.size(), 4u);
+  EXPECT_EQ(s.runs[3].id, "A-p1600kPa-cf0.25-seed2/nd/xi-0.5%/rate-1e-05");
+  const auto m = qsdem::study_manifest(s);
+  EXPECT_EQ(m["samples"][3]["confining_stress_Pa"], 1.6e6);
+  EXPECT_EQ(m["samples"][3]["compaction_friction"], 0.25);
+  EXPECT_FALSE(qsdem::study_manifest(qsdem::load_study(tiny_study))["samples"][0].contains("confining_stress_Pa"))
+      << "a study without the axes keeps its manifest";
+  fs::remove_all(dir);
+}
+
+// The tiny critical-state study from start to end: each sample compacted to its own stress and
+// sheared at it, and the analysis' window means are those of the runs' own series.csv.
+TEST(Study, TinyCriticalStateStudyEndToEnd) {
+  const fs::path dir = fresh_dir("critical");
+  const Result r = study(source_dir / "studies" / "tiny-critical-state.toml", dir / "out", dir / "log");
+  ASSERT_TRUE(completed(r)) << r.err;
+  const auto m = manifest(dir / "out");
+  ASSERT_EQ(m["runs"].size(), 4u);
+  const auto a = nlohmann::json::parse(slurp(dir / "out" / "analysis" / "analysis.json"));
+  ASSERT_EQ(a["critical_state"]["groups"].size(), 1u);
+  const auto& g = a["critical_state"]["groups"][0];
+  ASSERT_EQ(g["runs"].size(), 4u);
+  for (const auto& run : g["runs"]) {
+    SCOPED_TRACE(run["id"].get<std::string>());
+    const auto entry = std::find_if(m["runs"].begin(), m["runs"].end(), [&](const auto& e) { return e["id"] == run["id"]; });
+    ASSERT_NE(entry, m["runs"].end());
+    const fs::path rd = dir / "out" / (*entry)["dir"].get<std::string>();
+    const auto summary = nlohmann::json::parse(slurp(rd / "summary.json"));
+    const double sigma = run["confining_stress_Pa"];
+    EXPECT_NEAR(summary["compaction"]["final"]["p_Pa"].get<double>(), sigma, 0.02 * sigma) << "prepared at its stress";
+    EXPECT_EQ(summary["config"]["resolved_si"]["triaxial"]["confining_stress_Pa"].get<double>(), sigma) << "sheared at it";
+    EXPECT_EQ(run["p0_Pa"], summary["compaction"]["final"]["p_Pa"]);
+    // The window means, from series.csv by a plain loop.
+    std::istringstream in(slurp(rd / "series.csv"));
+    std::string line;
+    std::getline(in, line);
+    std::map<std::string, std::size_t> col;
+    {
+      std::stringstream ss(line);
+      std::string name;
+      for (std::size_t i = 0; std::getline(ss, name, ','); ++i) col[name] = i;
+    }
+    double sum_e = 0, sum_p = 0, sum_ratio = 0;
+    int n = 0;
+    while (std::getline(in, line)) {
+      std::vector<double> v;
+      std::stringstream ss(line);
+      for (std::string c; std::getline(ss, c, ',');) v.push_back(std::stod(c));
+      if (v[col["e1"]] < 0.3) continue;
+      sum_e += v[col["void_ratio"]], sum_p += v[col["p_Pa"]], sum_ratio += v[col["q_Pa"]] / v[col["p_Pa"]], ++n;
+    }
+    ASSERT_GT(n, 2);
+    EXPECT_EQ(run["window_rows"], n);
+    EXPECT_NEAR(run["void_ratio"].get<double>(), sum_e / n, 1e-12);
+    EXPECT_NEAR(run["p_Pa"].get<double>(), sum_p / n, 1e-6);
+    EXPECT_NEAR(run["stress_ratio"].get<double>(), sum_ratio / n, 1e-12);
+  }
+  EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "critical_state.csv"));
+  EXPECT_NE(slurp(dir / "out" / "analysis" / "tables.md").find("Critical state lines"), std::string::npos);
+  EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "figures" / "critical_state_nd_0.5_0.0001.png"));
   fs::remove_all(dir);
 }
 

@@ -967,3 +967,99 @@ TEST(StudyAnalysisConvergence, LaddersOfTwoSeedsAreCertifiedFromTheRunsFiles) {
   EXPECT_NE(tables.find("### Convergence with the rate"), std::string::npos);
   fs::remove_all(dir);
 }
+
+// --- the critical state (docs/analysis.md section 12) ------------------------------------------
+
+// sin psi = dv / (2 d eps1 + dv) with the natural increments: isochoric gives 0; at the start
+// (e1 = ev = 0) a slope of 1 gives asin(1/3), a slope of -2/3 gives asin(-1/2); at e1 = 0.2,
+// ev = 0.25 a slope s is the natural slope s (1 - e1)/(1 + ev) = 0.64 s.
+TEST(StudyAnalysisCriticalState, DilatancyAngleClosedForms) {
+  const double deg = 180 / 3.14159265358979323846;
+  EXPECT_DOUBLE_EQ(qsdem::triaxial_dilatancy_angle_deg(0, 0.1, 0.02), 0);
+  EXPECT_NEAR(qsdem::triaxial_dilatancy_angle_deg(1, 0, 0), std::asin(1.0 / 3) * deg, 1e-12);
+  EXPECT_NEAR(qsdem::triaxial_dilatancy_angle_deg(-2.0 / 3, 0, 0), -30, 1e-12);
+  EXPECT_NEAR(qsdem::triaxial_dilatancy_angle_deg(1, 0.2, 0.25), std::asin(0.64 / 2.64) * deg, 1e-12);
+  EXPECT_TRUE(std::isnan(qsdem::triaxial_dilatancy_angle_deg(-1.5, 0, 0))) << "|sin psi| > 1";
+}
+
+// Constructed curves over 0-40 % in steps of 0.1 %: ev rises with slope 0.5 to 10 % axial strain
+// and is flat after 20 %, phi peaks at 5 %, q/p' is 1.2 and the void ratio falls linearly through
+// the window e1 >= 30 %: every window mean and slope is known exactly.
+TEST(StudyAnalysisCriticalState, PeakDilatancyAndWindowOfConstructedCurves) {
+  std::vector<double> e1, ev, phi, p, q, e, fab;
+  for (int i = 0; i <= 400; ++i) {
+    const double x = i / 1000.0;  // correctly rounded: 300 / 1000.0 is the double 0.3
+    e1.push_back(x);
+    ev.push_back(x <= 0.1 ? 0.5 * x : x <= 0.2 ? 0.05 + 0.2 * (x - 0.1) : 0.07);
+    phi.push_back(x <= 0.05 ? 20 + 200 * x : 30 - 20 * (x - 0.05));
+    p.push_back(500e3 + 1e3 * (i % 2));
+    q.push_back(1.2 * p.back());
+    e.push_back(0.7 - 0.1 * (x - 0.3));
+    fab.push_back(i % 2 ? 0.3 : 0.1);
+  }
+  qsdem::CriticalStateSettings st;
+  st.on = true;
+  const qsdem::DrainedCurves c{e1, ev, phi, p, q, e, fab, 0.6, 400e3};
+  const qsdem::RunCriticalState r = qsdem::critical_state_of(c, st);
+  EXPECT_DOUBLE_EQ(r.e0, 0.6);
+  EXPECT_DOUBLE_EQ(r.p0, 400e3);
+  EXPECT_NEAR(r.peak_phi_deg, 30, 1e-12);
+  EXPECT_NEAR(r.peak_e1, 0.05, 1e-12);
+  // The largest natural dilatancy rate is at the first full window (e1 = 1 %, slope 0.5).
+  EXPECT_NEAR(r.max_dilatancy_e1, 0.01, 1e-12);
+  EXPECT_NEAR(r.max_dilatancy_deg, qsdem::triaxial_dilatancy_angle_deg(0.5, 0.01, 0.005), 1e-9);
+  EXPECT_NEAR(r.max_dilatancy_deg, 11.397, 1e-3) << "asin(t / (2 + t)), t = 0.5 (1 - 0.01) / (1 + 0.005)";
+  EXPECT_EQ(r.rows, 101);
+  EXPECT_NEAR(r.stress_ratio, 1.2, 1e-12);
+  EXPECT_NEAR(r.stress_ratio_slope, 0, 1e-12);
+  EXPECT_NEAR(r.ev_slope, 0, 1e-12);
+  EXPECT_NEAR(r.void_ratio, 0.695, 1e-12);
+  EXPECT_NEAR(r.phi_deg, 30 - 20 * (0.35 - 0.05), 1e-9);
+  EXPECT_NEAR(r.p, 500e3 + 1e3 * 50.0 / 101, 1e-6);
+  EXPECT_NEAR(r.fabric_dev, 0.1 + 0.2 * 50.0 / 101, 1e-12);
+  EXPECT_TRUE(r.reached);
+
+  // Still dilating at slope 0.06 in the window: not at the critical state with the default 0.05.
+  for (std::size_t i = 300; i <= 400; ++i) ev[i] = 0.07 + 0.06 * (e1[i] - 0.3);
+  const qsdem::RunCriticalState d = qsdem::critical_state_of(c, st);
+  EXPECT_NEAR(d.ev_slope, 0.06, 1e-9);
+  EXPECT_FALSE(d.reached);
+  st.ev_slope = 0.07;
+  EXPECT_TRUE(qsdem::critical_state_of(c, st).reached);
+  // A window past the end of the run has no critical state.
+  st.from = 0.45;
+  const qsdem::RunCriticalState none = qsdem::critical_state_of(c, st);
+  EXPECT_EQ(none.rows, 0);
+  EXPECT_FALSE(none.reached);
+  EXPECT_TRUE(std::isnan(none.void_ratio));
+}
+
+// Three points at ln(p'/kPa) = -1, 0, 1 on e = 0.9 - 0.03 ln p' with residuals (d, -2d, d): the
+// residuals are orthogonal to both regressors, so Gamma and lambda are exact, SSE = 6 d^2, and the
+// standard errors are sqrt(6 d^2 / 2) = sqrt(3) d for lambda and sqrt(6 d^2 / 3) = sqrt(2) d for Gamma.
+TEST(StudyAnalysisCriticalState, LineRecoversGammaLambdaAndTheirStandardErrors) {
+  const double d = 0.004;
+  const std::vector<double> p = {1e3 * std::exp(-1.0), 1e3, 1e3 * std::exp(1.0)};
+  const std::vector<double> e = {0.9 + 0.03 + d, 0.9 - 2 * d, 0.9 - 0.03 + d};
+  const std::vector<double> m = {1.0, 1.1, 1.2};
+  const qsdem::CriticalStateLine l = qsdem::fit_critical_state_line(p, e, m);
+  ASSERT_TRUE(l.ok) << l.note;
+  EXPECT_EQ(l.n, 3);
+  EXPECT_NEAR(l.gamma, 0.9, 1e-12);
+  EXPECT_NEAR(l.lambda, 0.03, 1e-12);
+  EXPECT_NEAR(l.lambda_se, std::sqrt(3.0) * d, 1e-12);
+  EXPECT_NEAR(l.gamma_se, std::sqrt(2.0) * d, 1e-12);
+  EXPECT_NEAR(l.rms_residual, std::sqrt(2.0) * d, 1e-12);
+  EXPECT_NEAR(l.M, 1.1, 1e-12);
+  EXPECT_NEAR(l.M_sd, 0.1, 1e-12);
+  EXPECT_NEAR(std::sin(l.phi_cs_deg * 3.14159265358979323846 / 180), 3 * 1.1 / 7.1, 1e-12);
+  EXPECT_NEAR(l.void_ratio_at(1e3 * std::exp(2.0)), 0.84, 1e-12);
+
+  const qsdem::CriticalStateLine two = qsdem::fit_critical_state_line(std::span(p).first(2), std::span(e).first(2), m);
+  EXPECT_TRUE(two.ok);
+  EXPECT_TRUE(std::isnan(two.lambda_se)) << "two points: no standard error";
+  const std::vector<double> same = {400e3, 401e3};
+  const qsdem::CriticalStateLine flat = qsdem::fit_critical_state_line(same, std::span(e).first(2), m);
+  EXPECT_FALSE(flat.ok) << "p'_c within 1 %: no line";
+  EXPECT_NEAR(flat.M, 1.05, 1e-12) << "M needs no spread in p'";
+}
