@@ -7,7 +7,7 @@ import sys
 from conftest import TINY, cli
 
 EXAMPLES = pathlib.Path(__file__).resolve().parents[2] / "examples" / "python"
-TESTED = {"triaxial.py", "stepping.py"}
+TESTED = {"triaxial.py", "stepping.py", "stress_path.py", "hold_imom.py"}
 
 
 def run_example(name, *args):
@@ -48,6 +48,33 @@ def test_stepping_slows_the_loading_when_unbalanced():
         rate /= 2
     assert any(line.startswith("step ") for line in out)
     assert out[-1].startswith("triaxial: ") and "10 rows" in out[-1] and "final e1 1.000 %" in out[-1]
+
+
+def test_stress_path_follows_its_slope():
+    """dq/dp' = 1.5 from 390 kPa: the conventional test (sigma_3 held) would be -q/(3 p'0) off this path, about
+    -30 % of p'0 at q = 350 kPa; the callback keeps every row of the second half within 6 % (the lag of one sample
+    interval), with q above 0.5 p'0 on some row."""
+    out = run_example("stress_path.py", TINY, 1.5, "triaxial.strain_rate=1e-5", "triaxial.sample_points=20").splitlines()
+    assert out[0].startswith("compacted: p'0 = 39")
+    rows = [line for line in out if line.startswith("row ")]
+    assert len(rows) == 19
+    q = [float(line.split(" q ")[1].split(" kPa")[0]) for line in rows]
+    assert max(q) > 0.5 * 390
+    assert out[-1].startswith("path: 19 points")
+    assert float(out[-1].split("at most ")[1].split(" %")[0]) < 6
+
+
+def test_hold_imom_holds_the_index_by_the_rate():
+    """Target IMom 1 %: the rate falls from the case's 1.25e-4 and the mean IMom of the second half lies within a
+    factor 1.5 of the target; the test still ends at its planned axial strain."""
+    out = run_example("hold_imom.py", TINY, 0.01, "triaxial.sample_points=40").splitlines()
+    rows = [line for line in out if line.startswith("row ")]
+    assert len(rows) == 39
+    last_rate = float(rows[-1].rsplit("-> ", 1)[1])
+    assert last_rate < 1.25e-4 / 4
+    assert out[-1].startswith("triaxial: ") and "final e1 1.000 %" in out[-1]
+    mean = float(out[-1].split("second half ")[1].split(" %")[0])
+    assert 1 / 1.5 < mean < 1.5
 
 
 def test_triaxial_of_the_default_case_writes_the_cli_series(tmp_path):

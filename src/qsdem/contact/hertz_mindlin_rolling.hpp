@@ -77,10 +77,10 @@ struct HertzMindlinRolling {
   double rolling_stiffness;    // eta_k: k_r = eta_k k_n R_e^2
   double rolling_damping;      // zeta_r
 
-  [[gnu::always_inline]] inline void evaluate(const ContactInput& c, double dt, HistoryView history,
+  [[gnu::always_inline]] inline void evaluate(const ContactInput& c, double dt, HistoryView state,
                                               ContactOutput& out) const {
-    elastic.evaluate(c, dt, history, out);
-    const HistoryView moment{history.values + 3 * history.stride, history.stride};
+    elastic.evaluate(c, dt, state, out);
+    const HistoryView moment{state.values + 3 * state.stride, state.stride};
     const double a = std::sqrt(c.radius * c.overlap);
     const double fn = elastic.normal_force(a, c.overlap);
     const double r2 = c.radius * c.radius;
