@@ -29,67 +29,51 @@ std::vector<std::string> split_fields(const std::string& line) {
 namespace {
 
 // The columns, in order: SPEC 10's (10.1), then phi_al_deg and tilt_deg (SPEC 7), then the fabric
-// (SPEC 7.1). Each appends its value; the header and the rows are made from this one list.
+// (SPEC 7.1): a name, the row's value and its significant digits (10 for the strains and
+// stresses, 8 for the rest; 0: an integer). The header and the rows are made from this one list.
 struct Column {
   const char* name;
-  void (*write)(fmt::memory_buffer& out, const SeriesRow& r);
+  double (*value)(const SeriesRow& r);
+  int digits;
 };
 
 constexpr Column base_columns[] = {
-    {"step", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{}", r.step); }},
-    {"time_s", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.time); }},
-    {"e1", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.e1); }},
-    {"ev", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.ev); }},
-    {"s11_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.stress(0, 0)); }},
-    {"s22_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.stress(1, 1)); }},
-    {"s33_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.stress(2, 2)); }},
-    {"p_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.mean_stress); }},
-    {"q_Pa", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.10g}", r.m.deviator); }},
-    {"phi_deg", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.friction_angle_deg); }},
-    {"void_ratio", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.void_ratio); }},
-    {"cn", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.coordination); }},
-    {"ufr", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ufr); }},
-    {"iuf", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.iuf); }},
-    {"imom", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.imom); }},
-    {"ekin_J", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ekin_trans + r.m.ekin_rot);
-     }},
-    {"ekin_trans_J", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ekin_trans); }},
-    {"ekin_rot_J", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.ekin_rot); }},
-    {"phi_al_deg", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.friction_angle_al_deg);
-     }},
-    {"tilt_deg", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.principal_tilt_deg); }},
-    {"fabric_11", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric(0, 0)); }},
-    {"fabric_22", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric(1, 1)); }},
-    {"fabric_33", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric(2, 2)); }},
-    {"fabric_dev", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_dev); }},
-    {"fabric_1", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_major); }},
-    {"fabric_tilt_deg", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_tilt_deg);
-     }},
-    {"fabric_strong_33", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_strong_33);
-     }},
-    {"fabric_strong_dev", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_strong_dev);
-     }},
-    {"fabric_weak_33", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_weak_33); }},
-    {"fabric_weak_dev", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_weak_dev);
-     }},
-    {"strong_fraction", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.strong_fraction);
-     }},
-    {"fabric_force_33", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_force_33);
-     }},
-    {"fabric_force_dev", [](auto& o, const SeriesRow& r) {
-       fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.fabric_force_dev);
-     }},
-    {"orient_33", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.orient_33); }},
-    {"orient_dev", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.orient_dev); }},
-    {"z_mech", [](auto& o, const SeriesRow& r) { fmt::format_to(std::back_inserter(o), "{:.8g}", r.m.z_mech); }},
+    {"step", [](const SeriesRow& r) { return static_cast<double>(r.step); }, 0},
+    {"time_s", [](const SeriesRow& r) { return r.time; }, 10},
+    {"e1", [](const SeriesRow& r) { return r.e1; }, 10},
+    {"ev", [](const SeriesRow& r) { return r.ev; }, 10},
+    {"s11_Pa", [](const SeriesRow& r) { return r.m.stress(0, 0); }, 10},
+    {"s22_Pa", [](const SeriesRow& r) { return r.m.stress(1, 1); }, 10},
+    {"s33_Pa", [](const SeriesRow& r) { return r.m.stress(2, 2); }, 10},
+    {"p_Pa", [](const SeriesRow& r) { return r.m.mean_stress; }, 10},
+    {"q_Pa", [](const SeriesRow& r) { return r.m.deviator; }, 10},
+    {"phi_deg", [](const SeriesRow& r) { return r.m.friction_angle_deg; }, 8},
+    {"void_ratio", [](const SeriesRow& r) { return r.m.void_ratio; }, 8},
+    {"cn", [](const SeriesRow& r) { return r.m.coordination; }, 8},
+    {"ufr", [](const SeriesRow& r) { return r.m.ufr; }, 8},
+    {"iuf", [](const SeriesRow& r) { return r.m.iuf; }, 8},
+    {"imom", [](const SeriesRow& r) { return r.m.imom; }, 8},
+    {"ekin_J", [](const SeriesRow& r) { return r.m.ekin_trans + r.m.ekin_rot; }, 8},
+    {"ekin_trans_J", [](const SeriesRow& r) { return r.m.ekin_trans; }, 8},
+    {"ekin_rot_J", [](const SeriesRow& r) { return r.m.ekin_rot; }, 8},
+    {"phi_al_deg", [](const SeriesRow& r) { return r.m.friction_angle_al_deg; }, 8},
+    {"tilt_deg", [](const SeriesRow& r) { return r.m.principal_tilt_deg; }, 8},
+    {"fabric_11", [](const SeriesRow& r) { return r.m.fabric(0, 0); }, 8},
+    {"fabric_22", [](const SeriesRow& r) { return r.m.fabric(1, 1); }, 8},
+    {"fabric_33", [](const SeriesRow& r) { return r.m.fabric(2, 2); }, 8},
+    {"fabric_dev", [](const SeriesRow& r) { return r.m.fabric_dev; }, 8},
+    {"fabric_1", [](const SeriesRow& r) { return r.m.fabric_major; }, 8},
+    {"fabric_tilt_deg", [](const SeriesRow& r) { return r.m.fabric_tilt_deg; }, 8},
+    {"fabric_strong_33", [](const SeriesRow& r) { return r.m.fabric_strong_33; }, 8},
+    {"fabric_strong_dev", [](const SeriesRow& r) { return r.m.fabric_strong_dev; }, 8},
+    {"fabric_weak_33", [](const SeriesRow& r) { return r.m.fabric_weak_33; }, 8},
+    {"fabric_weak_dev", [](const SeriesRow& r) { return r.m.fabric_weak_dev; }, 8},
+    {"strong_fraction", [](const SeriesRow& r) { return r.m.strong_fraction; }, 8},
+    {"fabric_force_33", [](const SeriesRow& r) { return r.m.fabric_force_33; }, 8},
+    {"fabric_force_dev", [](const SeriesRow& r) { return r.m.fabric_force_dev; }, 8},
+    {"orient_33", [](const SeriesRow& r) { return r.m.orient_33; }, 8},
+    {"orient_dev", [](const SeriesRow& r) { return r.m.orient_dev; }, 8},
+    {"z_mech", [](const SeriesRow& r) { return r.m.z_mech; }, 8},
 };
 
 }  // namespace
@@ -111,7 +95,10 @@ std::string series_row(const SeriesRow& r, const SeriesColumns& columns) {
   fmt::memory_buffer out;
   for (const Column& c : base_columns) {
     if (out.size() > 0) out.push_back(',');
-    c.write(out, r);
+    if (c.digits == 0)
+      fmt::format_to(std::back_inserter(out), "{}", static_cast<long>(c.value(r)));  // exact below 2^53
+    else
+      fmt::format_to(std::back_inserter(out), "{:.{}g}", c.value(r), c.digits);
   }
   if (columns.shear) {
     const Mat3& s = r.m.stress;
