@@ -16,6 +16,7 @@
 
 #include "qsdem/damping/models.hpp"
 
+#include "qsdem/checkpoint.hpp"
 #include "qsdem/controller.hpp"
 #include "qsdem/run.hpp"
 
@@ -151,16 +152,31 @@ int reference_phase(const Params& params, std::size_t p) {
 
 }  // namespace
 
-Simulation::Simulation(Params params, bool progress)
-    : params_(std::move(params)), progress_(progress ? Progress::detect(false) : Progress::Mode::quiet) {
+void Simulation::wrap_controllers() {
   for (std::size_t p = 0; p < params_.protocol.size(); ++p) {
     ControllerFactory inner = params_.protocol[p].make_controller;
     params_.protocol[p].make_controller = [this, inner, p] {
       return std::make_unique<CallbackController>(inner ? inner() : nullptr, *this, static_cast<int>(p));
     };
   }
+}
+
+Simulation::Simulation(Params params, bool progress)
+    : params_(std::move(params)), progress_(progress ? Progress::detect(false) : Progress::Mode::quiet) {
+  wrap_controllers();
   py::gil_scoped_release release;
   st_ = new_sample(params_, run_);
+  run_.phases.resize(params_.protocol.size());
+}
+
+Simulation::Simulation(const std::string& checkpoint, const std::vector<std::string>& sets, bool progress)
+    : progress_(progress ? Progress::detect(false) : Progress::Mode::quiet) {
+  Checkpoint c = load_checkpoint(checkpoint);
+  params_ = parse_case(c.case_text, c.case_source, sets);
+  wrap_controllers();  // first: a callback may have changed the control values the checkpoint holds
+  check_checkpoint_case(c, params_, checkpoint);
+  st_ = std::move(c.state);
+  run_ = std::move(c.run);
   run_.phases.resize(params_.protocol.size());
 }
 
@@ -168,7 +184,17 @@ void Simulation::change_phase(int phase, std::optional<double> friction, std::op
   Phase& ph = params_.protocol[static_cast<std::size_t>(phase)];
   if (friction) ph.friction = *friction;
   if (damping_ratio) ph.damping.ratio = *damping_ratio;
+  changed_phase_ = ph.name;
   rebuild_ = true;
+}
+
+void Simulation::save(const std::string& path) {
+  if (!changed_phase_.empty())
+    throw RunError(fmt::format("save('{}'): a callback changed the friction or the damping ratio of phase '{}', which "
+                               "a checkpoint cannot hold (it holds the case as written, and the control values)",
+                               path, changed_phase_));
+  py::gil_scoped_release release;
+  save_checkpoint(path, params_.case_text, params_.source, st_, run_);
 }
 
 long Simulation::step(long n) {
@@ -213,9 +239,13 @@ long Simulation::step(long n) {
 void bind_simulation(py::module_& m) {
   py::class_<Simulation> c(m, "Simulation");
   c.def(py::init([](const std::string& kind, const std::string& value, const std::vector<std::string>& sets,
-                    bool progress) { return std::make_unique<Simulation>(read_case(kind, value, sets), progress); }),
+                    bool progress) {
+          if (kind == "checkpoint") return std::make_unique<Simulation>(value, sets, progress);
+          return std::make_unique<Simulation>(read_case(kind, value, sets), progress);
+        }),
         py::arg("kind"), py::arg("value"), py::arg("sets"), py::arg("progress"))
       .def("step", &Simulation::step, py::arg("n") = 1)
+      .def("save", &Simulation::save, py::arg("path"))
       .def("run_phase", [](Simulation& s) { return s.step(LONG_MAX); })
       .def_property_readonly("finished", &Simulation::finished)
       .def_property_readonly("phase", [](const Simulation& s) { return s.run().phase; })

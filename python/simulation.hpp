@@ -27,6 +27,9 @@ class Simulation {
   // Makes the sample as a run does (new_sample); every phase's controller is wrapped so that the
   // Python callback is called at its sample points.
   Simulation(Params params, bool progress);
+  // Continues the run a checkpoint holds (written by save, in the format of a run's checkpoint): its case
+  // (with `sets`, as `qsdem resume --set`), state and place in its phases.
+  Simulation(const std::string& checkpoint, const std::vector<std::string>& sets, bool progress);
   Simulation(const Simulation&) = delete;  // its controllers point to it
   Simulation& operator=(const Simulation&) = delete;
 
@@ -39,6 +42,11 @@ class Simulation {
   // from the next step (the loop pauses and continues, as after step(n)).
   void change_phase(int phase, std::optional<double> friction, std::optional<double> damping_ratio);
 
+  // The state and the place in the phases as a checkpoint file (written atomically), which the
+  // checkpoint constructor continues with the same bits. Refused (RunError) after a callback
+  // changed a phase's friction or damping ratio: the checkpoint holds the case as written.
+  void save(const std::string& path);
+
   py::object callback;  // on_sample's function, or None
   const Params& params() const { return params_; }
   const State& state() const { return st_; }
@@ -50,6 +58,8 @@ class Simulation {
   RunProgress run_;
   Progress progress_;
   bool rebuild_ = false;  // a callback changed the phase: pause after this step and continue
+  std::string changed_phase_;  // the name of a phase whose friction or damping a callback changed
+  void wrap_controllers();
 };
 
 // state.cpp: the state and the measures as Python objects (copies).

@@ -222,14 +222,27 @@ class Simulation:
     """A case stepped from Python, phase by phase, through the phase loop of a run (no files).
 
     sim = qsdem.Simulation(case, set={...}) or Simulation(sample="runs/prepared") to start from a
-    prepared sample (sample.from). See docs/python.md for the state it exposes."""
+    prepared sample (sample.from), or Simulation(checkpoint=FILE) to continue what sim.save(FILE)
+    (or a run's checkpoint.qsck) holds. See docs/python.md for the state it exposes."""
 
-    def __init__(self, case=None, *, sample=None, set=None, threads=None, progress=False, **overrides):
+    def __init__(self, case=None, *, sample=None, checkpoint=None, set=None, threads=None, progress=False,
+                 **overrides):
         sets = _sets(set, overrides)
+        _threads(threads)
+        if checkpoint is not None:
+            if case is not None or sample is not None:
+                raise ValueError("Simulation: give a case (and sample), or a checkpoint, not both: the checkpoint "
+                                 "holds its case")
+            self._sim = _qsdem.Simulation("checkpoint", os.fspath(checkpoint), sets, bool(progress))
+            return
         if sample is not None:
             sets.append("sample.from=" + json.dumps(os.fspath(sample)))
-        _threads(threads)
         self._sim = _qsdem.Simulation(*_case(case), sets, bool(progress))
+
+    def save(self, path):
+        """Writes the state and the place in the phases to a checkpoint file (atomically), which
+        Simulation(checkpoint=path) continues with the same bits. Callbacks are not saved."""
+        self._sim.save(os.fspath(path))
 
     def step(self, n=1):
         """Takes n steps of the current phase (fewer when it ends); returns the steps taken."""

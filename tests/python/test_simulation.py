@@ -216,3 +216,76 @@ def test_callback_changes_the_damping_ratio():
     sim.on_sample(lambda point: {"damping_ratio": -0.1})
     with pytest.raises(ValueError, match="damping_ratio = -0.1"):
         sim.run_phase()
+
+
+RESUMABLE = r'''
+import math, sys
+import qsdem
+case, checkpoint, mode = sys.argv[1], sys.argv[2], sys.argv[3]  # "fresh", "resume" or the step to stop after
+stop_at = int(mode) if mode.isdigit() else -1
+
+
+def hold(point):  # the callback of examples/python/hold_imom.py, target 1 %
+    imom, rate = point["measures"]["imom"], point["controls"]["33"][1]
+    return {"33": rate * min(2.0, max(0.5, math.sqrt(0.01 / imom)))} if point["phase_name"] == "triaxial" else None
+
+
+sim = qsdem.Simulation(checkpoint=checkpoint, threads=1) if mode == "resume" else qsdem.Simulation(case, threads=1)
+sim.on_sample(hold)
+while not sim.finished:
+    sim.step(300)
+    sim.save(checkpoint)
+    if 0 <= stop_at <= sim.steps:
+        print("saved", sim.steps, flush=True)
+        import time
+        time.sleep(60)  # killed here
+sim.save(checkpoint)
+'''
+
+
+def final_state(sim):
+    return {name: getattr(sim, name) for name in ("positions", "orientations", "velocities", "spins", "cell", "stress")}
+
+
+def test_a_callback_run_killed_resumes_from_its_checkpoint_to_the_same_bits(tmp_path):
+    """A process steps the tiny case 300 steps at a time with a callback that changes eps' at every sample point
+    of the triaxial phase, saving a checkpoint after each chunk; it is SIGKILLed in the triaxial phase. A new
+    process continues from the checkpoint with the same callback: its end is bit for bit that of a process that
+    was never killed."""
+    import os, signal, subprocess, sys
+    script = tmp_path / "resumable.py"
+    script.write_text(RESUMABLE)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    whole = tmp_path / "whole.qsck"
+    subprocess.run([sys.executable, script, TINY, whole, "fresh"], check=True, env=env, capture_output=True)
+    sim = qsdem.Simulation(TINY, threads=1)
+    sim.run_phase()
+    compaction = sim.steps
+    killed = tmp_path / "killed.qsck"
+    p = subprocess.Popen([sys.executable, script, TINY, killed, str(compaction + 3000)], env=env,
+                         stdout=subprocess.PIPE, text=True)
+    saved = p.stdout.readline().split()
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    assert saved[0] == "saved" and int(saved[1]) >= compaction + 3000
+    half = qsdem.Simulation(checkpoint=killed)
+    assert half.phase == 1 and not half.finished and half.steps == int(saved[1])
+    subprocess.run([sys.executable, script, TINY, killed, "resume"], check=True, env=env, capture_output=True)
+    a, b = qsdem.Simulation(checkpoint=whole), qsdem.Simulation(checkpoint=killed)
+    assert a.finished and b.finished and a.steps == b.steps
+    assert a.records[1]["rows"] == b.records[1]["rows"] == 10
+    for name, value in final_state(a).items():
+        assert np.array_equal(value, final_state(b)[name]), name
+
+
+def test_save_is_refused_after_a_change_of_friction(tmp_path):
+    sim = qsdem.Simulation(TINY, threads=1)
+    sim.run_phase()
+    sim.on_sample(lambda point: {"friction": 0.3})
+    sim.step(2000)
+    with pytest.raises(qsdem.RunError, match="friction or the damping ratio of phase 'triaxial'"):
+        sim.save(tmp_path / "c.qsck")
+    with pytest.raises(ValueError, match="not both"):
+        qsdem.Simulation(TINY, checkpoint=tmp_path / "c.qsck")
+    with pytest.raises(qsdem.CaseError):
+        qsdem.Simulation(checkpoint=tmp_path / "missing.qsck")
