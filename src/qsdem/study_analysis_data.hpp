@@ -231,7 +231,8 @@ struct CriticalGroup {
     double off_line = nan;         // e_c - e_c(p'_c) on the line
   };
   std::vector<Member> runs;
-  CriticalStateLine line;  // over the members that reached the critical state
+  CriticalStateLine line;      // over the members that reached the critical state
+  CriticalStateLine line_all;  // over every member's window means, at the critical state or not
 };
 
 // Everything the tables, figures and files are made from; groups, laws and deviations point

@@ -137,6 +137,23 @@ namespace {
 
 json number_or_null(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
 
+json line_json(const CriticalStateLine& l) {
+  return {{"ok", l.ok},
+          {"n", l.n},
+          {"gamma", number_or_null(l.gamma)},
+          {"gamma_se", number_or_null(l.gamma_se)},
+          {"lambda", number_or_null(l.lambda)},
+          {"lambda_se", number_or_null(l.lambda_se)},
+          {"r2", number_or_null(l.r2)},
+          {"rms_residual", number_or_null(l.rms_residual)},
+          {"p_lo_Pa", number_or_null(l.p_lo)},
+          {"p_hi_Pa", number_or_null(l.p_hi)},
+          {"M", number_or_null(l.M)},
+          {"M_sd", number_or_null(l.M_sd)},
+          {"phi_cs_deg", number_or_null(l.phi_cs_deg)},
+          {"note", l.note}};
+}
+
 DrainedCurves curves_of(const Run& r) {
   return {r.s.e1, r.s.ev, r.s.phi, r.s.p, r.s.q, r.s.void_ratio, r.s.fabric_dev, r.e0, r.p0};
 }
@@ -166,10 +183,14 @@ std::vector<CriticalGroup> make_critical_groups(const std::vector<Run>& runs, co
     g->runs.push_back({&r, critical_state_of(curves_of(r), settings)});
   }
   for (CriticalGroup& g : groups) {
-    std::vector<double> p, e, m;
-    for (const auto& mem : g.runs)
+    std::vector<double> p, e, m, p_all, e_all, m_all;
+    for (const auto& mem : g.runs) {
+      if (mem.cs.rows < 3) continue;
+      p_all.push_back(mem.cs.p), e_all.push_back(mem.cs.void_ratio), m_all.push_back(mem.cs.stress_ratio);
       if (mem.cs.reached) p.push_back(mem.cs.p), e.push_back(mem.cs.void_ratio), m.push_back(mem.cs.stress_ratio);
+    }
     g.line = fit_critical_state_line(p, e, m);
+    g.line_all = fit_critical_state_line(p_all, e_all, m_all);
     if (!g.line.ok) continue;
     for (auto& mem : g.runs) {
       mem.state_parameter = mem.cs.e0 - g.line.void_ratio_at(mem.cs.p0);
@@ -185,7 +206,6 @@ json critical_json(const std::vector<CriticalGroup>& groups, const CriticalState
                             {"dilatancy_half_window", dilatancy_half_window}}},
               {"groups", json::array()}};
   for (const CriticalGroup& g : groups) {
-    const CriticalStateLine& l = g.line;
     json runs = json::array();
     for (const auto& m : g.runs) {
       const RunCriticalState& c = m.cs;
@@ -215,21 +235,8 @@ json critical_json(const std::vector<CriticalGroup>& groups, const CriticalState
                              {"xi", g.xi},
                              {"rate", g.rate},
                              {"runs", runs},
-                             {"line",
-                              {{"ok", l.ok},
-                               {"n", l.n},
-                               {"gamma", number_or_null(l.gamma)},
-                               {"gamma_se", number_or_null(l.gamma_se)},
-                               {"lambda", number_or_null(l.lambda)},
-                               {"lambda_se", number_or_null(l.lambda_se)},
-                               {"r2", number_or_null(l.r2)},
-                               {"rms_residual", number_or_null(l.rms_residual)},
-                               {"p_lo_Pa", number_or_null(l.p_lo)},
-                               {"p_hi_Pa", number_or_null(l.p_hi)},
-                               {"M", number_or_null(l.M)},
-                               {"M_sd", number_or_null(l.M_sd)},
-                               {"phi_cs_deg", number_or_null(l.phi_cs_deg)},
-                               {"note", l.note}}}});
+                             {"line", line_json(g.line)},
+                             {"line_all_runs", line_json(g.line_all)}});
   }
   return out;
 }
@@ -258,9 +265,11 @@ std::vector<Table> critical_tables(const std::vector<CriticalGroup>& groups, con
               fmt::format("Per (model, ξ, ε'): e_c = Γ − λ ln(p'_c / 1 kPa) by least squares over the runs at the "
                           "critical state (± standard errors), M = (q/p')_c the mean over those runs (± standard "
                           "deviation), φ_cs from M (sin φ = 3M/(6 + M)). A run is at the critical state when over "
-                          "ε1 ≥ {} % |dεv/dε1| ≤ {} and |d(q/p')/dε1|/(q/p') ≤ {} (docs/analysis.md, section 12).",
+                          "ε1 ≥ {} % |dεv/dε1| ≤ {} and |d(q/p')/dε1|/(q/p') ≤ {} (docs/analysis.md, section 12). "
+                          "When some runs are not, a second row fits every run's window means: the line they end "
+                          "on, not a critical state line.",
                           pct(st.from), sig(st.ev_slope), sig(st.stress_ratio_slope)),
-              {"model", "ξ (%)", "ε'", "runs at the critical state", "Γ", "λ", "R²", "RMS residual", "p'_c (kPa)", "M",
+              {"model", "ξ (%)", "ε'", "runs", "Γ", "λ", "R²", "RMS residual", "p'_c (kPa)", "M",
                "φ_cs (°)", "note"},
               {}};
   Table runs{"Critical state of each run",
@@ -274,15 +283,19 @@ std::vector<Table> critical_tables(const std::vector<CriticalGroup>& groups, con
               "Δe"},
              {}};
   for (const CriticalGroup& g : groups) {
-    const CriticalStateLine& l = g.line;
-    int reached = 0;
-    for (const auto& m : g.runs) reached += m.cs.reached;
-    lines.rows.push_back(
-        {g.model, pct(g.xi), sig(g.rate), fmt::format("{} of {}", reached, g.runs.size()),
-         l.ok ? fmt::format("{} ± {}", sig(l.gamma, 4), sig(l.gamma_se, 2)) : "—",
-         l.ok ? fmt::format("{} ± {}", sig(l.lambda, 3), sig(l.lambda_se, 2)) : "—", sig(l.r2, 3),
-         sig(l.rms_residual, 2), std::isfinite(l.p_lo) ? fmt::format("{}–{}", sig(l.p_lo / 1e3), sig(l.p_hi / 1e3)) : "—",
-         fmt::format("{} ± {}", sig(l.M, 4), sig(l.M_sd, 2)), sig(l.phi_cs_deg, 4), l.note});
+    int reached = 0, windowed = 0;
+    for (const auto& m : g.runs) reached += m.cs.reached, windowed += m.cs.rows >= 3;
+    const auto row = [&](const CriticalStateLine& l, const std::string& which) {
+      lines.rows.push_back(
+          {g.model, pct(g.xi), sig(g.rate), which,
+           l.ok ? fmt::format("{} ± {}", sig(l.gamma, 4), sig(l.gamma_se, 2)) : "—",
+           l.ok ? fmt::format("{} ± {}", sig(l.lambda, 3), sig(l.lambda_se, 2)) : "—", sig(l.r2, 3),
+           sig(l.rms_residual, 2),
+           std::isfinite(l.p_lo) ? fmt::format("{}–{}", sig(l.p_lo / 1e3), sig(l.p_hi / 1e3)) : "—",
+           fmt::format("{} ± {}", sig(l.M, 4), sig(l.M_sd, 2)), sig(l.phi_cs_deg, 4), l.note});
+    };
+    row(g.line, fmt::format("at the critical state: {} of {}", reached, g.runs.size()));
+    if (reached < windowed) row(g.line_all, fmt::format("every run's window means: {} (not a critical state line)", windowed));
     for (const auto& m : g.runs) {
       const RunCriticalState& c = m.cs;
       runs.rows.push_back({group_title(g), m.run->sample, sig(c.e0, 4), sig(c.p0 / 1e3), sig(m.state_parameter, 3),
@@ -300,8 +313,10 @@ void add_critical_figures(std::vector<Figure>& figs, const std::vector<CriticalG
     Figure f{fmt::format("critical_state_{}_{}_{}", g.model, sig(100 * g.xi), sig(g.rate)),
              group_title(g) + ": to the critical state",
              "The stress ratio q/p', the volumetric strain and the contact-normal fabric deviator against the axial "
-             "strain, and the void ratio against p' (log scale): each run's path (a colour per run), its mean over "
-             "the critical window (a point), the fitted critical state line (black) and M (black, dashed).",
+             "strain, and the void ratio against p' (log scale): each run's path from its start (a colour per run), "
+             "its mean over the critical window (a point, filled when at the critical state), the fitted critical "
+             "state line (black; grey and dashed: the line of every run's window means, when not all runs are at "
+             "the critical state) and M (dashed).",
              {}};
     for (char& ch : f.name)
       if (!(std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '.')) ch = '_';
@@ -330,9 +345,12 @@ void add_critical_figures(std::vector<Figure>& figs, const std::vector<CriticalG
       fabric.curves.push_back(std::move(cf));
       plane.curves.push_back({"", {c.p / 1e3}, {c.void_ratio}, fmt::format("points pt {} ps 1.5 {}", c.reached ? 7 : 6, lc(i))});
     }
-    const CriticalStateLine& l = g.line;
+    const bool at_cs = g.line.ok;
+    const CriticalStateLine& l = at_cs ? g.line : g.line_all;
     if (l.ok) {
-      Curve line{fmt::format("CSL Γ = {}, λ = {}", sig(l.gamma, 4), sig(l.lambda, 3)), {}, {}, "lines lw 2 lc rgb '#000000'"};
+      Curve line{fmt::format("{} Γ = {}, λ = {}", at_cs ? "CSL" : "window means (not at the CS)", sig(l.gamma, 4),
+                             sig(l.lambda, 3)),
+                 {}, {}, at_cs ? "lines lw 2 lc rgb '#000000'" : "lines lw 2 dt 2 lc rgb '#808080'"};
       for (int k = 0; k <= 20; ++k) {
         const double p = l.p_lo / 1.5 * std::pow(1.5 * 1.5 * l.p_hi / l.p_lo, k / 20.0);
         line.x.push_back(p / 1e3), line.y.push_back(l.void_ratio_at(p));
