@@ -762,6 +762,21 @@ TEST(StudyAnalysisResults, CommittedQuasiStaticLimitStudyReanalysesFromItsRuns) 
   fs::remove_all(dir);
 }
 
+TEST(StudyAnalysisResults, CommittedCriticalStateStudyReanalysesFromItsRuns) {
+  const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "critical-state";
+  ASSERT_TRUE(fs::exists(results / "analysis" / "critical_state.csv"));
+  const fs::path dir = fresh_temp_dir("analysis-critical-state");
+  for (const char* f : {"study.json", "study.toml"}) fs::copy_file(results / f, dir / f);
+  fs::copy(results / "runs", dir / "runs", fs::copy_options::recursive);
+  const std::string cmd = fmt::format("'{}' analyze '{}' > '{}/log' 2>&1", QSDEM_BINARY, dir.string(), dir.string());
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << slurp(dir / "log");
+  for (const char* f : {"critical_state.csv", "per_run.csv"})
+    EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
+  const auto without_date = [](std::string md) { return md.erase(0, md.find("Indices in percent")); };
+  EXPECT_EQ(without_date(slurp(dir / "analysis" / "tables.md")), without_date(slurp(results / "analysis" / "tables.md")));
+  fs::remove_all(dir);
+}
+
 // --- runs of constant indices, for studies whose analysis has a closed form -------------------
 
 namespace {
