@@ -7,7 +7,7 @@ import sys
 from conftest import TINY, cli
 
 EXAMPLES = pathlib.Path(__file__).resolve().parents[2] / "examples" / "python"
-TESTED = {"triaxial.py", "stepping.py", "stress_path.py", "hold_imom.py"}
+TESTED = {"triaxial.py", "stepping.py", "stress_path.py", "hold_imom.py", "fig9_pandas.py"}
 
 
 def run_example(name, *args):
@@ -75,6 +75,18 @@ def test_hold_imom_holds_the_index_by_the_rate():
     assert out[-1].startswith("triaxial: ") and "final e1 1.000 %" in out[-1]
     mean = float(out[-1].split("second half ")[1].split(" %")[0])
     assert 1 / 1.5 < mean < 1.5
+
+
+def test_fig9_from_pandas_is_the_analysis_fit(tmp_path):
+    """On the committed paper-size study: each (sample, model) fitted again with numpy gives the analysis' a and b
+    to the printed digits, and the figure is drawn."""
+    out = run_example("fig9_pandas.py", EXAMPLES.parents[1] / "docs" / "results" / "paper-full", tmp_path / "f.png")
+    fits = [line for line in out.splitlines() if "eps'^" in line]
+    assert {line.split(":")[0] for line in fits} == {"A nd", "A od", "B nd", "B od"}
+    for line in fits:
+        ours, theirs = line.split("IMom = ")[1].split(" (the analysis: ")
+        assert ours == theirs.split(";")[0], line
+    assert (tmp_path / "f.png").stat().st_size > 10000
 
 
 def test_triaxial_of_the_default_case_writes_the_cli_series(tmp_path):
