@@ -33,6 +33,7 @@
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
 #include "qsdem/step.hpp"
+#include "qsdem/version.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -207,6 +208,35 @@ TEST(CheckpointProcess, RunBegunWithoutClassesCsvResumesWithoutIt) {
   const auto summary = nlohmann::json::parse(read(d / "summary.json"));
   EXPECT_NE(summary.dump().find("output.classes=false (begun without classes.csv)"), std::string::npos)
       << summary.dump();
+}
+
+// A run begun by one build and finished by another records both, in order, in summary.json's
+// `builds` (the other build stands in as a record written into the checkpoint); `build` is the
+// finishing one.
+TEST(CheckpointProcess, RunResumedByAnotherBuildRecordsBoth) {
+  const fs::path d = scratch("two-builds");
+  const pid_t pid = spawn({"run", case_file().string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  ASSERT_TRUE(wait_rows(d, 14, pid)) << "the run ended before it could be stopped";
+  ::kill(pid, SIGTERM);
+  ASSERT_EQ(wait_exit(pid), 128 + SIGTERM) << read(d.string() + ".err");
+  const nlohmann::json other = {{"version", "0.0.9+0123abc"}, {"commit", "0123abc"}, {"tree_clean", true}};
+  {
+    Checkpoint c = load_checkpoint(d / checkpoint_file);
+    ASSERT_EQ(c.run.builds.size(), 1u) << "the build that began it";
+    EXPECT_EQ(nlohmann::json::parse(c.run.builds[0])["version"], QSDEM_VERSION);
+    c.run.builds = {other.dump()};
+    save_checkpoint(d / checkpoint_file, c.case_text, c.case_source, c.state, c.run);
+  }
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0)
+      << read(d.string() + "-resume.err");
+  const auto summary = nlohmann::json::parse(read(d / "summary.json"));
+  ASSERT_EQ(summary["builds"].size(), 2u) << summary["builds"];
+  EXPECT_EQ(summary["builds"][0], other);
+  EXPECT_EQ(summary["builds"][1], summary["build"]);
+  EXPECT_EQ(summary["build"]["version"], QSDEM_VERSION);
+  const auto ref = nlohmann::json::parse(read(reference() / "summary.json"));
+  ASSERT_EQ(ref["builds"].size(), 1u) << "a run of one process: its own build";
+  EXPECT_EQ(ref["builds"][0], ref["build"]);
 }
 
 TEST(CheckpointProcess, SigintDuringCompactionResumes) {

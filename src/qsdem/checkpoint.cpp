@@ -334,6 +334,10 @@ void io_run(BinaryWriter& w, const RunProgress& r, std::uint32_t version) {
     w.pod(static_cast<std::uint64_t>(r.files.size()));
     for (const FileDigest& f : r.files) w.str(f.name), w.pod(f.bytes), w.pod(f.hash);
   }
+  if (version >= 12) {  // the builds that ran it
+    w.pod(static_cast<std::uint64_t>(r.builds.size()));
+    for (const std::string& b : r.builds) w.str(b);
+  }
 }
 
 void io_run(BinaryReader& in, RunProgress& r, std::uint32_t version) {
@@ -374,6 +378,13 @@ void io_run(BinaryReader& in, RunProgress& r, std::uint32_t version) {
     if (files > 16) in.damaged("more file digests than a run has files");
     r.files.resize(files);
     for (FileDigest& f : r.files) in.str(f.name), in.pod(f.bytes), in.pod(f.hash);
+  }
+  if (version >= 12) {
+    std::uint64_t builds = 0;
+    in.pod(builds);
+    if (builds > 100000) in.damaged("more builds than a run can have been resumed by");
+    r.builds.resize(builds);
+    for (std::string& b : r.builds) in.str(b);
   }
 }
 
@@ -870,6 +881,7 @@ State prepared_sample(Checkpoint c, const Params& params, const std::string& fro
   run.first_step = c.state.step;  // its compaction steps and time are the sample's, not this run's
   run.prepare_only = false;
   run.changes.clear();
+  run.builds.clear();          // the sample's builds are in its own summary.json
   run.case_digest.reset();     // its directory's files are not this run's
   run.files.clear();
   c.state.timers = {};

@@ -19,8 +19,9 @@ namespace qsdem {
 // current phase's control values, plan and controller state (formats 1 to 6 are read as the
 // default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures);
 // 9: the energy ledger (State::energy, and each phase's at its start and last row); 10: the digests
-// of the run directory's case.toml and of the rows counted (RunProgress::case_digest, files)
-inline constexpr std::uint32_t checkpoint_format_version = 11;
+// of the run directory's case.toml and of the rows counted (RunProgress::case_digest, files); 11: the
+// particles' inertia scale; 12: the builds that ran the run (RunProgress::builds)
+inline constexpr std::uint32_t checkpoint_format_version = 12;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

@@ -77,6 +77,9 @@ struct RunProgress {
   // `resume` refuses a directory that holds other files (from another run).
   std::optional<std::uint64_t> case_digest;
   std::vector<FileDigest> files;
+  // The builds of the processes that ran it, in order, each once in a row: a build record
+  // (summary.json's `build`) as JSON text. Empty in checkpoints before format 12.
+  std::vector<std::string> builds;
 
   PhaseRecord& current() { return phases.at(static_cast<std::size_t>(phase)); }
   const PhaseRecord& current() const { return phases.at(static_cast<std::size_t>(phase)); }

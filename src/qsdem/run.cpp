@@ -324,6 +324,8 @@ class Execution {
         progress_(Progress::detect(options.quiet)),
         wall_before_(run.wall_s) {
     run_.phases.resize(params_.protocol.size());
+    const std::string self = build_record().dump();
+    if (run_.builds.empty() || run_.builds.back() != self) run_.builds.push_back(self);
   }
 
   nlohmann::json operator()(const std::string& note) {
@@ -510,6 +512,8 @@ class Execution {
     nlohmann::json s;
     s["version"] = QSDEM_VERSION;
     s["build"] = build_record();
+    s["builds"] = nlohmann::json::array();
+    for (const std::string& b : run_.builds) s["builds"].push_back(nlohmann::json::parse(b));
     s["case"] = params_.name;
     s["config"] = {{"resolved_si", to_json(params_)}, {"as_written", params_.as_written}};
     s["derived"] = {{"particles", st_.particles.size()},
