@@ -437,7 +437,7 @@ TEST(Study, TinyCriticalStateStudyEndToEnd) {
   }
   EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "critical_state.csv"));
   EXPECT_NE(slurp(dir / "out" / "analysis" / "tables.md").find("Critical state lines"), std::string::npos);
-  EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "figures" / "critical_state_nd_0.5_0.0001.png"));
+  EXPECT_TRUE(fs::exists(dir / "out" / "analysis" / "figures" / "critical_state_nd_0_5_0_0001.png"));
   fs::remove_all(dir);
 }
 

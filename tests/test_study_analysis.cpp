@@ -1001,20 +1001,20 @@ TEST(StudyAnalysisCriticalState, DilatancyAngleClosedForms) {
 // and is flat after 20 %, phi peaks at 5 %, q/p' is 1.2 and the void ratio falls linearly through
 // the window e1 >= 30 %: every window mean and slope is known exactly.
 TEST(StudyAnalysisCriticalState, PeakDilatancyAndWindowOfConstructedCurves) {
-  std::vector<double> e1, ev, phi, p, q, e, fab;
+  std::vector<double> e1, ev, phi, p, ratio, e, fab;
   for (int i = 0; i <= 400; ++i) {
     const double x = i / 1000.0;  // correctly rounded: 300 / 1000.0 is the double 0.3
     e1.push_back(x);
     ev.push_back(x <= 0.1 ? 0.5 * x : x <= 0.2 ? 0.05 + 0.2 * (x - 0.1) : 0.07);
     phi.push_back(x <= 0.05 ? 20 + 200 * x : 30 - 20 * (x - 0.05));
     p.push_back(500e3 + 1e3 * (i % 2));
-    q.push_back(1.2 * p.back());
+    ratio.push_back(1.2);
     e.push_back(0.7 - 0.1 * (x - 0.3));
     fab.push_back(i % 2 ? 0.3 : 0.1);
   }
   qsdem::CriticalStateSettings st;
   st.on = true;
-  const qsdem::DrainedCurves c{e1, ev, phi, p, q, e, fab, 0.6, 400e3};
+  const qsdem::DrainedCurves c{e1, ev, phi, p, ratio, e, fab, 0.6, 400e3};
   const qsdem::RunCriticalState r = qsdem::critical_state_of(c, st);
   EXPECT_DOUBLE_EQ(r.e0, 0.6);
   EXPECT_DOUBLE_EQ(r.p0, 400e3);

@@ -348,7 +348,6 @@ Series read_series(const fs::path& p) {
     s.q_over_p.push_back(col.count("q_Pa") && col.count("p_Pa") ? v[col["q_Pa"]] / v[col["p_Pa"]] : nan);
     const auto optional = [&](const char* name) { return col.count(name) ? v[col[name]] : nan; };
     s.p.push_back(optional("p_Pa"));
-    s.q.push_back(optional("q_Pa"));
     s.void_ratio.push_back(optional("void_ratio"));
     s.fabric_dev.push_back(optional("fabric_dev"));
   }

@@ -86,7 +86,7 @@ struct CriticalStateSettings {
 
 // The curves of one drained run that its critical state is read from (series.csv columns).
 struct DrainedCurves {
-  std::span<const double> e1, ev, phi_deg, p, q, void_ratio;
+  std::span<const double> e1, ev, phi_deg, p, stress_ratio, void_ratio;  // stress_ratio: q/p
   std::span<const double> fabric_dev;  // empty or NaN: not written
   double e0 = std::numeric_limits<double>::quiet_NaN();  // the state the shearing starts from (the
   double p0 = std::numeric_limits<double>::quiet_NaN();  // first row's when NaN)

@@ -2,6 +2,7 @@
 // rendering as tables, figures and the report (study_report.cpp). Internal to the two.
 #pragma once
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <filesystem>
 #include <limits>
@@ -36,7 +37,7 @@ inline bool has_name(const std::vector<std::string>& v, const std::string& x) { 
 struct Series {
   std::vector<double> e1, ev, phi, cn, ufr, imom, ekin;
   std::vector<double> q_over_p;  // q_Pa / p_Pa
-  std::vector<double> p, q, void_ratio, fabric_dev;  // p_Pa, q_Pa, void_ratio, fabric_dev (NaN: no column)
+  std::vector<double> p, void_ratio, fabric_dev;  // p_Pa, void_ratio, fabric_dev (NaN: no column)
 };
 
 // A controlled run's controller: study.json "rate_control", summary.json triaxial.controller
@@ -272,6 +273,16 @@ struct Table {
   std::vector<std::vector<std::string>> rows;
   bool detail = false;  // folded (<details>) in the report
 };
+
+// A finite number as JSON, NaN and infinities as null.
+inline json number_or_null(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
+
+// A name for a file: letters, digits, '-' and '_' kept, anything else '_' ("0.5" -> "0_5").
+inline std::string tag(const std::string& s) {
+  std::string r;
+  for (char c : s) r += (std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_') ? c : '_';
+  return r.empty() ? "_" : r;
+}
 
 // Numbers in tables: NaN shown as a dash.
 std::string sig(double v, int digits = 3);

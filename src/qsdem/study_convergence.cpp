@@ -15,8 +15,6 @@ ResponseCurve response_of(const Run& r) { return {r.s.e1, r.s.phi, r.s.ev, r.s.c
 
 bool usable(const Run* r) { return r && r->finished && !r->s.e1.empty(); }
 
-json number_or_null(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
-
 json change_json(const CurveChange& c) { return {{"rms", number_or_null(c.rms)}, {"error", number_or_null(c.error)}}; }
 
 }  // namespace

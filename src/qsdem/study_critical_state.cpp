@@ -8,12 +8,11 @@
 #include <numeric>
 
 #include "qsdem/study_analysis_data.hpp"
+#include "qsdem/types.hpp"
 
 namespace qsdem {
 
 namespace {
-
-constexpr double pi = 3.14159265358979323846;
 
 // Least-squares slope of y against x over [lo, hi) of both (finite pairs only); NaN with fewer than
 // two points or no spread in x.
@@ -49,7 +48,7 @@ double triaxial_dilatancy_angle_deg(double dev_de1, double e1, double ev) {
 RunCriticalState critical_state_of(const DrainedCurves& c, const CriticalStateSettings& settings) {
   RunCriticalState r;
   const std::size_t n = c.e1.size();
-  if (n == 0 || c.ev.size() != n || c.phi_deg.size() != n || c.p.size() != n || c.q.size() != n ||
+  if (n == 0 || c.ev.size() != n || c.phi_deg.size() != n || c.p.size() != n || c.stress_ratio.size() != n ||
       c.void_ratio.size() != n)
     return r;
   r.e0 = std::isfinite(c.e0) ? c.e0 : c.void_ratio[0];
@@ -71,15 +70,13 @@ RunCriticalState critical_state_of(const DrainedCurves& c, const CriticalStateSe
       std::find_if(c.e1.begin(), c.e1.end(), [&](double e) { return e >= settings.from; }) - c.e1.begin());
   r.rows = static_cast<int>(n - w);
   if (r.rows < 3) return r;
-  std::vector<double> ratio(n);
-  for (std::size_t i = 0; i < n; ++i) ratio[i] = c.q[i] / c.p[i];
   r.phi_deg = mean_over(c.phi_deg, w, n);
-  r.stress_ratio = mean_over(ratio, w, n);
+  r.stress_ratio = mean_over(c.stress_ratio, w, n);
   r.void_ratio = mean_over(c.void_ratio, w, n);
   r.p = mean_over(c.p, w, n);
   r.fabric_dev = mean_over(c.fabric_dev, w, n);
   r.ev_slope = slope(c.e1, c.ev, w, n);
-  r.stress_ratio_slope = slope(c.e1, ratio, w, n) / r.stress_ratio;
+  r.stress_ratio_slope = slope(c.e1, c.stress_ratio, w, n) / r.stress_ratio;
   r.reached = std::abs(r.ev_slope) <= settings.ev_slope && std::abs(r.stress_ratio_slope) <= settings.stress_ratio_slope;
   return r;
 }
@@ -135,8 +132,6 @@ CriticalStateLine fit_critical_state_line(std::span<const double> p, std::span<c
 namespace analysis {
 namespace {
 
-json number_or_null(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
-
 json line_json(const CriticalStateLine& l) {
   return {{"ok", l.ok},
           {"n", l.n},
@@ -155,7 +150,7 @@ json line_json(const CriticalStateLine& l) {
 }
 
 DrainedCurves curves_of(const Run& r) {
-  return {r.s.e1, r.s.ev, r.s.phi, r.s.p, r.s.q, r.s.void_ratio, r.s.fabric_dev, r.e0, r.p0};
+  return {r.s.e1, r.s.ev, r.s.phi, r.s.p, r.s.q_over_p, r.s.void_ratio, r.s.fabric_dev, r.e0, r.p0};
 }
 
 std::string group_title(const CriticalGroup& g) {
@@ -310,7 +305,7 @@ std::vector<Table> critical_tables(const std::vector<CriticalGroup>& groups, con
 
 void add_critical_figures(std::vector<Figure>& figs, const std::vector<CriticalGroup>& groups) {
   for (const CriticalGroup& g : groups) {
-    Figure f{fmt::format("critical_state_{}_{}_{}", g.model, sig(100 * g.xi), sig(g.rate)),
+    Figure f{fmt::format("critical_state_{}_{}_{}", tag(g.model), tag(sig(100 * g.xi)), tag(sig(g.rate))),
              group_title(g) + ": to the critical state",
              "The stress ratio q/p', the volumetric strain and the contact-normal fabric deviator against the axial "
              "strain, and the void ratio against p' (log scale): each run's path from its start (a colour per run), "
@@ -318,8 +313,6 @@ void add_critical_figures(std::vector<Figure>& figs, const std::vector<CriticalG
              "state line (black; grey and dashed: the line of every run's window means, when not all runs are at "
              "the critical state) and M (dashed).",
              {}};
-    for (char& ch : f.name)
-      if (!(std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '.')) ch = '_';
     Panel ratio{"q/p'", "axial strain ε1 (%)", "stress ratio q/p'", false, false, {}};
     Panel ev{"εv", "axial strain ε1 (%)", "volumetric strain εv (%)", false, false, {}};
     Panel plane{"e–ln p'", "mean stress p' (kPa)", "void ratio e", true, false, {}};

@@ -26,11 +26,6 @@ std::string md_escape(const std::string& s) {
 }
 
 // File-name-safe tag for sample/model names.
-std::string tag(const std::string& s) {
-  std::string r;
-  for (char c : s) r += (std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_') ? c : '_';
-  return r.empty() ? "_" : r;
-}
 
 // ---------------------------------------------------------------------------------------------
 // Tables
