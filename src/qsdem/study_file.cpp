@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <functional>
 #include <limits>
 #include <optional>
 #include <set>
@@ -146,20 +147,24 @@ std::string run_rate_label(double rate, const StudyControl& c) {
 // A value for --set that reads back as exactly this double (shortest round trip).
 std::string exact(double v) { return fmt::format("{}", v); }
 
-// A damping ratio: "0.5 %" or a fraction, >= 0.
-double read_ratio(const StudyReader& r, const toml::node* e, const std::string& key) {
-  double xi = 0;
+// A quantity: a string with its unit ("0.5 %", "100 kPa"), read by the case files' unit parser, or
+// a number in SI units; `expected` says what when it is neither.
+double read_quantity(const StudyReader& r, const toml::node* e, const std::string& key, Dimension dim,
+                     const char* expected) {
   if (e->is_string()) {
     try {
-      xi = parse_quantity(*e->value<std::string>(), Dimension::ratio);
+      return parse_quantity(*e->value<std::string>(), dim);
     } catch (const InputError& err) {
       r.fail(key, e, err.what());
     }
-  } else if (e->is_floating_point() || e->is_integer()) {
-    xi = *e->value<double>();
-  } else {
-    r.fail(key, e, "expected a ratio: \"0.5 %\" or a fraction such as 0.005");
   }
+  if (!(e->is_floating_point() || e->is_integer())) r.fail(key, e, expected);
+  return *e->value<double>();
+}
+
+// A damping ratio: "0.5 %" or a fraction, >= 0.
+double read_ratio(const StudyReader& r, const toml::node* e, const std::string& key) {
+  const double xi = read_quantity(r, e, key, Dimension::ratio, "expected a ratio: \"0.5 %\" or a fraction such as 0.005");
   if (!std::isfinite(xi) || xi < 0) r.fail(key, e, "out of range: must be >= 0");
   return xi;
 }
@@ -287,56 +292,50 @@ struct SampleAxis {
   std::vector<std::string> labels;
 };
 
-// design.confining_stresses: stresses ("100 kPa" or Pa), > 0; labelled "p<kPa>kPa".
-SampleAxis read_confining_stresses(const StudyReader& r, const toml::table& design) {
+// A sample axis of [design] (`name`): each value read by `value` (which checks its range), labelled
+// by `label`; two values of one label are refused.
+SampleAxis read_axis(const StudyReader& r, const toml::table& design, const std::string& name,
+                     const std::function<double(const toml::node*, const std::string&)>& value,
+                     const std::function<std::string(double)>& label, const char* what) {
   SampleAxis axis;
-  const toml::array* a = r.array(design, "confining_stresses", "design.confining_stresses", false);
+  const std::string path = "design." + name;
+  const toml::array* a = r.array(design, name, path, false);
   if (!a) return axis;
-  if (a->empty()) r.fail("design.confining_stresses", design.get("confining_stresses"), "expected at least one stress (or leave the key out)");
+  if (a->empty()) r.fail(path, design.get(name), fmt::format("expected at least one {} (or leave the key out)", what));
   for (std::size_t i = 0; i < a->size(); ++i) {
     const toml::node* e = a->get(i);
-    const std::string key = fmt::format("design.confining_stresses.{}", i);
-    double v = 0;
-    if (e->is_string()) {
-      try {
-        v = parse_quantity(*e->value<std::string>(), Dimension::stress);
-      } catch (const InputError& err) {
-        r.fail(key, e, err.what());
-      }
-    } else if (e->is_floating_point() || e->is_integer()) {
-      v = *e->value<double>();
-    } else {
-      r.fail(key, e, "expected a stress: \"100 kPa\" or a number in Pa");
-    }
-    if (!std::isfinite(v) || v <= 0) r.fail(key, e, "out of range: must be > 0");
-    const std::string label = fmt::format("p{:g}kPa", v / 1e3);
-    if (std::find(axis.labels.begin(), axis.labels.end(), label) != axis.labels.end())
-      r.fail(key, e, fmt::format("listed twice (it names the samples '-{}')", label));
+    const std::string key = fmt::format("{}.{}", path, i);
+    const double v = value(e, key);
+    const std::string l = label(v);
+    if (std::find(axis.labels.begin(), axis.labels.end(), l) != axis.labels.end())
+      r.fail(key, e, fmt::format("listed twice (it names the samples '-{}')", l));
     axis.values.push_back(v);
-    axis.labels.push_back(label);
+    axis.labels.push_back(l);
   }
   return axis;
 }
 
+// design.confining_stresses: stresses ("100 kPa" or Pa), > 0; labelled "p<kPa>kPa".
+SampleAxis read_confining_stresses(const StudyReader& r, const toml::table& design) {
+  const auto stress = [&](const toml::node* e, const std::string& key) {
+    const double v = read_quantity(r, e, key, Dimension::stress, "expected a stress: \"100 kPa\" or a number in Pa");
+    if (!std::isfinite(v) || v <= 0) r.fail(key, e, "out of range: must be > 0");
+    return v;
+  };
+  return read_axis(r, design, "confining_stresses", stress, [](double v) { return fmt::format("p{:g}kPa", v / 1e3); },
+                   "stress");
+}
+
 // design.compaction_frictions: compaction.friction values, >= 0; labelled "cf<mu>".
 SampleAxis read_compaction_frictions(const StudyReader& r, const toml::table& design) {
-  SampleAxis axis;
-  const toml::array* a = r.array(design, "compaction_frictions", "design.compaction_frictions", false);
-  if (!a) return axis;
-  if (a->empty()) r.fail("design.compaction_frictions", design.get("compaction_frictions"), "expected at least one friction coefficient (or leave the key out)");
-  for (std::size_t i = 0; i < a->size(); ++i) {
-    const toml::node* e = a->get(i);
-    const std::string key = fmt::format("design.compaction_frictions.{}", i);
+  const auto friction = [&](const toml::node* e, const std::string& key) {
     if (!(e->is_floating_point() || e->is_integer())) r.fail(key, e, "expected a number >= 0 (compaction.friction)");
     const double v = *e->value<double>();
     if (!std::isfinite(v) || v < 0) r.fail(key, e, "out of range: must be >= 0");
-    const std::string label = fmt::format("cf{:g}", v);
-    if (std::find(axis.labels.begin(), axis.labels.end(), label) != axis.labels.end())
-      r.fail(key, e, fmt::format("listed twice (it names the samples '-{}')", label));
-    axis.values.push_back(v);
-    axis.labels.push_back(label);
-  }
-  return axis;
+    return v;
+  };
+  return read_axis(r, design, "compaction_frictions", friction, [](double v) { return fmt::format("cf{:g}", v); },
+                   "friction coefficient");
 }
 
 // The keys no override may set: the study's own (run_keys) and those of the varied sample axes.
