@@ -11,6 +11,7 @@
 #include "qsdem/model.hpp"
 #include "qsdem/step.hpp"
 #include "case_errors.hpp"
+#include "collision.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -56,17 +57,9 @@ std::pair<double, int> rebound(double e, double r1, double r2, double speed, dou
   st.particles.v[0] = 0.3 * speed * n;  // a moving centre of mass
   st.particles.v[1] = -0.7 * speed * n;
   const double before = (st.particles.v[1] - st.particles.v[0]).dot(n);
-  int contact_steps = 0;
-  bool touched = false;
-  for (int k = 0; k < 200000; ++k) {
-    step(m, st);
-    const bool touching = st.pairs.size() > 0 && st.pairs.overlap[0] > 0;
-    contact_steps += touching ? 1 : 0;
-    touched = touched || touching;
-    if (touched && !touching) break;
-  }
-  EXPECT_TRUE(touched);
-  return {-(st.particles.v[1] - st.particles.v[0]).dot(n) / before, contact_steps};
+  const long contact_steps = qsdem_test::step_through_collision(m, st, 200000);
+  EXPECT_GT(contact_steps, 0) << "touched";
+  return {-(st.particles.v[1] - st.particles.v[0]).dot(n) / before, static_cast<int>(contact_steps)};
 }
 
 // The same impact as a plain one-dimensional leapfrog of the relative normal motion, written from

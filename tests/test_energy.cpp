@@ -11,6 +11,7 @@
 #include "qsdem/damping/stage.hpp"
 #include "qsdem/model.hpp"
 #include "qsdem/step.hpp"
+#include "collision.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;
@@ -196,14 +197,7 @@ Collision collide(bool spheroids, const std::string& model, double ratio, double
   for (std::size_t i = 0; i < 2; ++i) p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
   assign_damping(m, p);
   const double k0 = kinetic_energy(p);
-  bool touched = false;
-  for (int k = 0; k < 100000; ++k) {
-    step(m, st);
-    const bool touching = st.pairs.size() > 0 && st.pairs.overlap[0] > 0;
-    touched = touched || touching;
-    if (touched && !touching) break;
-  }
-  EXPECT_TRUE(touched);
+  EXPECT_GT(qsdem_test::step_through_collision(m, st, 100000), 0) << "touched";
   EXPECT_TRUE(st.pairs.size() > 0 && st.pairs.overlap[0] == 0.0) << "parted";
   const EnergyLedger& e = st.energy;
   const double k = kinetic_energy(p);
