@@ -16,6 +16,7 @@ set(QSDEM_ENGINE_SOURCES
   src/qsdem/servo.cpp
   src/qsdem/measures.cpp
   src/qsdem/step.cpp
+  src/qsdem/fire.cpp
 )
 set(QSDEM_RUN_SOURCES
   src/qsdem/units.cpp

@@ -813,3 +813,66 @@ TEST(CheckpointFile, PhaseRecordsAreWrittenFieldByField) {
     EXPECT_EQ(c.run.changes, format < 5 ? "" : "triaxial step 4: limits.max_kinetic_ratio=2\n");
   }
 }
+
+// A FIRE phase (docs/physics.md 5.7) stopped by SIGTERM between increments and resumed writes the
+// same bits as the uninterrupted run; every increment is relaxed to its tolerances (UFR, the
+// lateral stresses), and the last one ends exactly at the strain stop.
+TEST(CheckpointProcess, FireIncrementsResumeToTheSameSeries) {
+  const std::string fire_case = qsdem_test::sample_200("checkpoint-fire") + R"([[phase]]
+name = "compaction"
+friction = 0.2
+stress = { 11 = "200 kPa", 22 = "200 kPa", 33 = "200 kPa" }
+servo = { max_strain_rate = 1e-4 }
+stop = { equilibrium = { ufr = "1 %" } }
+output = { file = "compaction.csv", clock = "run" }
+[[phase]]
+name = "triaxial"
+friction = 0.5
+strain_rate = { 33 = 1e-5 }
+stress = { 11 = "200 kPa", 22 = "200 kPa" }
+solver = { kind = "fire", strain_increment = "0.025 %", ufr = "0.5 %", stress_tolerance = "0.2 %" }
+stop = { strain = { 33 = "0.6 %" } }
+[checkpoint]
+every_sample_points = 3
+)";
+  const fs::path f = scratch("fire-case") / "case.toml";
+  fs::create_directories(f.parent_path());
+  std::ofstream(f) << fire_case;
+  const fs::path ref = scratch("fire-reference"), d = scratch("fire-killed");
+  ASSERT_EQ(run_cli({"run", f.string(), "--out", ref.string(), "--threads", "1", "--quiet"}, ref.string()), 0)
+      << read(ref.string() + ".err");
+  const pid_t pid = spawn({"run", f.string(), "--out", d.string(), "--threads", "1", "--quiet"}, d.string());
+  ASSERT_TRUE(wait_rows(d, 10, pid)) << "the run ended before it could be killed";
+  ::kill(pid, SIGTERM);
+  EXPECT_EQ(wait_exit(pid), 128 + SIGTERM) << read(d.string() + ".err");
+  ASSERT_EQ(run_cli({"resume", d.string(), "--threads", "1", "--quiet"}, d.string() + "-resume"), 0)
+      << read(d.string() + "-resume.err");
+  EXPECT_EQ(read(d / "series.csv"), read(ref / "series.csv"));
+  std::istringstream in(read(ref / "series.csv"));
+  std::string line;
+  std::getline(in, line);
+  std::vector<std::string> names;
+  {
+    std::istringstream h(line);
+    for (std::string field; std::getline(h, field, ',');) names.push_back(field);
+  }
+  const auto col = [&](const std::string& n) {
+    return static_cast<std::size_t>(std::find(names.begin(), names.end(), n) - names.begin());
+  };
+  ASSERT_LT(col("relaxed"), names.size());
+  long rows = 0;
+  double e1 = 0;
+  while (std::getline(in, line)) {
+    std::vector<std::string> v;
+    std::istringstream r(line);
+    for (std::string field; std::getline(r, field, ',');) v.push_back(field);
+    ++rows;
+    EXPECT_EQ(v.at(col("relaxed")), "1") << "row " << rows;
+    EXPECT_LT(std::stod(v.at(col("ufr"))), 0.005) << "row " << rows;
+    EXPECT_NEAR(std::stod(v.at(col("s11_Pa"))), 200e3, 0.002 * 200e3) << "row " << rows;
+    EXPECT_GT(std::stol(v.at(col("iterations"))), 0);
+    e1 = std::stod(v.at(col("e1")));
+  }
+  EXPECT_EQ(rows, 24) << "0.6 % in increments of 0.025 %";
+  EXPECT_NEAR(e1, 0.006, 1e-12);
+}

@@ -418,3 +418,21 @@ TEST(Config, PhaseInertiaScalingIsRefusedWithAStepPlanningController) {
   EXPECT_EQ(p.protocol.at(1).inertia.factor, 2);
   EXPECT_FALSE(p.protocol.at(0).inertia.on());
 }
+
+// A [[phase]] with solver = "fire" (docs/physics.md 5.7): read with its tolerances, its damping
+// off; the keys it cannot take are refused by key and reason, and so are FIRE keys in a dynamic phase.
+TEST(Config, FireSolverIsReadAndItsPhaseChecked) {
+  std::ifstream in(examples / "fire-triaxial.toml");
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const Params p = parse_case(text, "case.toml");
+  ASSERT_TRUE(p.protocol.at(1).fire.has_value());
+  EXPECT_FALSE(p.protocol.at(0).fire.has_value());
+  EXPECT_DOUBLE_EQ(p.protocol.at(1).fire->strain_increment, 1e-4);
+  EXPECT_DOUBLE_EQ(p.protocol.at(1).fire->ufr, 5e-3);
+  EXPECT_EQ(p.protocol.at(1).damping.model, "none");
+  expect_mentions(error_of(text, {"phase.1.damping.model=\"nd\""}), {"phase.1.damping.model", "FIRE is the phase's dissipation"});
+  expect_mentions(error_of(text, {"phase.1.output.points=10"}), {"phase.1.output.points", "each increment writes one row"});
+  expect_mentions(error_of(text, {"output.energy=true"}), {"phase.1.solver", "output.energy"});
+  expect_mentions(error_of(text, {"phase.1.solver.strain_increment=\"2 %\""}), {"phase.1.solver.strain_increment", "(0, 1 %]"});
+  expect_mentions(error_of(text, {"phase.0.solver.ufr=\"1 %\""}), {"phase.0.solver.ufr", "only with kind = \"fire\""});
+}

@@ -275,7 +275,7 @@ class Reader : public TomlSource {
         "phase.stop",     "phase.stop.strain", "phase.stop.stress",
         "phase.stop.equilibrium", "phase.output", "phase.output.every_strain",
         "phase.controller", "compaction.inertia_scaling", "triaxial.inertia_scaling",
-        "phase.inertia_scaling"};
+        "phase.inertia_scaling", "phase.solver"};
     std::string name;
     for (const auto& part : split_path(path))
       if (!is_index(part)) name += (name.empty() ? "" : ".") + part;
@@ -526,6 +526,54 @@ class ControllerTable final : public ControllerKeys {
   std::string prefix_;
 };
 
+// `<k>.solver` (docs/physics.md 5.7): absent or kind = "dynamic" for the dynamics at the phase's
+// rates; kind = "fire" for increments relaxed by FIRE, with their tolerances.
+std::optional<FireSolver> fire_solver(Reader& r, const std::string& k) {
+  const std::string key = k + ".solver";
+  if (const toml::node* n = r.find(key); n && !n->is_table())
+    r.fail(key, n, "expected a table: { kind = \"fire\", strain_increment = \"0.01 %\", ufr = \"0.1 %\" }");
+  const std::string kind = r.text(key + ".kind", std::string("dynamic"), {"dynamic", "fire"});
+  const std::vector<std::string> keys{"strain_increment", "ufr", "imom", "stress_tolerance", "max_iterations",
+                                      "check_every"};
+  if (kind == "dynamic")
+    for (const std::string& name : keys)
+      if (r.find(key + "." + name)) r.fail(key + "." + name, r.find(key + "." + name), "only with kind = \"fire\"");
+  // Its keys are asked whether or not the table is there (case_keys).
+  FireSolver f;
+  f.strain_increment = r.quantity(key + ".strain_increment", Dimension::ratio, f.strain_increment,
+                                  [](double v) { return v > 0 && v <= 0.01; }, "must be in (0, 1 %]");
+  f.ufr = r.quantity(key + ".ufr", Dimension::ratio, f.ufr, positive, "must be > 0");
+  f.imom = r.optional_quantity(key + ".imom", Dimension::ratio, positive, "must be > 0");
+  f.stress_tolerance = r.quantity(key + ".stress_tolerance", Dimension::ratio, f.stress_tolerance, positive, "must be > 0");
+  f.max_iterations = r.integer(key + ".max_iterations", f.max_iterations, 1, 1'000'000'000);
+  f.check_every = r.integer(key + ".check_every", f.check_every, 1, 1'000'000);
+  if (kind == "dynamic") return std::nullopt;
+  return f;
+}
+
+// What a FIRE phase refuses: its own dissipation is FIRE's, its rows are its increments, and it
+// ends on strain, stress or steps.
+void check_fire_phase(Reader& r, const std::string& k, const Phase& ph) {
+  const std::string why = "not in a phase with solver.kind = \"fire\"";
+  for (const std::string name : {".damping.model", ".damping.ratio", ".damping.acts_on", ".controller",
+                                 ".stop.equilibrium", ".output.points", ".output.every_steps", ".output.every_strain"})
+    if (const toml::node* n = r.find(k + name))
+      r.fail(k + name, n,
+             why + (name.starts_with(".damping") ? ": FIRE is the phase's dissipation (the particle damping is off)"
+                    : name.starts_with(".output")  ? ": each increment writes one row"
+                    : name == ".controller"        ? ": the increments set the pace"
+                                                   : ": each increment is relaxed to the solver's tolerances"));
+  if (const toml::node* e = r.find("output.energy"); e && e->value<bool>().value_or(false))
+    r.fail(k + ".solver", r.find(k + ".solver"),
+           "not with output.energy = true: the energy ledger holds no term for FIRE's stops and mixing");
+  bool driven = false;
+  for (const auto& c : ph.controls.component) driven = driven || c.kind == ComponentControl::Kind::strain_rate;
+  if (!driven)
+    r.fail(k + ".solver", r.find(k + ".solver"),
+           "a FIRE phase needs a strain_rate component: its increments are steps of strain (their direction and "
+           "proportions from the rates)");
+}
+
 // Default sample points: 250 over a phase whose end is known in advance, else every 200 steps.
 constexpr long default_points = 250, default_every_steps = 200, default_max_steps = 2'000'000;
 // The most steps a phase may plan: a year of the fastest stepping on the smallest sample, and far
@@ -543,6 +591,8 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
       damping_model(r, k + ".damping.model", k + ".damping.ratio", contact);
   ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
   ph.inertia = inertia_scaling(r, k);
+  ph.fire = fire_solver(r, k);
+  if (ph.fire) ph.damping = {"none", 0.0, DampedMotion::both};
 
   bool any_rate = false;
   for (int c = 0; c < component_count; ++c) {
@@ -600,6 +650,7 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
            "the phase has no strain-rate component to scale; give servo.max_strain_rate");
   ph.controls.max_strain_rate = cap ? *cap : (factor || any_rate ? 0.0 : 2e-5);
   ph.controls.rate_factor = factor ? *factor : (cap || !any_rate ? 0.0 : 10.0);
+  if (ph.fire) check_fire_phase(r, k, ph);
 
   auto& stop = ph.stop;
   stop.steps = r.optional_integer(k + ".stop.steps", 1, std::numeric_limits<long>::max()).value_or(0);
@@ -1116,6 +1167,12 @@ nlohmann::json to_json(const Phase& ph) {
                       {"stop", stop},
                       {"output", output}};
   if (!ph.controller.empty()) j["controller"] = ph.controller;
+  if (const auto& f = ph.fire) {
+    j["solver"] = {{"kind", "fire"},           {"strain_increment", f->strain_increment}, {"ufr", f->ufr},
+                   {"stress_tolerance", f->stress_tolerance}, {"max_iterations", f->max_iterations},
+                   {"check_every", f->check_every}};
+    if (f->imom) j["solver"]["imom"] = *f->imom;
+  }
   if (ph.inertia.on()) {
     const bool coarsest = ph.inertia.target == InertiaScaling::Target::coarsest;
     j["inertia_scaling"] = {{"target", coarsest ? "coarsest" : "factor"}, {"cap", ph.inertia.cap}};

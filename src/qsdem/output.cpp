@@ -87,6 +87,7 @@ std::string series_header(const SeriesColumns& columns) {
   if (columns.shear) h += ",s12_Pa,s13_Pa,s23_Pa,g12,g13,g23";
   if (columns.dp) h += ",dp_Pa";
   if (columns.strain_rate) h += ",strain_rate";
+  if (columns.relaxation) h += ",iterations,relaxed";
   if (columns.energy) h += ",work_J,friction_J,contact_damping_J,damping_J,stiffness_change_J,elastic_J";
   return columns.phase ? h + ",phase" : h;
 }
@@ -110,6 +111,11 @@ std::string series_row(const SeriesRow& r, const SeriesColumns& columns) {
   if (columns.strain_rate) {
     out.push_back(',');
     if (r.strain_rate) fmt::format_to(std::back_inserter(out), "{:.10g}", *r.strain_rate);
+  }
+  if (columns.relaxation) {
+    out.push_back(',');
+    if (r.relaxation) fmt::format_to(std::back_inserter(out), "{},{}", r.relaxation->iterations, r.relaxation->converged ? 1 : 0);
+    else out.push_back(',');
   }
   if (columns.energy) {
     const EnergyLedger& e = r.energy;

@@ -16,6 +16,13 @@ namespace qsdem {
 
 // One row of series.csv / compaction.csv: the step and time of the row's clock and the strains
 // of its file's reference are given by the caller (they depend on the phase).
+// A FIRE increment's relaxation (docs/physics.md 5.7): its force evaluations, and whether it
+// reached the solver's tolerances within max_iterations.
+struct Relaxation {
+  long iterations = 0;
+  bool converged = false;
+};
+
 struct SeriesRow {
   long step = 0;
   double time = 0;
@@ -28,6 +35,7 @@ struct SeriesRow {
   // The eps' of the row's phase, none (an empty field) for a phase without a rate controller.
   std::optional<double> strain_rate;
   EnergyLedger energy{};  // the run's energy (energy columns)
+  std::optional<Relaxation> relaxation{};  // a FIRE phase's row (iterations, relaxed)
 };
 
 // The columns a series file has after SPEC 10's and `phi_al_deg,tilt_deg`, in this order; a file
@@ -37,6 +45,7 @@ struct SeriesColumns {
   bool dp = false;           // dp_Pa: a phase that holds the volume
   bool strain_rate = false;  // strain_rate: a phase with a rate controller
   bool phase = false;        // phase: several phases write to the file
+  bool relaxation = false;   // iterations,relaxed: a phase with solver = "fire"
   bool energy = false;       // work_J,friction_J,contact_damping_J,damping_J,stiffness_change_J,elastic_J
 };
 

@@ -6,7 +6,8 @@
 namespace qsdem {
 
 bool planned_strain(const Phase& phase, int c) {
-  return is_normal(c) && phase.stop.strain[static_cast<std::size_t>(c)].has_value() &&
+  // A FIRE phase's strain grows by its increments, measured (fire_phase.hpp).
+  return !phase.fire && is_normal(c) && phase.stop.strain[static_cast<std::size_t>(c)].has_value() &&
          phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::strain_rate;
 }
 

@@ -92,6 +92,20 @@ struct PhaseKeys {
   std::string max_steps, damping_ratio, ufr_tolerance, strain_rate, sample_points;
 };
 
+// A quasi-static phase solved by increments (docs/physics.md 5.7): each increment moves the
+// strain-rate components by one step of strain (the fastest by strain_increment, the others in
+// proportion to their rates), then FIRE relaxes the particles and the stress-controlled components
+// from rest until the indices and the stress errors are below their tolerances, checked every
+// check_every force evaluations, or until max_iterations (the increment's row says which).
+struct FireSolver {
+  double strain_increment = 1e-4;
+  double ufr = 1e-3;
+  std::optional<double> imom;
+  double stress_tolerance = 1e-3;
+  long max_iterations = 100'000;
+  long check_every = 10;
+};
+
 using ControllerFactory = std::function<std::unique_ptr<Controller>()>;
 
 struct Phase {
@@ -107,6 +121,7 @@ struct Phase {
   ControllerFactory make_controller;  // a new controller of that kind for the phase
   int rate_component = -1;  // a "rate" controller's component: its eps' is the strain_rate column
   PhaseKeys keys;
+  std::optional<FireSolver> fire;  // solver = "fire"; none: the dynamics at the phase's rates
 };
 
 using Protocol = std::vector<Phase>;

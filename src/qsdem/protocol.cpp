@@ -10,6 +10,7 @@
 
 #include "qsdem/controller.hpp"
 #include "qsdem/damping/stage.hpp"
+#include "qsdem/fire.hpp"
 #include "qsdem/schedule.hpp"
 #include "qsdem/step.hpp"
 
@@ -191,6 +192,200 @@ void controls_changed(const PhaseControls& before, PhaseState& s, long n, long r
   s.row_base_rows = rows;
 }
 
+// The phase's start, once (a resumed phase keeps what its checkpoint saved): its record's start,
+// the servo's memory, its own control values and the particles' inertia scaling.
+void begin_phase(const Params& params, State& st, RunProgress& run) {
+  const Phase& phase = params.protocol.at(static_cast<std::size_t>(run.phase));
+  PhaseRecord& rec = run.current();
+  PhaseState& ps = run.state;
+  if (!run.phase_started) {
+    run.phase_started = true;
+    rec = {};
+    rec.h0 = st.cell.h;
+    rec.v0 = st.cell.volume;
+    rec.energy_start = st.energy;
+    st.servo_integral.setZero();
+    ps = fresh_state(phase);
+    scale_inertia(st.particles, phase.inertia, params.material.density);  // SPEC 5.6; resumed: as saved
+  } else if (!ps.live) {
+    ps = fresh_state(phase);  // a checkpoint of an older format: no controller changed anything
+  }
+}
+
+// Where a row is in its phase: its force evaluation n, the phase's step, the mean stress p0 at the
+// phase's start and the axial strain e1 of the file's reference.
+struct RowPlace {
+  long n;
+  double dt, p0, e1;
+};
+
+// Writes the row of the state's last force evaluation to the phase's file (and classes.csv) and
+// adds it to the phase's record (SPEC 8.4).
+void record_row(const Phase& phase, State& st, RunProgress& run, const RowSink& sink, const Measures& m,
+                const RowPlace& at, std::optional<double> strain_rate, std::optional<Relaxation> relaxation) {
+  PhaseRecord& rec = run.current();
+  PhaseState& ps = run.state;
+  const PhaseRecord& ref = run.phases.at(static_cast<std::size_t>(sink.reference_phase));
+  const long n = at.n;
+  const double e1 = at.e1;
+  const double ev = m.volume / ref.v0 - 1;
+  std::array<double, 3> gamma{};
+  if (sink.columns.shear) {
+    const auto e = phase_strain(st.stress_h, ref.h0);
+    gamma = {e[3], e[4], e[5]};
+  }
+  const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
+  const long row_step = run_clock ? st.step - 1 : n;
+  const double row_time = run_clock ? st.time - at.dt : static_cast<double>(n) * at.dt;
+  SeriesRow r{row_step, row_time, e1, ev, m, &phase.name, m.mean_stress - at.p0, gamma, strain_rate, st.energy};
+  r.relaxation = relaxation;
+  if (sink.writer) {
+    ScopedStage ts(st.timers, Stage::output);
+    sink.writer->write(series_row(r, sink.columns));
+  }
+  if (sink.classes) {
+    ScopedStage ts(st.timers, Stage::output);
+    sink.classes->write(classes_rows(r, class_measures(st, *sink.size_classes)));
+  }
+  ++rec.rows;
+  ps.last_row_step = n;
+  rec.ufr += m.ufr;
+  rec.iuf += m.iuf;
+  rec.imom += m.imom;
+  if (m.friction_angle_deg > rec.peak_phi_deg) {
+    rec.peak_phi_deg = m.friction_angle_deg;
+    rec.peak_phi_e1 = e1;
+  }
+  for (int c = 0; c < component_count; ++c) {
+    const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
+    const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
+    if (is_normal(c) && cc.kind == Kind::stress) {
+      const double err = std::abs(m.stress(a, a) / cc.value - 1);
+      rec.max_stress_error = std::max(rec.max_stress_error, err);
+      rec.stress_error += err;
+    } else if (!is_normal(c) && m.mean_stress > 0) {
+      const double target = cc.kind == Kind::stress ? cc.value : 0.0;
+      rec.max_shear_stress = std::max(rec.max_shear_stress, std::abs(m.stress(a, b) - target) / m.mean_stress);
+    }
+  }
+  rec.final_ev = ev;
+  rec.final_e1 = e1;
+  rec.final = m;
+  rec.energy_end = st.energy;
+}
+
+// The phase's end in the run's records (its controller's last saved state) and its closing line.
+void end_phase(RunProgress& run, const Phase& phase, Progress& progress) {
+  const PhaseRecord& rec = run.current();
+  run.controller_end.resize(run.phases.size());
+  run.controller_end.at(static_cast<std::size_t>(run.phase)) = run.state.controller;
+  const double rows = static_cast<double>(std::max(1L, rec.rows));
+  if (phase.stop.equilibrium)
+    progress.end(fmt::format("{} done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}", phase.name,
+                             rec.steps, rec.final.mean_stress / 1e3, rec.final.void_ratio, rec.final.ufr,
+                             format_duration(rec.wall_s)));
+  else
+    progress.end(fmt::format("{} done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean IMom {:.3g}, {}",
+                             phase.name, rec.steps, rec.peak_phi_deg, 100 * rec.peak_phi_e1, rec.ufr / rows,
+                             rec.imom / rows, format_duration(rec.wall_s)));
+}
+
+// The phase with solver = "fire" (docs/physics.md 5.7): increments of strain, each from rest, then
+// FIRE to the solver's tolerances; one row per increment. Checkpoints are taken between increments
+// (the hook), where FIRE's own state starts afresh: a resumed phase continues with the same bits.
+void run_fire_phase(const Params& params, State& st, RunProgress& run, const RowSink& sink, Progress& progress,
+                    const StepHook& hook) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const Phase& phase = params.protocol.at(static_cast<std::size_t>(run.phase));
+  const FireSolver& solver = *phase.fire;
+  PhaseRecord& rec = run.current();
+  PhaseState& ps = run.state;
+  begin_phase(params, st, run);
+  const Model model = phase_model(params, phase, ps.controls, st.particles, rec.h0);
+  assign_damping(model, st.particles);  // none: FIRE is the dissipation
+  const double step_ratio = params.step_ratio * model.step_gain;
+  // The driving component, the fastest strain-rate one: its strain moves by the increment.
+  int driver = -1;
+  for (int c = 0; c < component_count; ++c) {
+    const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
+    if (cc.kind == Kind::strain_rate &&
+        (driver < 0 || std::abs(cc.value) > std::abs(ps.controls.component[static_cast<std::size_t>(driver)].value)))
+      driver = c;
+  }
+  const auto kd = static_cast<std::size_t>(driver);
+  const double fastest = std::abs(ps.controls.component[kd].value);
+  const std::optional<double>& target = phase.stop.strain[kd];
+  const PhaseRecord& ref = run.phases.at(static_cast<std::size_t>(sink.reference_phase));
+  const double p0 = run.phase > 0 ? run.phases.at(static_cast<std::size_t>(run.phase - 1)).final.mean_stress : 0.0;
+  const char* name = phase.name.c_str();
+  const double wall_before = rec.wall_s;
+  BlowUpWatch watch;
+  Schedule schedule;
+  progress.begin(phase.name, target ? std::abs(*target) : 0.0);
+  const auto limit_reached = [&] { return phase.stop.max_steps > 0 && rec.steps >= phase.stop.max_steps; };
+  const auto evaluation = [&] {
+    watch.check(st, params, name, rec.steps);
+    ++rec.steps;
+  };
+  bool ended = false;
+  while (!ended) {
+    // The increment, the last one cut to the driver's strain stop; the others in proportion.
+    const double strain = phase_strain(st.cell.h, rec.h0)[kd];
+    double increment = solver.strain_increment;
+    bool last = false;
+    // (within a millionth of an increment: the strains' rounding leaves no sliver of an increment)
+    if (target && std::abs(*target - strain) <= increment * (1 + 1e-6))
+      increment = std::abs(*target - strain), last = true;
+    PhaseControls loading = ps.controls;
+    for (ComponentControl& cc : loading.component)
+      if (cc.kind == Kind::strain_rate) cc.value *= increment / (fastest * step_ratio);  // one step's strain
+    Model load = phase_model(params, phase, loading, st.particles, rec.h0);
+    for (std::size_t i = 0; i < st.particles.size(); ++i)  // each increment from rest (athermal)
+      st.particles.v[i].setZero(), st.particles.angmom[i].setZero(), st.particles.omega[i].setZero();
+    step(load, st, schedule);
+    evaluation();
+    // The relaxation: the strain-rate components held, the stress-controlled ones on their servo.
+    Model relax = load;
+    for (AxisControl& a : relax.control)
+      if (a.kind == AxisControl::Kind::strain_rate) a = {};
+    for (AxisControl& a : relax.shear_control)
+      if (a.kind == AxisControl::Kind::strain_rate) a = {};
+    FireState fire = fire_start(relax);
+    long iterations = 0;
+    bool relaxed = false;
+    Measures m;
+    while (true) {
+      fire_step(relax, st, schedule, fire);
+      evaluation();
+      ++iterations;
+      if (iterations % solver.check_every == 0 || iterations >= solver.max_iterations || limit_reached()) {
+        {
+          ScopedStage ts(st.timers, Stage::measures);
+          m = measure(st);
+        }
+        check_finite(m, st, name, rec.steps - 1);
+        relaxed = m.contacts > 0 && m.ufr < solver.ufr && (!solver.imom || m.imom < *solver.imom) &&
+                  stress_error(m, ps.controls) < solver.stress_tolerance;
+        if (relaxed || iterations >= solver.max_iterations || limit_reached()) break;
+      }
+    }
+    rec.wall_s = wall_before + seconds_since(t0);
+    ended = last || measured_end(phase, ps, st, rec.h0) || (phase.stop.steps > 0 && rec.steps >= phase.stop.steps);
+    const double e1 = 1 - st.stress_h(2, 2) / ref.h0(2, 2);
+    record_row(phase, st, run, sink, m, {rec.steps - 1, model.dt, p0, e1}, std::nullopt, Relaxation{iterations, relaxed});
+    progress.update(std::abs(phase_strain(st.stress_h, rec.h0)[kd]),
+                    fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | {} iterations{}", 100 * e1,
+                                m.friction_angle_deg, m.ufr, iterations, relaxed ? "" : " (not relaxed)"));
+    if (ended) break;
+    if (hook) hook(true);
+    if (limit_reached())
+      throw RunError(fmt::format("{} did not reach its end in {} steps ({}): e1 = {:.4g} %; raise {} or the solver's "
+                                 "tolerances",
+                                 phase.name, phase.stop.max_steps, phase.keys.max_steps, 100 * e1, phase.keys.max_steps));
+  }
+  end_phase(run, phase, progress);
+}
+
 }  // namespace
 
 void BlowUpWatch::check(const State& st, const Params& params, const char* phase, long step) {
@@ -239,20 +434,10 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
                const StepHook& hook) {
   const auto t0 = std::chrono::steady_clock::now();
   const Phase& phase = params.protocol.at(static_cast<std::size_t>(run.phase));
+  if (phase.fire) return run_fire_phase(params, st, run, sink, progress, hook);
   PhaseRecord& rec = run.current();
   PhaseState& ps = run.state;
-  if (!run.phase_started) {
-    run.phase_started = true;
-    rec = {};
-    rec.h0 = st.cell.h;
-    rec.v0 = st.cell.volume;
-    rec.energy_start = st.energy;
-    st.servo_integral.setZero();
-    ps = fresh_state(phase);
-    scale_inertia(st.particles, phase.inertia, params.material.density);  // SPEC 5.6; resumed: as saved
-  } else if (!ps.live) {
-    ps = fresh_state(phase);  // a checkpoint of an older format: no controller changed anything
-  }
+  begin_phase(params, st, run);
   std::unique_ptr<Controller> controller = phase.make_controller ? phase.make_controller() : nullptr;
   if (controller && !ps.controller.empty()) controller->restore(ps.controller);
   const auto keep_controller = [&] {
@@ -325,53 +510,9 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     // The eps' of the rate-controlled component at which the steps up to this row were taken.
     const double strain_rate_now =
         phase.rate_component >= 0 ? ps.controls.component[static_cast<std::size_t>(phase.rate_component)].value : 0.0;
-    if (row || ended) {
-      const double ev = m.volume / ref.v0 - 1;
-      std::array<double, 3> gamma{};
-      if (sink.columns.shear) {
-        const auto e = phase_strain(st.stress_h, ref.h0);
-        gamma = {e[3], e[4], e[5]};
-      }
-      const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
-      const long row_step = run_clock ? st.step - 1 : n;
-      const double row_time = run_clock ? st.time - model.dt : static_cast<double>(n) * model.dt;
-      const SeriesRow r{row_step, row_time, e1, ev, m, &phase.name, m.mean_stress - p0, gamma,
-                        phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt,
-                        st.energy};
-      if (sink.writer) {
-        ScopedStage ts(st.timers, Stage::output);
-        sink.writer->write(series_row(r, sink.columns));
-      }
-      if (sink.classes) {
-        ScopedStage ts(st.timers, Stage::output);
-        sink.classes->write(classes_rows(r, class_measures(st, *sink.size_classes)));
-      }
-      ++rec.rows;
-      ps.last_row_step = n;
-      rec.ufr += m.ufr;
-      rec.iuf += m.iuf;
-      rec.imom += m.imom;
-      if (m.friction_angle_deg > rec.peak_phi_deg) {
-        rec.peak_phi_deg = m.friction_angle_deg;
-        rec.peak_phi_e1 = e1;
-      }
-      for (int c = 0; c < component_count; ++c) {
-        const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
-        const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
-        if (is_normal(c) && cc.kind == Kind::stress) {
-          const double err = std::abs(m.stress(a, a) / cc.value - 1);
-          rec.max_stress_error = std::max(rec.max_stress_error, err);
-          rec.stress_error += err;
-        } else if (!is_normal(c) && m.mean_stress > 0) {
-          const double target = cc.kind == Kind::stress ? cc.value : 0.0;
-          rec.max_shear_stress = std::max(rec.max_shear_stress, std::abs(m.stress(a, b) - target) / m.mean_stress);
-        }
-      }
-      rec.final_ev = ev;
-      rec.final_e1 = e1;
-      rec.final = m;
-      rec.energy_end = st.energy;
-    }
+    if (row || ended)
+      record_row(phase, st, run, sink, m, {n, model.dt, p0, e1},
+                 phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt, std::nullopt);
     if (equilibrium)
       progress.update(static_cast<double>(rec.steps - steps_at_start),
                       fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}", rec.steps,
@@ -415,17 +556,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
                                phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3,
                                100 * (1 - st.stress_h(2, 2) / rec.h0(2, 2)), phase.keys.max_steps));
   }
-  run.controller_end.resize(run.phases.size());
-  run.controller_end.at(static_cast<std::size_t>(run.phase)) = ps.controller;
-  const double rows = static_cast<double>(std::max(1L, rec.rows));
-  if (equilibrium)
-    progress.end(fmt::format("{} done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}", phase.name,
-                             rec.steps, rec.final.mean_stress / 1e3, rec.final.void_ratio, rec.final.ufr,
-                             format_duration(rec.wall_s)));
-  else
-    progress.end(fmt::format("{} done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean IMom {:.3g}, {}",
-                             phase.name, rec.steps, rec.peak_phi_deg, 100 * rec.peak_phi_e1, rec.ufr / rows,
-                             rec.imom / rows, format_duration(rec.wall_s)));
+  end_phase(run, phase, progress);
 }
 
 PhaseRecord run_phase(const Params& params, std::size_t index, State& state, Progress& progress, SeriesWriter* rows) {

@@ -410,6 +410,7 @@ class Execution {
       columns.dp = columns.dp || holds_volume(writer_phase);
       columns.shear = columns.shear || shears(writer_phase);
       columns.strain_rate = columns.strain_rate || writer_phase.rate_component >= 0;
+      columns.relaxation = columns.relaxation || writer_phase.fire.has_value();
     }
     SeriesWriter writer(dir_ / phase.output.file, begun ? held : -1, columns);
     rows_ = &writer;

@@ -16,8 +16,6 @@
 
 namespace qsdem {
 
-namespace {
-
 // Stages 1 and 2: the pair forces at the current positions, with each particle's i-side sums.
 void pair_forces(const Model& model, State& s, Schedule& schedule) {
   {
@@ -33,8 +31,6 @@ void pair_forces(const Model& model, State& s, Schedule& schedule) {
     compute_contact_forces(model, s, schedule);
   }
 }
-
-}  // namespace
 
 // Stages 4-6 in one parallel region with no barrier: each thread owns a contiguous range of
 // particles, adds their j-end contact forces, kicks them and drifts them (a particle's update

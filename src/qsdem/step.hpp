@@ -22,6 +22,10 @@ void step(const Model& model, State& state, Schedule& schedule);
 // The same with a schedule of its own (the blocks then shared by their pair counts).
 void step(const Model& model, State& state);
 
+// Stages 1 and 2 only: the neighbour list when the skin test asks for it, and the pair forces at the
+// current positions with each particle's i-side sums (gather_resultants adds the j ends).
+void pair_forces(const Model& model, State& state, Schedule& schedule);
+
 // Stages 1, 2 and 4 only: forces and resultants at the current positions (used at start-up and by
 // tools that need the forces of a given configuration).
 void evaluate_forces(const Model& model, State& state);
