@@ -1,6 +1,6 @@
 """Drained triaxial compression in YADE from a compacted scene (bench/yade).
 
-    yade -n -j1 -x bench/yade/triaxial.py COMPACTED.yade.gz RATE ALPHA OUTDIR
+    yade -n -j1 -x bench/yade/triaxial.py COMPACTED.yade.gz RATE ALPHA OUTDIR [contact-point]
 
 As qsdem's triaxial phase (docs/physics.md 8.3): friction 0.5 on every contact (the existing
 ones too: utils.setContactFriction), NewtonIntegrator(damping=ALPHA), axis 3 shortened at the
@@ -8,7 +8,10 @@ engineering strain rate RATE / t_c (its velGrad -RATE/t_c H0/h33, reset every ro
 2 held at 390 kPa by PeriTriaxController (its own servo law; rate capped at 10 x the axial rate,
 as triaxial.lateral_rate_factor) to e1 = 10 % in N = round(0.1 / (0.32 RATE)) steps, a row
 every N / 250 steps. Writes OUTDIR/series.csv (qsdem's column names where they mean the same)
-and OUTDIR/summary.json.
+and OUTDIR/summary.json. With `contact-point` the shear increment takes the relative velocity at
+the contact point (Ig2_Sphere_Sphere_ScGeom.avoidGranularRatcheting off; the Mindlin law takes its
+shear increment from the geometry functor): qsdem's arms R - delta/2, without YADE's factor
+(R1 + R2)/(R1 + R2 - delta) (docs/physics.md 4.7).
 """
 
 import sys
@@ -18,9 +21,10 @@ sys.path.insert(0, __import__("os").path.dirname(__import__("os").path.abspath(s
 import peer  # noqa: E402
 from peer import *  # noqa: E402,F401,F403
 
-if len(sys.argv) < 5:
-    raise SystemExit("usage: yade -n -j1 -x triaxial.py COMPACTED.yade.gz RATE ALPHA OUTDIR")
+if len(sys.argv) < 5 or sys.argv[5:] not in ([], ["contact-point"]):
+    raise SystemExit("usage: yade -n -j1 -x triaxial.py COMPACTED.yade.gz RATE ALPHA OUTDIR [contact-point]")
 scene, rate, alpha, out = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
+contact_point_arms = sys.argv[5:] == ["contact-point"]
 os.makedirs(out, exist_ok=True)
 
 O.load(scene)
@@ -41,6 +45,11 @@ controller = PeriTriaxController(goal=Vector3(-S, -S, math.log(0.5)), stressMask
                                  maxStrainRate=Vector3(lateral, lateral, edot), relStressTol=1.0,
                                  absStressTol=1e30, maxUnbalanced=-1, globUpdate=1, label="servo")
 O.engines = peer.engines(alpha, controller) + [PyRunner(iterPeriod=period, command="row()")]
+if contact_point_arms:
+    for e in O.engines:
+        if isinstance(e, InteractionLoop):
+            for f in e.geomDispatcher.functors:
+                f.avoidGranularRatcheting = False
 
 series = open(os.path.join(out, "series.csv"), "w")
 series.write("step,e1,ev,s11_Pa,s22_Pa,s33_Pa,p_Pa,q_Pa,phi_deg,phi_al_deg,void_ratio,cn,ufr,ekin_J\n")
@@ -70,5 +79,6 @@ series.close()
 peer.write_json(os.path.join(out, "summary.json"), {
     "scene": scene, "strain_rate": rate, "damping": alpha, "steps": O.iter - start_iter, "wall_s": wall,
     "dt_s": O.dt, "axial_rate_per_s": edot, "row_period": period, "particles": len(O.bodies), "yade": version,
+    "arms": "contact point" if contact_point_arms else "radius",
 })
 print(f"triaxial: {O.iter - start_iter} steps in {wall:.0f} s")
