@@ -33,85 +33,11 @@
 #include "qsdem/packing_io.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/step.hpp"
+#include "peer_state.hpp"
 
 using namespace qsdem;
 
 namespace {
-
-struct Contact {
-  std::uint32_t id1, id2;
-  Vec3i cell_dist;
-  Vec3 shear;  // stored tangential force on id2 (N)
-};
-
-std::vector<Contact> read_contacts(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) throw InputError(fmt::format("cannot read contacts file '{}'", path));
-  std::vector<Contact> out;
-  std::string line;
-  int lineno = 0;
-  while (std::getline(in, line)) {
-    ++lineno;
-    if (line.empty() || line[0] == '#') continue;
-    std::istringstream s(line);
-    Contact c;
-    double n[3], overlap, fn[3];
-    if (!(s >> c.id1 >> c.id2 >> c.cell_dist.x() >> c.cell_dist.y() >> c.cell_dist.z() >> n[0] >> n[1] >> n[2] >>
-          overlap >> fn[0] >> fn[1] >> fn[2] >> c.shear.x() >> c.shear.y() >> c.shear.z()))
-      throw InputError(fmt::format("{}:{}: expected id1 id2 c1 c2 c3 nx ny nz overlap fnx fny fnz ftx fty ftz", path,
-                                   lineno));
-    out.push_back(c);
-  }
-  return out;
-}
-
-void read_motion(const std::string& path, Particles& p, const Mat3& L, const Cell& cell) {
-  std::ifstream in(path);
-  if (!in) throw InputError(fmt::format("cannot read motion file '{}'", path));
-  std::string line;
-  std::size_t i = 0;
-  int lineno = 0;
-  while (std::getline(in, line)) {
-    ++lineno;
-    if (line.empty() || line[0] == '#') continue;
-    if (i >= p.size()) throw InputError(fmt::format("{}:{}: more lines than particles ({})", path, lineno, p.size()));
-    std::istringstream s(line);
-    Vec3 v, w;
-    if (!(s >> v.x() >> v.y() >> v.z() >> w.x() >> w.y() >> w.z()))
-      throw InputError(fmt::format("{}:{}: expected vx vy vz wx wy wz", path, lineno));
-    const Vec3 x = cell.h * p.s[i];
-    p.v[i] = v - L * x;  // the fluctuation velocity (SPEC 3.2)
-    p.omega[i] = w;
-    p.angmom[i] = w.cwiseProduct(p.inertia[i]);  // spheres: L = I w
-    ++i;
-  }
-  if (i != p.size()) throw InputError(fmt::format("{}: {} lines for {} particles", path, i, p.size()));
-}
-
-Mat3 parse_matrix(const std::string& text) {
-  std::istringstream s(text);
-  Mat3 m;
-  for (int a = 0; a < 3; ++a)
-    for (int b = 0; b < 3; ++b)
-      if (!(s >> m(a, b))) throw InputError("--velocity-gradient: expected 9 numbers, row by row");
-  return m;
-}
-
-using Key = std::tuple<std::uint32_t, std::uint32_t, int, int, int>;
-
-std::map<Key, std::size_t> pair_index(const PairList& pairs) {
-  std::map<Key, std::size_t> index;
-  for (std::size_t k = 0; k < pairs.size(); ++k)
-    index[{pairs.i[k], pairs.j[k], pairs.image[k].x(), pairs.image[k].y(), pairs.image[k].z()}] = k;
-  return index;
-}
-
-// The key of the YADE contact in qsdem's list (i < j) and the sign of the force on id2 in terms of
-// the force on j.
-std::pair<Key, double> key_of(std::uint32_t id1, std::uint32_t id2, const Vec3i& c) {
-  if (id1 < id2) return {{id1, id2, c.x(), c.y(), c.z()}, 1.0};
-  return {{id2, id1, -c.x(), -c.y(), -c.z()}, -1.0};
-}
 
 int run(int argc, char** argv) {
   std::string case_path, packing, contacts_path, motion_path, out_dir, gradient;
@@ -143,29 +69,14 @@ int run(int argc, char** argv) {
     throw InputError(fmt::format("contact.law must be {} (the law of the contacts file's history)", HertzMindlin::name));
   model.sort_particles = false;  // particle k stays the file's line k (YADE's body id)
   model.skip_apart_pairs = false;
-  const Mat3 L = gradient.empty() ? Mat3::Zero() : parse_matrix(gradient);
+  const Mat3 L = gradient.empty() ? Mat3::Zero() : peer::parse_matrix(gradient);
   st.cell.L = L;
-  if (!motion_path.empty()) read_motion(motion_path, st.particles, L, st.cell);
+  if (!motion_path.empty()) peer::read_motion(motion_path, st.particles, L, st.cell);
   assign_damping(model, st.particles);
 
   build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
   adopt_history(st.pairs, HertzMindlin::history);
-  const std::vector<Contact> contacts = read_contacts(contacts_path);
-  {
-    const auto index = pair_index(st.pairs);
-    long missing = 0;
-    for (const Contact& c : contacts) {
-      const auto [key, sign] = key_of(c.id1, c.id2, c.cell_dist);
-      const auto found = index.find(key);
-      if (found == index.end()) {
-        ++missing;
-        continue;
-      }
-      const auto h = st.pairs.history.of(found->second);
-      for (int m = 0; m < 3; ++m) h[static_cast<std::size_t>(m)] = sign * c.shear[m];
-    }
-    if (missing) throw RunError(fmt::format("{} of the {} contacts are not in qsdem's pair list", missing, contacts.size()));
-  }
+  peer::adopt_contacts(st.pairs, peer::read_contacts(contacts_path));
 
   // The last step's contacts at its force evaluation: force on j and the unit normal from i to j.
   std::vector<std::tuple<std::size_t, Vec3, Vec3>> last;
