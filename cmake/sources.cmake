@@ -35,7 +35,10 @@ set(QSDEM_RUN_SOURCES
   src/qsdem/packing_io.cpp
   src/qsdem/progress.cpp
   src/qsdem/stop_signals.cpp
+  src/qsdem/run_directory.cpp
+  src/qsdem/summary.cpp
   src/qsdem/run.cpp
+  src/qsdem/bench.cpp
   src/qsdem/checkpoint.cpp
   src/qsdem/vtk.cpp
   src/qsdem/figures.cpp

@@ -559,6 +559,10 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   end_phase(run, phase, progress);
 }
 
+const std::string& phase_name(const Params& params, std::int32_t p) {
+  return params.protocol[std::min(static_cast<std::size_t>(p), params.protocol.size() - 1)].name;
+}
+
 PhaseRecord run_phase(const Params& params, std::size_t index, State& state, Progress& progress, SeriesWriter* rows) {
   RunProgress run;
   run.phase = static_cast<std::int32_t>(index);

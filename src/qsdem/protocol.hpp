@@ -124,6 +124,9 @@ struct RowSink {
 // gamma_ab = F_ab + F_ba with F = h h0^-1.
 std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0);
 
+// The name of phase p of the protocol (the last one's once all are done), for messages.
+const std::string& phase_name(const Params& params, std::int32_t p);
+
 // Runs phase run.phase of params.protocol, from its start or on from where `run` stopped, to its
 // end. Throws RunError when it cannot end (a step limit, a blow-up).
 void run_phase(const Params& params, State& state, RunProgress& run, const RowSink& rows, Progress& progress,
