@@ -29,6 +29,8 @@ set(QSDEM_RUN_SOURCES
   src/qsdem/generate.cpp
   src/qsdem/grading.cpp
   src/qsdem/phase_model.cpp
+  src/qsdem/row_schedule.cpp
+  src/qsdem/phase_recorder.cpp
   src/qsdem/protocol.cpp
   src/qsdem/files.cpp
   src/qsdem/output.cpp
