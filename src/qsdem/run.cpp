@@ -1,13 +1,11 @@
 #include "qsdem/run.hpp"
 
 #include <fmt/format.h>
-#include <omp.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <optional>
-#include <sstream>
 
 #include "qsdem/checkpoint.hpp"
 #include "qsdem/files.hpp"
@@ -21,7 +19,6 @@
 #include "qsdem/run_directory.hpp"
 #include "qsdem/stop_signals.hpp"
 #include "qsdem/summary.hpp"
-#include "qsdem/version.hpp"
 
 namespace qsdem {
 namespace {
@@ -58,7 +55,7 @@ class Execution {
       just_ended = true;
     }
     if (!just_ended && run_.phase > 0) finish_phase(run_.phase - 1, nullptr, nullptr);  // stopped while writing them
-    const nlohmann::json s = summary(note);
+    const nlohmann::json s = run_summary(params_, st_, run_, wall_before_ + process_s(), note);
     write_file_atomic(dir_ / "summary.json", json_text(s) + "\n");
     done("summary.json written");
     // A finished run needs no checkpoint: the older first, so that a checkpoint.qsck present means
@@ -223,78 +220,6 @@ class Execution {
     }
   }
 
-  nlohmann::json summary(const std::string& note) const {
-    const double wall = wall_before_ + process_s();
-    const double r_min = smallest_equiv_radius(st_.particles);
-    const double t_c =
-        critical_time({params_.material.density, params_.material.young_modulus, params_.material.poisson_ratio}, r_min);
-    const long own_steps = st_.step - run_.first_step;  // steps this run took (not a prepared sample's)
-    const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st_.particles.size());
-    nlohmann::json s;
-    s["version"] = QSDEM_VERSION;
-    s["build"] = build_record();
-    s["builds"] = nlohmann::json::array();
-    for (const std::string& b : run_.builds) s["builds"].push_back(nlohmann::json::parse(b));
-    s["case"] = params_.name;
-    s["config"] = {{"resolved_si", to_json(params_)}, {"as_written", params_.as_written}};
-    s["derived"] = {{"particles", st_.particles.size()},
-                    {"size_table", params_.sample.from.empty() && params_.sample.grading.empty() ? size_table_json(params_)
-                                                                                               : nlohmann::json()},
-                    {"sample_from", params_.sample.from},
-                    {"r_min_m", r_min},
-                    {"critical_time_s", t_c},
-                    {"dt_s", params_.step_ratio * t_c},
-                    {"threads", omp_get_max_threads()}};
-    if (params_.sample.from.empty() && !params_.sample.grading.empty())
-      s["derived"]["grading"] = grading_json(params_.sample.grading, params_.sample.total_particles, params_.sample.seed);
-    if (!params_.phase_list)
-      s["derived"]["triaxial_strain_rate_per_s"] = params_.triaxial.strain_rate / t_c;
-    if (!note.empty()) s["note"] = note;
-    if (!run_.changes.empty()) {
-      nlohmann::json changes = nlohmann::json::array();
-      std::istringstream lines(run_.changes);
-      for (std::string line; std::getline(lines, line);) changes.push_back(line);
-      s["resume_changes"] = changes;
-    }
-    nlohmann::json phases = nlohmann::json::array();
-    for (std::size_t p = 0; p < params_.protocol.size() && p < static_cast<std::size_t>(run_.phase); ++p)
-      phases.push_back(phase_json(params_.protocol, run_.phases, p, controller_end(p), params_.output.energy));
-    s["phases"] = phases;
-    // The first phase as the sample's compaction; the last, when it is another, as the test.
-    const PhaseRecord& first = run_.phases.front();
-    s["compaction"] = {{"steps", first.steps}, {"wall_s", first.wall_s}, {"final", measures_json(first.final)}};
-    s["void_ratio_after_compaction"] = first.final.void_ratio;
-    if (!run_.prepare_only && run_.phases.size() > 1) {
-      const nlohmann::json last =
-          phase_json(params_.protocol, run_.phases, run_.phases.size() - 1, controller_end(run_.phases.size() - 1),
-                     params_.output.energy);
-      s["triaxial"] = {{"steps", last["steps"]},
-                       {"rows", last["rows"]},
-                       {"wall_s", last["wall_s"]},
-                       {"final_e1", last["final_e1"]},
-                       {"max_lateral_stress_error", last["max_stress_error"]},
-                       {"mean_lateral_stress_error", last["mean_stress_error"]},
-                       {"max_shear_stress", last["max_shear_stress"]}};
-      if (last.contains("controller")) s["triaxial"]["controller"] = last["controller"];
-      for (const char* key : {"mean_ufr", "mean_iuf", "mean_imom", "peak_phi_deg", "peak_phi_e1", "final_ev"})
-        s[key] = last[key];
-    }
-    s["steps"] = own_steps;
-    if (!params_.phase_list)
-      s["steps_cover"] = run_.first_step == 0 ? (run_.prepare_only ? "compaction" : "compaction + triaxial")
-                                              : "triaxial of a prepared sample";
-    else
-      s["steps_cover"] = run_.first_step == 0 ? (run_.prepare_only ? "the first phase" : "every phase")
-                                              : "the phases after the first, of a prepared sample";
-    s["wall_s"] = wall;
-    s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
-    s["neighbor_builds"] = st_.neighbor.builds;
-    s["peak_rss_kib"] = peak_rss_kib();
-    s["stages"] = stage_json(st_.timers, own_steps);
-    s["stage_table"] = format_stage_table(st_.timers, own_steps);
-    return s;
-  }
-
   const Params& params_;
   State& st_;
   RunProgress& run_;
@@ -304,9 +229,6 @@ class Execution {
   Progress progress_;
   const double wall_before_;
 
-  const std::vector<double>* controller_end(std::size_t p) const {
-    return p < run_.controller_end.size() ? &run_.controller_end[p] : nullptr;
-  }
   const std::chrono::steady_clock::time_point t0_ = std::chrono::steady_clock::now();
   std::chrono::steady_clock::time_point last_save_ = std::chrono::steady_clock::now();
   SeriesWriter* rows_ = nullptr;  // the phase's file: on disk before each checkpoint counts its rows

@@ -1,6 +1,7 @@
 #include "qsdem/summary.hpp"
 
 #include <fmt/format.h>
+#include <omp.h>
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -8,14 +9,24 @@
 #include <cstdio>
 #include <memory>
 #include <optional>
+#include <sstream>
 
 #include "qsdem/controller.hpp"
 #include "qsdem/generate.hpp"
+#include "qsdem/grading.hpp"
+#include "qsdem/model.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/version.hpp"
 
 namespace qsdem {
 namespace {
+
+nlohmann::json measures_json(const Measures& m) {
+  return {{"p_Pa", m.mean_stress},  {"q_Pa", m.deviator},       {"s11_Pa", m.stress(0, 0)},
+          {"s22_Pa", m.stress(1, 1)}, {"s33_Pa", m.stress(2, 2)}, {"void_ratio", m.void_ratio},
+          {"ufr", m.ufr},           {"iuf", m.iuf},             {"imom", m.imom},
+          {"cn", m.coordination},   {"contacts", m.contacts},  {"ekin_J", m.ekin_trans + m.ekin_rot}};
+}
 
 // The common target (Pa) of the three normal components of a phase that holds them all at one
 // stress, else none. "Equal" allows for unit conversion's rounding ("400 kPa" and "0.4 MPa").
@@ -78,8 +89,23 @@ nlohmann::json phase_figures(const Protocol& protocol, const std::vector<PhaseRe
   return j;
 }
 
-}  // namespace
+// The size table of a generated sample: each class's shape, semi-axes, count and mass fraction.
+nlohmann::json size_table_json(const Params& params) {
+  nlohmann::json counts = nlohmann::json::array();
+  const auto table = resolve_table(params.sample);
+  double solid = 0;
+  for (const auto& c : table) solid += static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes);
+  for (const auto& c : table)
+    counts.push_back({{"shape", to_string(c.shape)},
+                      {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
+                      {"count", c.count},
+                      {"mass_fraction", static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes) / solid}});
+  return counts;
+}
 
+// Phase p, which has ended, as summary.json's `phases` entry. `records`: those of the protocol's
+// phases; `controller`: the phase's controller's state at its end (RunProgress::controller_end),
+// or none; `energy`: the run keeps the energy ledger (output.energy).
 nlohmann::json phase_json(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p,
                           const std::vector<double>* controller, bool energy) {
   const Phase& phase = protocol[p];
@@ -90,6 +116,85 @@ nlohmann::json phase_json(const Protocol& protocol, const std::vector<PhaseRecor
     if (nlohmann::json f = c->figures(); !f.empty()) j["controller"] = f;
   }
   return j;
+}
+
+// The state of phase p's controller at its end (RunProgress::controller_end), or none.
+const std::vector<double>* controller_end(const RunProgress& run, std::size_t p) {
+  return p < run.controller_end.size() ? &run.controller_end[p] : nullptr;
+}
+
+}  // namespace
+
+nlohmann::json run_summary(const Params& params, const State& st, const RunProgress& run, double wall,
+                           const std::string& note) {
+  const double r_min = smallest_equiv_radius(st.particles);
+  const double t_c =
+      critical_time({params.material.density, params.material.young_modulus, params.material.poisson_ratio}, r_min);
+  const long own_steps = st.step - run.first_step;  // steps this run took (not a prepared sample's)
+  const double particle_steps = static_cast<double>(own_steps) * static_cast<double>(st.particles.size());
+  nlohmann::json s;
+  s["version"] = QSDEM_VERSION;
+  s["build"] = build_record();
+  s["builds"] = nlohmann::json::array();
+  for (const std::string& b : run.builds) s["builds"].push_back(nlohmann::json::parse(b));
+  s["case"] = params.name;
+  s["config"] = {{"resolved_si", to_json(params)}, {"as_written", params.as_written}};
+  s["derived"] = {{"particles", st.particles.size()},
+                  {"size_table", params.sample.from.empty() && params.sample.grading.empty() ? size_table_json(params)
+                                                                                             : nlohmann::json()},
+                  {"sample_from", params.sample.from},
+                  {"r_min_m", r_min},
+                  {"critical_time_s", t_c},
+                  {"dt_s", params.step_ratio * t_c},
+                  {"threads", omp_get_max_threads()}};
+  if (params.sample.from.empty() && !params.sample.grading.empty())
+    s["derived"]["grading"] = grading_json(params.sample.grading, params.sample.total_particles, params.sample.seed);
+  if (!params.phase_list)
+    s["derived"]["triaxial_strain_rate_per_s"] = params.triaxial.strain_rate / t_c;
+  if (!note.empty()) s["note"] = note;
+  if (!run.changes.empty()) {
+    nlohmann::json changes = nlohmann::json::array();
+    std::istringstream lines(run.changes);
+    for (std::string line; std::getline(lines, line);) changes.push_back(line);
+    s["resume_changes"] = changes;
+  }
+  nlohmann::json phases = nlohmann::json::array();
+  for (std::size_t p = 0; p < params.protocol.size() && p < static_cast<std::size_t>(run.phase); ++p)
+    phases.push_back(phase_json(params.protocol, run.phases, p, controller_end(run, p), params.output.energy));
+  s["phases"] = phases;
+  // The first phase as the sample's compaction; the last, when it is another, as the test.
+  const PhaseRecord& first = run.phases.front();
+  s["compaction"] = {{"steps", first.steps}, {"wall_s", first.wall_s}, {"final", measures_json(first.final)}};
+  s["void_ratio_after_compaction"] = first.final.void_ratio;
+  if (!run.prepare_only && run.phases.size() > 1) {
+    const nlohmann::json last =
+        phase_json(params.protocol, run.phases, run.phases.size() - 1, controller_end(run, run.phases.size() - 1),
+                   params.output.energy);
+    s["triaxial"] = {{"steps", last["steps"]},
+                     {"rows", last["rows"]},
+                     {"wall_s", last["wall_s"]},
+                     {"final_e1", last["final_e1"]},
+                     {"max_lateral_stress_error", last["max_stress_error"]},
+                     {"mean_lateral_stress_error", last["mean_stress_error"]},
+                     {"max_shear_stress", last["max_shear_stress"]}};
+    if (last.contains("controller")) s["triaxial"]["controller"] = last["controller"];
+    for (const char* key : {"mean_ufr", "mean_iuf", "mean_imom", "peak_phi_deg", "peak_phi_e1", "final_ev"})
+      s[key] = last[key];
+  }
+  s["steps"] = own_steps;
+  if (!params.phase_list)
+    s["steps_cover"] = run.first_step == 0 ? (run.prepare_only ? "compaction" : "compaction + triaxial")
+                                            : "triaxial of a prepared sample";
+  else
+    s["steps_cover"] = run.first_step == 0 ? (run.prepare_only ? "the first phase" : "every phase")
+                                            : "the phases after the first, of a prepared sample";
+  s["wall_s"] = wall;
+  s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
+  s["neighbor_builds"] = st.neighbor.builds;
+  s["peak_rss_kib"] = peak_rss_kib();
+  s["stages"] = stage_json(st.timers, own_steps);
+  s["stage_table"] = format_stage_table(st.timers, own_steps);
+  return s;
 }
 
 nlohmann::json stage_json(const StageTimers& t, long steps) {
@@ -115,26 +220,6 @@ long peak_rss_kib() {
   rusage u{};
   getrusage(RUSAGE_SELF, &u);
   return u.ru_maxrss;
-}
-
-nlohmann::json measures_json(const Measures& m) {
-  return {{"p_Pa", m.mean_stress},  {"q_Pa", m.deviator},       {"s11_Pa", m.stress(0, 0)},
-          {"s22_Pa", m.stress(1, 1)}, {"s33_Pa", m.stress(2, 2)}, {"void_ratio", m.void_ratio},
-          {"ufr", m.ufr},           {"iuf", m.iuf},             {"imom", m.imom},
-          {"cn", m.coordination},   {"contacts", m.contacts},  {"ekin_J", m.ekin_trans + m.ekin_rot}};
-}
-
-nlohmann::json size_table_json(const Params& params) {
-  nlohmann::json counts = nlohmann::json::array();
-  const auto table = resolve_table(params.sample);
-  double solid = 0;
-  for (const auto& c : table) solid += static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes);
-  for (const auto& c : table)
-    counts.push_back({{"shape", to_string(c.shape)},
-                      {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
-                      {"count", c.count},
-                      {"mass_fraction", static_cast<double>(c.count) * ellipsoid_volume(c.semi_axes) / solid}});
-  return counts;
 }
 
 nlohmann::json build_record() {

@@ -1,5 +1,5 @@
-// summary.json (docs/physics.md 10.2) and its parts: the build that ran, a phase's figures, the
-// measures, the size table and the stages' times; and the table the CLI prints from it.
+// summary.json of a run (docs/physics.md 10.2), the record of the build that ran it and the
+// stages' times (which `qsdem bench` reports too); and the table the CLI prints from it.
 #pragma once
 #include <cstddef>
 #include <string>
@@ -8,8 +8,8 @@
 #include <nlohmann/json.hpp>
 
 #include "qsdem/config.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/protocol.hpp"
+#include "qsdem/run_progress.hpp"
+#include "qsdem/state.hpp"
 #include "qsdem/timers.hpp"
 
 namespace qsdem {
@@ -19,6 +19,12 @@ namespace qsdem {
 // differed from that commit, as a "-dirty" version says; null without git).
 nlohmann::json build_record();
 
+// summary.json of a run that has ended (docs/physics.md 10.2): the case, the sample, each phase's
+// figures, the steps, times and speed. `wall`: the wall time of every process that ran it (s);
+// `note`: what resume said of the checkpoint it continued from, or "".
+nlohmann::json run_summary(const Params& params, const State& st, const RunProgress& run, double wall,
+                           const std::string& note);
+
 // The short table the CLI prints at the end of a run.
 std::string format_run_table(const nlohmann::json& summary);
 
@@ -27,16 +33,5 @@ nlohmann::json stage_json(const StageTimers& t, long steps);
 
 // Peak resident set of this process (KiB).
 long peak_rss_kib();
-
-nlohmann::json measures_json(const Measures& m);
-
-// The size table of a generated sample: each class's shape, semi-axes, count and mass fraction.
-nlohmann::json size_table_json(const Params& params);
-
-// Phase p, which has ended, as summary.json's `phases` entry. `records`: those of the protocol's
-// phases; `controller`: the phase's controller's state at its end (RunProgress::controller_end),
-// or none; `energy`: the run keeps the energy ledger (output.energy).
-nlohmann::json phase_json(const Protocol& protocol, const std::vector<PhaseRecord>& records, std::size_t p,
-                          const std::vector<double>* controller, bool energy);
 
 }  // namespace qsdem
