@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <iostream>
 
+#include "qsdem/bench.hpp"
 #include "qsdem/config.hpp"
 #include "qsdem/grading.hpp"
 #include "qsdem/converge.hpp"
@@ -21,6 +22,7 @@
 #include "qsdem/run.hpp"
 #include "qsdem/study.hpp"
 #include "qsdem/study_analysis.hpp"
+#include "qsdem/summary.hpp"
 #include "qsdem/version.hpp"
 
 namespace {

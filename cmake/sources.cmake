@@ -29,13 +29,18 @@ set(QSDEM_RUN_SOURCES
   src/qsdem/generate.cpp
   src/qsdem/grading.cpp
   src/qsdem/phase_model.cpp
+  src/qsdem/row_schedule.cpp
+  src/qsdem/phase_recorder.cpp
   src/qsdem/protocol.cpp
   src/qsdem/files.cpp
   src/qsdem/output.cpp
   src/qsdem/packing_io.cpp
   src/qsdem/progress.cpp
   src/qsdem/stop_signals.cpp
+  src/qsdem/run_directory.cpp
+  src/qsdem/summary.cpp
   src/qsdem/run.cpp
+  src/qsdem/bench.cpp
   src/qsdem/checkpoint.cpp
   src/qsdem/vtk.cpp
   src/qsdem/figures.cpp

@@ -1,4 +1,4 @@
-// `qsdem bench` (run.hpp bench_packing): the state it times is the state given, stepped as a
+// `qsdem bench` (bench.hpp bench_packing): the state it times is the state given, stepped as a
 // run steps it (a checkpoint with its velocities and contact history), and its contact counts
 // are those of that state.
 #include <gtest/gtest.h>
@@ -9,7 +9,8 @@
 #include "qsdem/measures.hpp"
 #include "qsdem/packing_io.hpp"
 #include "qsdem/protocol.hpp"
-#include "qsdem/run.hpp"
+#include "qsdem/bench.hpp"
+#include "qsdem/run_directory.hpp"
 #include "qsdem/step.hpp"
 #include "test_support.hpp"
 

@@ -32,6 +32,7 @@
 #include "qsdem/output.hpp"
 #include "qsdem/protocol.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/run_directory.hpp"
 #include "qsdem/step.hpp"
 #include "qsdem/version.hpp"
 #include "test_support.hpp"

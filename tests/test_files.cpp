@@ -22,6 +22,7 @@
 #include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/run_directory.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -26,6 +26,7 @@
 #include "qsdem/generate.hpp"
 #include "qsdem/packing_io.hpp"
 #include "qsdem/run.hpp"
+#include "qsdem/run_directory.hpp"
 #include "qsdem/version.hpp"
 #include "test_support.hpp"
 

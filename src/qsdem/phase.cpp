@@ -1,5 +1,7 @@
 #include "qsdem/phase.hpp"
 
+#include <Eigen/LU>
+
 #include <algorithm>
 #include <cmath>
 
@@ -34,6 +36,17 @@ long planned_end(const Phase& phase, double step_ratio) {
       end = end < 0 ? n : std::min(end, n);
     }
   return end;
+}
+
+std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0) {
+  std::array<double, component_count> e{};
+  for (int k = 0; k < 3; ++k) e[static_cast<std::size_t>(k)] = 1 - h(k, k) / h0(k, k);
+  const Mat3 f = h * h0.inverse();
+  for (int c = 3; c < component_count; ++c) {
+    const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
+    e[static_cast<std::size_t>(c)] = f(a, b) + f(b, a);
+  }
+  return e;
 }
 
 }  // namespace qsdem

@@ -145,4 +145,8 @@ long planned_step(long from, double strain, double target, double step_ratio, do
 // strain), with its initial control values; -1 when it ends on a measured criterion only.
 long planned_end(const Phase& phase, double step_ratio);
 
+// The strain components of the cell h against the cell h0 (StopCriteria): e_kk = 1 - h_kk/h0_kk,
+// gamma_ab = F_ab + F_ba with F = h h0^-1.
+std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0);
+
 }  // namespace qsdem

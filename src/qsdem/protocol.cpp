@@ -11,6 +11,7 @@
 #include "qsdem/controller.hpp"
 #include "qsdem/damping/stage.hpp"
 #include "qsdem/fire.hpp"
+#include "qsdem/row_schedule.hpp"
 #include "qsdem/schedule.hpp"
 #include "qsdem/step.hpp"
 
@@ -81,55 +82,6 @@ PhaseState fresh_state(const Phase& phase) {
   return s;
 }
 
-// The last force evaluation of the phase as planned now (-1: it ends on measured criteria only).
-long planned_end(const Phase& phase, const PhaseState& s, double step_ratio) {
-  long end = phase.stop.steps > 0 ? phase.stop.steps - 1 : -1;
-  for (int c = 0; c < 3; ++c)
-    if (planned_strain(phase, c)) {
-      const auto k = static_cast<std::size_t>(c);
-      const long n = planned_step(s.segment_step[k], s.segment_strain[k], *phase.stop.strain[k], step_ratio,
-                                  s.controls.component[k].value);
-      end = end < 0 ? n : std::min(end, n);
-    }
-  return end;
-}
-
-// The force evaluation of the phase's next sample point by its cadence (the end is one too).
-long next_sample(const Phase& phase, const PhaseState& s, long rows, long end, double step_ratio) {
-  const Cadence& c = phase.output.cadence;
-  switch (c.kind) {
-    case Cadence::Kind::points: {
-      // row k of P at base + round((k - base_k) (end - base) / (P - base_k)); SPEC 8.4 from 0.
-      const long k = rows + 1;
-      if (k >= c.points) return end;
-      return s.row_base_step + std::lround(static_cast<double>(k - s.row_base_rows) *
-                                           static_cast<double>(end - s.row_base_step) /
-                                           static_cast<double>(c.points - s.row_base_rows));
-    }
-    case Cadence::Kind::every_steps:
-      return (rows + 1) * c.every_steps - 1;  // after every every_steps steps of the phase
-    case Cadence::Kind::every_strain: {
-      if (!is_normal(c.strain_component)) return -1;  // a shear strain is measured: measured_row
-      const auto k = static_cast<std::size_t>(c.strain_component);
-      const double eps = s.controls.component[k].value;
-      const double target = static_cast<double>(rows + 1) * c.every_strain * (eps > 0 ? 1 : -1);
-      return planned_step(s.segment_step[k], s.segment_strain[k], target, step_ratio, eps);
-    }
-  }
-  return end;
-}
-
-// Whether the next row of a cadence by the strain of a shear component (not planned: the cell's
-// normal components may move under it) is due at the state's last force evaluation: its strain
-// gamma_ab (phase_strain) has passed the next multiple of the interval, in the rate's direction.
-bool measured_row(const Phase& phase, const PhaseState& s, long rows, const State& st, const Mat3& h0) {
-  const Cadence& c = phase.output.cadence;
-  if (c.kind != Cadence::Kind::every_strain || is_normal(c.strain_component)) return false;
-  const auto k = static_cast<std::size_t>(c.strain_component);
-  const double direction = s.controls.component[k].value > 0 ? 1.0 : -1.0;
-  return direction * phase_strain(st.stress_h, h0)[k] >= static_cast<double>(rows + 1) * c.every_strain;
-}
-
 // Whether a measured end (phase.hpp: stop.stress, stop.strain of a component whose strain is not
 // planned) holds at the state's last force evaluation.
 bool measured_end(const Phase& phase, PhaseState& s, const State& st, const Mat3& h0) {
@@ -156,6 +108,19 @@ bool measured_end(const Phase& phase, PhaseState& s, const State& st, const Mat3
   return reached;
 }
 
+// The measures of the state's last force evaluation n, the run stopped when they show a blow-up
+// (a phase that does not end in equilibrium: its kinetic energy too).
+Measures measure_checked(const Params& params, const Phase& phase, State& st, long n) {
+  Measures m;
+  {
+    ScopedStage ts(st.timers, Stage::measures);
+    m = measure(st);
+  }
+  check_finite(m, st, phase.name.c_str(), n);
+  if (!phase.stop.equilibrium) check_kinetic(m, params, phase, n);
+  return m;
+}
+
 // The phase's stops, its strain and stress ones against the values now, for a message.
 std::string stops_now(const Phase& phase, const State& st, const Mat3& h0) {
   const auto strain = phase_strain(st.stress_h, h0);
@@ -174,22 +139,20 @@ std::string stops_now(const Phase& phase, const State& st, const Mat3& h0) {
   return out;
 }
 
-bool in_equilibrium(const Measures& m, const StopCriteria::Equilibrium& e, double error) {
-  return m.contacts > 0 && error < e.stress_tolerance && (!e.ufr || m.ufr < *e.ufr) && (!e.imom || m.imom < *e.imom);
+// Step n of the phase, the run stopped when the loading went on until the cell no longer holds the
+// sample.
+void step_in_phase(const Model& model, State& st, Schedule& schedule, const Phase& phase, long n, const Mat3& h0) {
+  try {
+    step(model, st, schedule);
+  } catch (const CellTooSmall& e) {
+    throw RunError(fmt::format("{} stopped after {} step {}: the cell has deformed until {}, before the phase "
+                               "reached its stops ({}): check that the loading moves towards them",
+                               phase.name, phase.name, n, e.fact, stops_now(phase, st, h0)));
+  }
 }
 
-// After a controller changed the control values at force evaluation n (they apply from n + 1):
-// a planned strain's segment restarts at n + 1 with its nominal strain there, and the rows still
-// to come are spread from the last one.
-void controls_changed(const PhaseControls& before, PhaseState& s, long n, long rows, double step_ratio) {
-  for (std::size_t k = 0; k < 3; ++k) {
-    const ComponentControl& old = before.component[k];
-    if (old.kind != Kind::strain_rate || old.value == s.controls.component[k].value) continue;
-    s.segment_strain[k] += static_cast<double>(n + 1 - s.segment_step[k]) * (step_ratio * old.value);
-    s.segment_step[k] = n + 1;
-  }
-  s.row_base_step = std::max(s.last_row_step, 0L);
-  s.row_base_rows = rows;
+bool in_equilibrium(const Measures& m, const StopCriteria::Equilibrium& e, double error) {
+  return m.contacts > 0 && error < e.stress_tolerance && (!e.ufr || m.ufr < *e.ufr) && (!e.imom || m.imom < *e.imom);
 }
 
 // The phase's start, once (a resumed phase keeps what its checkpoint saved): its record's start,
@@ -210,84 +173,6 @@ void begin_phase(const Params& params, State& st, RunProgress& run) {
   } else if (!ps.live) {
     ps = fresh_state(phase);  // a checkpoint of an older format: no controller changed anything
   }
-}
-
-// Where a row is in its phase: its force evaluation n, the phase's step, the mean stress p0 at the
-// phase's start and the axial strain e1 of the file's reference.
-struct RowPlace {
-  long n;
-  double dt, p0, e1;
-};
-
-// Writes the row of the state's last force evaluation to the phase's file (and classes.csv) and
-// adds it to the phase's record (SPEC 8.4).
-void record_row(const Phase& phase, State& st, RunProgress& run, const RowSink& sink, const Measures& m,
-                const RowPlace& at, std::optional<double> strain_rate, std::optional<Relaxation> relaxation) {
-  PhaseRecord& rec = run.current();
-  PhaseState& ps = run.state;
-  const PhaseRecord& ref = run.phases.at(static_cast<std::size_t>(sink.reference_phase));
-  const long n = at.n;
-  const double e1 = at.e1;
-  const double ev = m.volume / ref.v0 - 1;
-  std::array<double, 3> gamma{};
-  if (sink.columns.shear) {
-    const auto e = phase_strain(st.stress_h, ref.h0);
-    gamma = {e[3], e[4], e[5]};
-  }
-  const bool run_clock = phase.output.clock == PhaseOutput::Clock::run;
-  const long row_step = run_clock ? st.step - 1 : n;
-  const double row_time = run_clock ? st.time - at.dt : static_cast<double>(n) * at.dt;
-  SeriesRow r{row_step, row_time, e1, ev, m, &phase.name, m.mean_stress - at.p0, gamma, strain_rate, st.energy};
-  r.relaxation = relaxation;
-  if (sink.writer) {
-    ScopedStage ts(st.timers, Stage::output);
-    sink.writer->write(series_row(r, sink.columns));
-  }
-  if (sink.classes) {
-    ScopedStage ts(st.timers, Stage::output);
-    sink.classes->write(classes_rows(r, class_measures(st, *sink.size_classes)));
-  }
-  ++rec.rows;
-  ps.last_row_step = n;
-  rec.ufr += m.ufr;
-  rec.iuf += m.iuf;
-  rec.imom += m.imom;
-  if (m.friction_angle_deg > rec.peak_phi_deg) {
-    rec.peak_phi_deg = m.friction_angle_deg;
-    rec.peak_phi_e1 = e1;
-  }
-  for (int c = 0; c < component_count; ++c) {
-    const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
-    const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
-    if (is_normal(c) && cc.kind == Kind::stress) {
-      const double err = std::abs(m.stress(a, a) / cc.value - 1);
-      rec.max_stress_error = std::max(rec.max_stress_error, err);
-      rec.stress_error += err;
-    } else if (!is_normal(c) && m.mean_stress > 0) {
-      const double target = cc.kind == Kind::stress ? cc.value : 0.0;
-      rec.max_shear_stress = std::max(rec.max_shear_stress, std::abs(m.stress(a, b) - target) / m.mean_stress);
-    }
-  }
-  rec.final_ev = ev;
-  rec.final_e1 = e1;
-  rec.final = m;
-  rec.energy_end = st.energy;
-}
-
-// The phase's end in the run's records (its controller's last saved state) and its closing line.
-void end_phase(RunProgress& run, const Phase& phase, Progress& progress) {
-  const PhaseRecord& rec = run.current();
-  run.controller_end.resize(run.phases.size());
-  run.controller_end.at(static_cast<std::size_t>(run.phase)) = run.state.controller;
-  const double rows = static_cast<double>(std::max(1L, rec.rows));
-  if (phase.stop.equilibrium)
-    progress.end(fmt::format("{} done: {} steps, p = {:.4g} kPa, void ratio {:.4f}, UFR {:.3g}, {}", phase.name,
-                             rec.steps, rec.final.mean_stress / 1e3, rec.final.void_ratio, rec.final.ufr,
-                             format_duration(rec.wall_s)));
-  else
-    progress.end(fmt::format("{} done: {} steps, peak phi {:.2f} deg at e1 {:.2f}%, mean UFR {:.3g}, mean IMom {:.3g}, {}",
-                             phase.name, rec.steps, rec.peak_phi_deg, 100 * rec.peak_phi_e1, rec.ufr / rows,
-                             rec.imom / rows, format_duration(rec.wall_s)));
 }
 
 // The phase with solver = "fire" (docs/physics.md 5.7): increments of strain, each from rest, then
@@ -373,9 +258,7 @@ void run_fire_phase(const Params& params, State& st, RunProgress& run, const Row
     ended = last || measured_end(phase, ps, st, rec.h0) || (phase.stop.steps > 0 && rec.steps >= phase.stop.steps);
     const double e1 = 1 - st.stress_h(2, 2) / ref.h0(2, 2);
     record_row(phase, st, run, sink, m, {rec.steps - 1, model.dt, p0, e1}, std::nullopt, Relaxation{iterations, relaxed});
-    progress.update(std::abs(phase_strain(st.stress_h, rec.h0)[kd]),
-                    fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | {} iterations{}", 100 * e1,
-                                m.friction_angle_deg, m.ufr, iterations, relaxed ? "" : " (not relaxed)"));
+    progress.update(std::abs(phase_strain(st.stress_h, rec.h0)[kd]), increment_line(m, e1, iterations, relaxed));
     if (ended) break;
     if (hook) hook(true);
     if (limit_reached())
@@ -384,6 +267,26 @@ void run_fire_phase(const Params& params, State& st, RunProgress& run, const Row
                                  phase.name, phase.stop.max_steps, phase.keys.max_steps, 100 * e1, phase.keys.max_steps));
   }
   end_phase(run, phase, progress);
+}
+
+// Stops the run: the phase took stop.max_steps steps without reaching its end.
+[[noreturn]] void out_of_steps(const Phase& phase, const State& st, const PhaseControls& controls,
+                               const PhaseRecord& rec) {
+  const Measures m = measure(st);
+  if (const auto& equilibrium = phase.stop.equilibrium) {
+    const double target = largest_normal_target(controls);
+    throw RunError(fmt::format(
+        "{} did not reach equilibrium in {} steps ({}): p = {:.4g} kPa (target {:.4g}), {} {:.3g} (tolerance {:.3g}); "
+        "raise {} or {}, or relax {}",
+        phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3, target / 1e3,
+        equilibrium->ufr ? "UFR" : "IMom", equilibrium->ufr ? m.ufr : m.imom,
+        equilibrium->ufr ? *equilibrium->ufr : *equilibrium->imom, phase.keys.max_steps, phase.keys.damping_ratio,
+        phase.keys.ufr_tolerance));
+  }
+  throw RunError(fmt::format("{} did not reach its end in {} steps ({}): p = {:.4g} kPa, e1 = {:.4g} %; raise {} or "
+                             "check its stop criteria",
+                             phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3,
+                             100 * (1 - st.stress_h(2, 2) / rec.h0(2, 2)), phase.keys.max_steps));
 }
 
 }  // namespace
@@ -417,17 +320,6 @@ void BlowUpWatch::check(const State& st, const Params& params, const char* phase
         phase, phase, step, pair(), 100 * now, 100 * params.limits.max_overlap));
   recent_[static_cast<std::size_t>(seen_ % window)] = now;
   ++seen_;
-}
-
-std::array<double, component_count> phase_strain(const Mat3& h, const Mat3& h0) {
-  std::array<double, component_count> e{};
-  for (int k = 0; k < 3; ++k) e[static_cast<std::size_t>(k)] = 1 - h(k, k) / h0(k, k);
-  const Mat3 f = h * h0.inverse();
-  for (int c = 3; c < component_count; ++c) {
-    const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
-    e[static_cast<std::size_t>(c)] = f(a, b) + f(b, a);
-  }
-  return e;
 }
 
 void run_phase(const Params& params, State& st, RunProgress& run, const RowSink& sink, Progress& progress,
@@ -470,13 +362,7 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
   bool ended = false;
   while (!ended) {
     const long n = rec.steps;  // the force evaluation of this step
-    try {
-      step(model, st, schedule);
-    } catch (const CellTooSmall& e) {  // the loading went on until the cell no longer holds the sample
-      throw RunError(fmt::format("{} stopped after {} step {}: the cell has deformed until {}, before the phase "
-                                 "reached its stops ({}): check that the loading moves towards them",
-                                 phase.name, phase.name, n, e.fact, stops_now(phase, st, rec.h0)));
-    }
+    step_in_phase(model, st, schedule, phase, n, rec.h0);
     watch.check(st, params, name, n);
     ++rec.steps;
     rec.wall_s = wall_before + seconds_since(t0);  // before the hook, which may save a checkpoint
@@ -497,31 +383,20 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
       if (limit_reached()) break;
       continue;
     }
-    Measures m;
-    {
-      ScopedStage ts(st.timers, Stage::measures);
-      m = measure(st);
-    }
-    check_finite(m, st, name, n);
-    if (!equilibrium) check_kinetic(m, params, phase, n);
+    const Measures m = measure_checked(params, phase, st, n);
     const double error = stress_error(m, ps.controls);
     ended = ended || (check && in_equilibrium(m, *equilibrium, error));
     const double e1 = 1 - st.stress_h(2, 2) / ref.h0(2, 2);
     // The eps' of the rate-controlled component at which the steps up to this row were taken.
-    const double strain_rate_now =
-        phase.rate_component >= 0 ? ps.controls.component[static_cast<std::size_t>(phase.rate_component)].value : 0.0;
-    if (row || ended)
-      record_row(phase, st, run, sink, m, {n, model.dt, p0, e1},
-                 phase.rate_component >= 0 ? std::optional<double>(strain_rate_now) : std::nullopt, std::nullopt);
+    const std::optional<double> strain_rate =
+        phase.rate_component >= 0
+            ? std::optional<double>(ps.controls.component[static_cast<std::size_t>(phase.rate_component)].value)
+            : std::nullopt;
+    if (row || ended) record_row(phase, st, run, sink, m, {n, model.dt, p0, e1}, strain_rate, std::nullopt);
     if (equilibrium)
-      progress.update(static_cast<double>(rec.steps - steps_at_start),
-                      fmt::format("step {} | p {:.4g} kPa | stress error {:.2g}% | UFR {:.3g} | e {:.4f}", rec.steps,
-                                  m.mean_stress / 1e3, 100 * error, m.ufr, m.void_ratio));
+      progress.update(static_cast<double>(rec.steps - steps_at_start), equilibrium_line(rec.steps, m, error));
     else
-      progress.update(static_cast<double>(n - steps_at_start),
-                      fmt::format("e1 {:.2f}% | phi {:.2f} deg | UFR {:.3g} | IMom {:.3g}{}", 100 * e1,
-                                  m.friction_angle_deg, m.ufr, m.imom,
-                                  phase.rate_component >= 0 ? fmt::format(" | eps' {:.3g}", strain_rate_now) : ""));
+      progress.update(static_cast<double>(n - steps_at_start), loading_line(m, e1, strain_rate));
     if (ended) {
       if (controller) {
         controller->at_end({n, rec.rows, &m, phase_strain(st.stress_h, rec.h0), model.critical_time}, ps.controls);
@@ -539,24 +414,12 @@ void run_phase(const Params& params, State& st, RunProgress& run, const RowSink&
     if (hook) hook(row);
     if (limit_reached()) break;
   }
-  if (!ended) {
-    const Measures m = measure(st);
-    if (equilibrium) {
-      const double target = largest_normal_target(ps.controls);
-      throw RunError(fmt::format(
-          "{} did not reach equilibrium in {} steps ({}): p = {:.4g} kPa (target {:.4g}), {} {:.3g} (tolerance {:.3g}); "
-          "raise {} or {}, or relax {}",
-          phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3, target / 1e3,
-          equilibrium->ufr ? "UFR" : "IMom", equilibrium->ufr ? m.ufr : m.imom,
-          equilibrium->ufr ? *equilibrium->ufr : *equilibrium->imom, phase.keys.max_steps, phase.keys.damping_ratio,
-          phase.keys.ufr_tolerance));
-    }
-    throw RunError(fmt::format("{} did not reach its end in {} steps ({}): p = {:.4g} kPa, e1 = {:.4g} %; raise {} or "
-                               "check its stop criteria",
-                               phase.name, phase.stop.max_steps, phase.keys.max_steps, m.mean_stress / 1e3,
-                               100 * (1 - st.stress_h(2, 2) / rec.h0(2, 2)), phase.keys.max_steps));
-  }
+  if (!ended) out_of_steps(phase, st, ps.controls, rec);
   end_phase(run, phase, progress);
+}
+
+const std::string& phase_name(const Params& params, std::int32_t p) {
+  return params.protocol[std::min(static_cast<std::size_t>(p), params.protocol.size() - 1)].name;
 }
 
 PhaseRecord run_phase(const Params& params, std::size_t index, State& state, Progress& progress, SeriesWriter* rows) {

@@ -42,11 +42,6 @@ struct Interrupted : std::runtime_error {
   int signal;
 };
 
-// File names inside a run directory.
-inline constexpr const char* checkpoint_file = "checkpoint.qsck";
-inline constexpr const char* prepared_sample_file = "sample.qsck";
-inline constexpr const char* run_lock_file = ".run.lock";
-
 // Runs the case and writes DIR/series.csv, DIR/compaction.csv, DIR/compacted.packing,
 // DIR/sample.qsck, DIR/final.packing, DIR/case.toml and DIR/summary.json (with prepare_only: no
 // series.csv nor final.packing; a run of a prepared sample does not compact: no compaction files).
@@ -60,29 +55,8 @@ nlohmann::json run_case(const Params& params, const RunOptions& options);
 // a bad sample.from).
 State new_sample(const Params& params, RunProgress& run);
 
-// The engine's build, as summary.json and study.json record it: version (QSDEM_VERSION), commit
-// (the full hash of the source's HEAD; null without git) and tree_clean (false when a tracked file
-// differed from that commit, as a "-dirty" version says; null without git).
-nlohmann::json build_record();
-
 // Continues the run in `dir` from its newest good checkpoint (and finishes a run stopped while
 // writing its results), with options.sets applied.
 nlohmann::json resume_run(const std::filesystem::path& dir, const RunOptions& options);
-
-// The short table the CLI prints at the end of a run.
-std::string format_run_table(const nlohmann::json& summary);
-
-// `qsdem bench`: steps a state `steps` times in a fixed cell, with no output, and returns the
-// machine-readable speed record (docs/benchmarks.md). `source` is
-//   - a packing file (docs/packing-format.md): particles at rest, no contact history, stepped with
-//     the triaxial friction and damping of the case `case_path` (required);
-//   - a checkpoint file (*.qsck) or a run directory holding one (DIR/sample.qsck of `qsdem
-//     prepare`, else DIR/checkpoint.qsck): the state a run steps, with its velocities and contact
-//     history, stepped with the friction and damping of the phase it is in. The case is the
-//     checkpoint's own, or `case_path` when given (its material and time.step_ratio must equal it).
-// `overrides` are --set strings applied to the case. With `as_spheres`, every ellipsoid is first
-// replaced by its equal-volume sphere at the same centre, at rest and without contact history.
-nlohmann::json bench_packing(const std::filesystem::path& source, const std::string& case_path,
-                             const std::vector<std::string>& overrides, long steps, bool as_spheres = false);
 
 }  // namespace qsdem

@@ -24,9 +24,10 @@
 #include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
 #include "qsdem/progress.hpp"
-#include "qsdem/run.hpp"
+#include "qsdem/run_directory.hpp"
 #include "qsdem/stop_signals.hpp"
 #include "qsdem/study_analysis.hpp"
+#include "qsdem/summary.hpp"
 #include "qsdem/types.hpp"
 
 extern char** environ;
