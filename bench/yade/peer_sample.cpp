@@ -23,7 +23,7 @@
 #include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/packing_io.hpp"
 #include "qsdem/phase_model.hpp"
-#include "qsdem/run.hpp"
+#include "qsdem/run_directory.hpp"
 
 using namespace qsdem;
 
