@@ -401,6 +401,31 @@ void turn_spheroids(int k, TurnLanes& t, Particles& p, std::span<double> surface
   t.size = 0;
 }
 
+// Every |L_k| below 2^-540 (a rattler's L decayed by damping): each L_k^2 < 2^-1080 rounds to 0,
+// so |L|^2 = 0, spheroid_rotation returns q itself (`still`) and the chord is 0. Such an L is
+// often subnormal, and an operation on a subnormal costs ~50 ns here (a microcode assist, for the
+// whole vector it is in): these spheroids stay out of the lanes and get only their omega, by the
+// lanes' arithmetic (turn_lane).
+inline bool resting(const Vec3& l) {
+  constexpr double tiny = 0x1p-540;
+  return std::abs(l.x()) < tiny && std::abs(l.y()) < tiny && std::abs(l.z()) < tiny;
+}
+
+template <int K>
+inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
+  double ex, ey, ez;
+  body_axis<K>(parts(q), ex, ey, ez);
+  const double f = (inv_s - inv_perp) * (ex * l.x() + ey * l.y() + ez * l.z());
+  return {inv_perp * l.x() + f * ex, inv_perp * l.y() + f * ey, inv_perp * l.z() + f * ez};
+}
+
+inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, const Vec3& inv_inertia) {
+  const double inv_s = inv_inertia[k], inv_perp = inv_inertia[(k + 1) % 3];
+  if (k == 0) return resting_omega<0>(q, l, inv_s, inv_perp);
+  if (k == 1) return resting_omega<1>(q, l, inv_s, inv_perp);
+  return resting_omega<2>(q, l, inv_s, inv_perp);
+}
+
 }  // namespace
 
 Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
@@ -435,11 +460,27 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const ShapeKind* const shape = p.shape.data();
   const Vec3* const inertia = p.inertia.data();
   double* const path = surface_path.data();
+  // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
+  // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
+  // rounds to 0: s and the path would keep their bits, and are left alone (no subnormal operation).
+  const double largest = step_map.cwiseAbs().maxCoeff();
+  const double slow = largest > 0 ? std::min(0x1p-556 / (3 * largest), 0x1p-540) : 0.0;
+  const auto still = [slow](const Vec3& v, const Vec3& s) {
+    constexpr double far = 0x1p-500;
+    return std::abs(v.x()) < slow && std::abs(v.y()) < slow && std::abs(v.z()) < slow && std::abs(s.x()) >= far &&
+           std::abs(s.y()) >= far && std::abs(s.z()) >= far;
+  };
   for (std::size_t i = lo; i < hi; ++i) {
-    pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
-    if (track) path[i] += dt * vel[i].norm();
+    if (!still(vel[i], pos[i])) {
+      pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
+      if (track) path[i] += dt * vel[i].norm();
+    }
     if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
     if (const int k = symmetry_axis(inertia[i]); k >= 0) {
+      if (resting(p.angmom[i])) {
+        p.omega[i] = resting_omega(k, p.q[i], p.angmom[i], p.inv_inertia[i]);
+        continue;
+      }
       TurnLanes& t = lanes[k];
       load_lane(t, t.size++, p, static_cast<std::uint32_t>(i), k);
       if (t.size == TurnLanes::capacity) turn_spheroids(k, t, p, surface_path, track, dt);
