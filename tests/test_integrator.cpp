@@ -272,3 +272,59 @@ TEST(Integrator, DampingActsOnTranslationRotationOrBoth) {
     }
   }
 }
+
+// SPEC 5.2: a rattler's momenta decay geometrically under viscous damping; once every component
+// of v (of L) is below 2^-540 the kick sets it to zero, so they never pass through the subnormal
+// numbers. Above the bound the kick is the plain one, bit for bit, also with a subnormal component
+// beside a normal one. Every kick path: viscous, local (in vector lanes), and either with energy
+// tracking.
+TEST(Integrator, RattlerMomentaSettleToZeroWithoutSubnormals) {
+  const auto subnormal = [](const Vec3& x) {
+    return std::fpclassify(x.x()) == FP_SUBNORMAL || std::fpclassify(x.y()) == FP_SUBNORMAL ||
+           std::fpclassify(x.z()) == FP_SUBNORMAL;
+  };
+  for (const bool local : {false, true}) {
+    for (const bool track : {false, true}) {
+      Particles p;
+      p.add(0, ShapeKind::sphere, Vec3::Constant(kRmin), kRho, Vec3::Constant(0.5), Quat::Identity());
+      p.add(1, ShapeKind::ellipsoid, Vec3(1.5, 1.0, 1.0) * kRmin, kRho, Vec3::Constant(0.5), Quat::Identity());
+      p.add(2, ShapeKind::sphere, Vec3::Constant(kRmin), kRho, Vec3::Constant(0.5), Quat::Identity());
+      Model model;
+      model.dt = 1e-7;
+      if (local) model.damping.cundall_translation = model.damping.cundall_rotation = 0.1;
+      // Viscous: A dt = 2/3 halves the momenta at each kick; local: no force, no change.
+      const double a = local ? 0.0 : (2.0 / 3) / model.dt;
+      for (std::size_t i = 0; i < 3; ++i) {
+        p.damping_translation[i] = p.damping_rotation[i] = a;
+        p.v[i] = 0x1p-500 * Vec3(1, -0.5, 0.25);
+        p.angmom[i] = 0x1p-500 * Vec3(-0.25, 1, 0.5);
+      }
+      p.v[2] = Vec3(1e-310, 0.1, 0);  // a normal component beside a subnormal one: not settled
+      p.angmom[2] = Vec3(0, 1e-310, 1e-6);
+      if (local) p.v[0] = Vec3(0x1p-541, 0, -0x1p-541), p.angmom[1] = Vec3(0, 0x1p-541, 0);  // settled at once
+      std::vector<double> dissipated(3), kinetic(3);
+      const KickEnergy energy = track ? KickEnergy{dissipated.data(), kinetic.data()} : KickEnergy{};
+      bool settled_v = false, settled_l = false;
+      for (int n = 0; n < 60; ++n) {
+        const Particles before = p;
+        integrate_velocities(model, p, 0, SIZE_MAX, energy);
+        for (std::size_t i = 0; i < 2; ++i) {
+          EXPECT_FALSE(subnormal(p.v[i]) || subnormal(p.angmom[i]) || (i == 0 && subnormal(p.omega[i])))
+              << "kick " << n << ", particle " << i;
+          const Vec3 v = damped_kick(before.v[i], Vec3::Zero(), a, model.dt);
+          const Vec3 l = damped_kick(before.angmom[i], Vec3::Zero(), a, model.dt);
+          const bool v_small = v.cwiseAbs().maxCoeff() < 0x1p-540, l_small = l.cwiseAbs().maxCoeff() < 0x1p-540;
+          EXPECT_EQ(p.v[i], v_small ? Vec3::Zero() : v) << "kick " << n << ", particle " << i;
+          EXPECT_EQ(p.angmom[i], l_small ? Vec3::Zero() : l) << "kick " << n << ", particle " << i;
+          settled_v |= v_small && before.v[i] != Vec3::Zero();
+          settled_l |= l_small && before.angmom[i] != Vec3::Zero();
+        }
+        EXPECT_NE(p.v[2].y(), 0.0) << "kick " << n;
+        EXPECT_NE(p.angmom[2].z(), 0.0) << "kick " << n;
+      }
+      EXPECT_TRUE(settled_v) << "local " << local << " track " << track;
+      EXPECT_TRUE(settled_l) << "local " << local << " track " << track;
+      if (!local) EXPECT_EQ(p.v[0], Vec3::Zero()) << "60 halvings from 2^-500";
+    }
+  }
+}

@@ -11,9 +11,11 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <random>
 #include <iomanip>
+#include <iostream>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -438,16 +440,17 @@ TEST(Rotation, SphereFastPathUnchanged) {
 // and cosine of the half angles by their Taylor polynomials and the lanes beyond the polynomials'
 // range run again one at a time. Every spheroid must get exactly what free_rotation (one body,
 // no lanes) gives it: prolate and oblate ones (symmetry axes 0 and 2), with turns per step from
-// 1e-8 rad to beyond the Taylor range, some without angular momentum, mixed with spheres and an
-// asymmetric body, more of them than one set of lanes. Bit for bit, as is the surface path
-// dt |v| + 2 a |q_new - q_old| (both parts are summed apart from the turn: Eigen's norm()).
+// 1e-8 rad to beyond the Taylor range, some without angular momentum or with a subnormal one (a
+// rattler's), mixed with spheres and an asymmetric body, more of them than one set of lanes. Bit
+// for bit, as are the surface path dt |v| + 2 a |q_new - q_old| (both parts are summed apart from
+// the turn: Eigen's norm()) and s + dt h^-1 v, also at subnormal velocities.
 TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   std::mt19937_64 rng(20261130);
   std::uniform_real_distribution<double> uniform(0, 1);
   std::normal_distribution<double> normal(0, 1);
   Particles p;
   const double dt = 1e-6;
-  int beyond_taylor = 0, within_taylor = 0, off_unit = 0;
+  int beyond_taylor = 0, within_taylor = 0, off_unit = 0, tiny = 0;
   for (std::uint32_t i = 0; i < 300; ++i) {
     const double c = 1e-3 * (0.5 + uniform(rng)), a = c * (1.2 + uniform(rng));
     const Vec3 axes = i % 37 == 5 ? Vec3::Constant(c) : i % 41 == 7 ? kAxes321 : i % 2 ? Vec3(a, c, c) : Vec3(a, a, c);
@@ -456,7 +459,16 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
           q.normalized());
     const double turn = i % 23 == 0 ? 0 : 1e-8 * std::pow(0.4 / 1e-8, uniform(rng));  // omega dt
     p.angmom[i] = p.inertia[i].minCoeff() * turn / dt * Vec3(normal(rng), normal(rng), normal(rng)).normalized();
+    // A rattler's L decayed by damping, to subnormal and just around 2^-540 (below it a spheroid
+    // skips the lanes: |L|^2 rounds to 0).
+    if (i % 19 == 4) {
+      const double scale[] = {1e-310, 0x1p-541, 0x1p-539, 1e-200};
+      p.angmom[i] = scale[(i / 19) % 4] * Vec3(normal(rng), normal(rng), normal(rng)).normalized();
+      ++tiny;
+    }
     p.v[i] = 0.1 * Vec3(normal(rng), normal(rng), normal(rng));  // (the translation part of the path)
+    // A rattler's v decayed to subnormal, and just around the bound below which s is left alone.
+    if (i % 17 == 6) p.v[i] *= std::array{1e-310, 0x1p-560, 0x1p-530, 1e-150}[(i / 17) % 4];
     (0.5 * turn > 0.05 ? beyond_taylor : within_taylor)++;
     // |q|^2 = 1 + 1e-6: beyond the lanes' Newton step for the norm (they run such a lane again).
     if (i % 29 == 3) p.q[i].coeffs() *= 1 + 5e-7, ++off_unit;
@@ -470,6 +482,8 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   int spheroids = 0;
   for (std::size_t i = 0; i < p.size(); ++i) {
     const double moved = dt * before.v[i].norm();
+    const Vec3 s_expected = before.s[i] + (dt * cell.h_inv) * before.v[i];
+    EXPECT_EQ(p.s[i], s_expected) << "particle " << i;
     if (p.shape[i] == ShapeKind::sphere) {
       EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs());
       EXPECT_EQ(path[i], moved) << "particle " << i;
@@ -482,6 +496,7 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
     EXPECT_EQ(path[i], moved + 2 * p.bound_radius[i] * std::sqrt(chord2)) << "particle " << i;
     const Vec3 omega = omega_of(expected, p.inertia[i], p.angmom[i]);
     EXPECT_LE((p.omega[i] - omega).norm(), 1e-12 * omega.norm()) << "particle " << i;
+    if (p.angmom[i].norm() < 1e-100) EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs()) << "particle " << i;
     const Vec3& m = p.inertia[i];
     spheroids += m.x() != m.z() && (m.x() == m.y() || m.y() == m.z());
   }
@@ -489,4 +504,48 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   EXPECT_GT(beyond_taylor, 20);
   EXPECT_GT(within_taylor, 100);
   EXPECT_GT(off_unit, 5);
+  EXPECT_GT(tiny, 10);
+}
+
+// The spheroid's turn (SPEC 5.4) takes the sine and cosine of half angles below 0.05 from Taylor
+// polynomials to x^7 and x^8 (libm above). Against the closed form with libm's trigonometry
+// (Eigen's AngleAxis), over turns per step from 1e-9 rad to beyond the switch, just below, at
+// and just above it (precession half angle 0.05): the polynomials' remainders are below
+// 0.05^9/9! = 5.4e-18 (sine, 1.1e-16 of it) and 0.05^10/10! = 2.7e-20 (cosine), so what is left
+// is the round-off of the two products and the normalisation, a few ulps of a unit quaternion:
+// 2e-15 is ten of them (a Taylor series one term short would miss it at 0.05 by 0.05^7/7! = 1.5e-13).
+TEST(Rotation, SpheroidTurnMatchesLibmTrigonometry) {
+  std::mt19937_64 rng(20261206);
+  std::normal_distribution<double> normal(0, 1);
+  const double dt = 1e-6;
+  const Vec3 inertia = moments(Vec3(1.5e-3, 1e-3, 1e-3));  // prolate: symmetry axis x
+  const double i_s = inertia.x(), i_perp = inertia.y();
+  std::vector<double> half_angles;  // of the precession, 0.5 dt |L| / I_perp
+  for (double h = 1e-9; h < 0.2; h *= 1.7) half_angles.push_back(h);
+  for (double h : {0.05 * (1 - 1e-12), 0.05, 0.05 * (1 + 1e-12)}) half_angles.push_back(h);
+  double worst = 0;
+  for (double h : half_angles) {
+    for (int trial = 0; trial < 8; ++trial) {
+      const Quat q = Quat(normal(rng), normal(rng), normal(rng), normal(rng)).normalized();
+      const Vec3 l = 2 * h * i_perp / dt * Vec3(normal(rng), normal(rng), normal(rng)).normalized();
+      const Vec3 e = q * Vec3::UnitX();
+      const double spin = dt * l.dot(e) * (1 / i_s - 1 / i_perp);
+      const Quat expected = (Eigen::AngleAxisd(dt * l.norm() / i_perp, l.normalized()) * q *
+                             Eigen::AngleAxisd(spin, Vec3::UnitX()))
+                                .normalized();
+      // Both ends of the lanes: one body (free_rotation) and advance_positions.
+      Particles p;
+      p.add(0, ShapeKind::ellipsoid, Vec3(1.5e-3, 1e-3, 1e-3), kRho, Vec3::Constant(0.5), q);
+      p.angmom[0] = l;
+      Model model;
+      model.dt = dt;
+      advance_positions(model, make_cell(Mat3::Identity()), p);
+      for (const Quat& got : {free_rotation(q, p.inertia[0], l, dt), p.q[0]}) {
+        const double error = std::min((got.coeffs() - expected.coeffs()).norm(), (got.coeffs() + expected.coeffs()).norm());
+        EXPECT_LE(error, 2e-15) << "precession half angle " << h;
+        worst = std::max(worst, error);
+      }
+    }
+  }
+  std::cout << "largest |q - q_libm|: " << worst << "\n";
 }

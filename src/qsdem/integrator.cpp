@@ -22,6 +22,19 @@ namespace {
   return {cundall_damped(f.x(), v.x(), alpha), cundall_damped(f.y(), v.y(), alpha), cundall_damped(f.z(), v.z(), alpha)};
 }
 
+// After the kick a velocity or angular momentum whose every component is below 2^-540 (SI) is
+// set to zero (SPEC 5.2): a rattler's decays geometrically under viscous damping, and would pass
+// through the subnormal numbers, each operation on which costs ~50 ns here (a microcode assist).
+// 2^-540 = 2.8e-163 m/s or kg m^2/s moves or turns a particle by far less than the round-off of
+// its position and orientation (advance_positions: |L|^2 rounds to 0, no turn).
+constexpr double kSettled = 0x1p-540;
+[[gnu::always_inline]] inline bool settled(double x, double y, double z) {
+  return (std::abs(x) < kSettled) & (std::abs(y) < kSettled) & (std::abs(z) < kSettled);
+}
+[[gnu::always_inline]] inline Vec3 settle(const Vec3& x) {
+  return settled(x.x(), x.y(), x.z()) ? Vec3::Zero() : x;
+}
+
 // The kick with local damping of particles [lo, hi) without the energy terms: kick_particles<true,
 // false> on components, in vector lanes, translation and rotation in two loops (one loop of both
 // ran out of registers). One particle at a time it cost 4-5 times the viscous kick (1001 spheres,
@@ -41,6 +54,8 @@ QSDEM_CLONES double local_kick_translation(const double* inv_mass, const Vec3* f
     vx = vx + dt * cundall_damped(ax, vx + half * ax, alpha);
     vy = vy + dt * cundall_damped(ay, vy + half * ay, alpha);
     vz = vz + dt * cundall_damped(az, vz + half * az, alpha);
+    const bool still = settled(vx, vy, vz);
+    vx = still ? 0.0 : vx, vy = still ? 0.0 : vy, vz = still ? 0.0 : vz;
     vel[i].x() = vx, vel[i].y() = vy, vel[i].z() = vz;
     const double v2 = (vx * vx + vy * vy) + vz * vz;
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2)
@@ -59,6 +74,8 @@ QSDEM_CLONES void local_kick_spheres(const Vec3* inv_inertia, const Vec3* torque
     lx = lx + dt * cundall_damped(mx, lx + half * mx, alpha);
     ly = ly + dt * cundall_damped(my, ly + half * my, alpha);
     lz = lz + dt * cundall_damped(mz, lz + half * mz, alpha);
+    const bool still = settled(lx, ly, lz);
+    lx = still ? 0.0 : lx, ly = still ? 0.0 : ly, lz = still ? 0.0 : lz;
     angmom[i].x() = lx, angmom[i].y() = ly, angmom[i].z() = lz;
     const double inv = inv_inertia[i].x();
     omega[i].x() = lx * inv, omega[i].y() = ly * inv, omega[i].z() = lz * inv;
@@ -81,6 +98,8 @@ QSDEM_CLONES void local_kick_bodies(const Vec3* inv_inertia, const Vec3* torque,
     lx = lx + dt * cundall_damped(mx, sx, alpha);
     ly = ly + dt * cundall_damped(my, sy, alpha);
     lz = lz + dt * cundall_damped(mz, sz, alpha);
+    const bool still = settled(lx, ly, lz);
+    lx = still ? 0.0 : lx, ly = still ? 0.0 : ly, lz = still ? 0.0 : lz;
     angmom[i].x() = lx, angmom[i].y() = ly, angmom[i].z() = lz;
     const double inv = inv_inertia[i].x();
     omega[i].x() = sphere ? lx * inv : ox, omega[i].y() = sphere ? ly * inv : oy, omega[i].z() = sphere ? lz * inv : oz;
@@ -138,12 +157,12 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
       moment = cundall_damped(moment, shape[i] == ShapeKind::sphere ? Vec3(angmom[i] + 0.5 * dt * moment) : omega[i],
                               alpha_rot);
     }
-    const Vec3 v = kick(vel[i], accel);
+    const Vec3 v = settle(kick(vel[i], accel));
     const Vec3 v_old = vel[i], l_old = angmom[i];
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    angmom[i] = kick_rot(angmom[i], moment);
+    angmom[i] = settle(kick_rot(angmom[i], moment));
     if constexpr (Track) {
       // The kick's energy identity: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the damping
       // took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
@@ -401,6 +420,31 @@ void turn_spheroids(int k, TurnLanes& t, Particles& p, std::span<double> surface
   t.size = 0;
 }
 
+// Every |L_k| below 2^-540 (a rattler's L decayed by damping): each L_k^2 < 2^-1080 rounds to 0,
+// so |L|^2 = 0, spheroid_rotation returns q itself (`still`) and the chord is 0. Such an L is
+// often subnormal, and an operation on a subnormal costs ~50 ns here (a microcode assist, for the
+// whole vector it is in): these spheroids stay out of the lanes and get only their omega, by the
+// lanes' arithmetic (turn_lane).
+inline bool resting(const Vec3& l) {
+  constexpr double tiny = 0x1p-540;
+  return std::abs(l.x()) < tiny && std::abs(l.y()) < tiny && std::abs(l.z()) < tiny;
+}
+
+template <int K>
+inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
+  double ex, ey, ez;
+  body_axis<K>(parts(q), ex, ey, ez);
+  const double f = (inv_s - inv_perp) * (ex * l.x() + ey * l.y() + ez * l.z());
+  return {inv_perp * l.x() + f * ex, inv_perp * l.y() + f * ey, inv_perp * l.z() + f * ez};
+}
+
+inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, const Vec3& inv_inertia) {
+  const double inv_s = inv_inertia[k], inv_perp = inv_inertia[(k + 1) % 3];
+  if (k == 0) return resting_omega<0>(q, l, inv_s, inv_perp);
+  if (k == 1) return resting_omega<1>(q, l, inv_s, inv_perp);
+  return resting_omega<2>(q, l, inv_s, inv_perp);
+}
+
 }  // namespace
 
 Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
@@ -435,11 +479,27 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const ShapeKind* const shape = p.shape.data();
   const Vec3* const inertia = p.inertia.data();
   double* const path = surface_path.data();
+  // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
+  // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
+  // rounds to 0: s and the path would keep their bits, and are left alone (no subnormal operation).
+  const double largest = step_map.cwiseAbs().maxCoeff();
+  const double slow = largest > 0 ? std::min(0x1p-556 / (3 * largest), 0x1p-540) : 0.0;
+  const auto still = [slow](const Vec3& v, const Vec3& s) {
+    constexpr double far = 0x1p-500;
+    return std::abs(v.x()) < slow && std::abs(v.y()) < slow && std::abs(v.z()) < slow && std::abs(s.x()) >= far &&
+           std::abs(s.y()) >= far && std::abs(s.z()) >= far;
+  };
   for (std::size_t i = lo; i < hi; ++i) {
-    pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
-    if (track) path[i] += dt * vel[i].norm();
+    if (!still(vel[i], pos[i])) {
+      pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
+      if (track) path[i] += dt * vel[i].norm();
+    }
     if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
     if (const int k = symmetry_axis(inertia[i]); k >= 0) {
+      if (resting(p.angmom[i])) {
+        p.omega[i] = resting_omega(k, p.q[i], p.angmom[i], p.inv_inertia[i]);
+        continue;
+      }
       TurnLanes& t = lanes[k];
       load_lane(t, t.size++, p, static_cast<std::uint32_t>(i), k);
       if (t.size == TurnLanes::capacity) turn_spheroids(k, t, p, surface_path, track, dt);
