@@ -324,7 +324,9 @@ TEST(Integrator, RattlerMomentaSettleToZeroWithoutSubnormals) {
       }
       EXPECT_TRUE(settled_v) << "local " << local << " track " << track;
       EXPECT_TRUE(settled_l) << "local " << local << " track " << track;
-      if (!local) EXPECT_EQ(p.v[0], Vec3::Zero()) << "60 halvings from 2^-500";
+      if (!local) {
+        EXPECT_EQ(p.v[0], Vec3::Zero()) << "60 halvings from 2^-500";
+      }
     }
   }
 }
