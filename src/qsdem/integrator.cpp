@@ -22,8 +22,8 @@ namespace {
   return {cundall_damped(f.x(), v.x(), alpha), cundall_damped(f.y(), v.y(), alpha), cundall_damped(f.z(), v.z(), alpha)};
 }
 
-// After the kick a velocity or angular momentum whose every component is below 2^-540 (SI) is
-// set to zero (SPEC 5.2): a rattler's decays geometrically under viscous damping, and would pass
+// After the viscous kick a velocity or angular momentum whose every component is below 2^-540 (SI)
+// is set to zero (SPEC 5.2): a rattler's decays geometrically under viscous damping, and would pass
 // through the subnormal numbers, each operation on which costs ~50 ns here (a microcode assist).
 // 2^-540 = 2.8e-163 m/s or kg m^2/s moves or turns a particle by far less than the round-off of
 // its position and orientation (advance_positions: |L|^2 rounds to 0, no turn).
@@ -54,8 +54,6 @@ QSDEM_CLONES double local_kick_translation(const double* inv_mass, const Vec3* f
     vx = vx + dt * cundall_damped(ax, vx + half * ax, alpha);
     vy = vy + dt * cundall_damped(ay, vy + half * ay, alpha);
     vz = vz + dt * cundall_damped(az, vz + half * az, alpha);
-    const bool still = settled(vx, vy, vz);
-    vx = still ? 0.0 : vx, vy = still ? 0.0 : vy, vz = still ? 0.0 : vz;
     vel[i].x() = vx, vel[i].y() = vy, vel[i].z() = vz;
     const double v2 = (vx * vx + vy * vy) + vz * vz;
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2)
@@ -74,8 +72,6 @@ QSDEM_CLONES void local_kick_spheres(const Vec3* inv_inertia, const Vec3* torque
     lx = lx + dt * cundall_damped(mx, lx + half * mx, alpha);
     ly = ly + dt * cundall_damped(my, ly + half * my, alpha);
     lz = lz + dt * cundall_damped(mz, lz + half * mz, alpha);
-    const bool still = settled(lx, ly, lz);
-    lx = still ? 0.0 : lx, ly = still ? 0.0 : ly, lz = still ? 0.0 : lz;
     angmom[i].x() = lx, angmom[i].y() = ly, angmom[i].z() = lz;
     const double inv = inv_inertia[i].x();
     omega[i].x() = lx * inv, omega[i].y() = ly * inv, omega[i].z() = lz * inv;
@@ -98,8 +94,6 @@ QSDEM_CLONES void local_kick_bodies(const Vec3* inv_inertia, const Vec3* torque,
     lx = lx + dt * cundall_damped(mx, sx, alpha);
     ly = ly + dt * cundall_damped(my, sy, alpha);
     lz = lz + dt * cundall_damped(mz, sz, alpha);
-    const bool still = settled(lx, ly, lz);
-    lx = still ? 0.0 : lx, ly = still ? 0.0 : ly, lz = still ? 0.0 : lz;
     angmom[i].x() = lx, angmom[i].y() = ly, angmom[i].z() = lz;
     const double inv = inv_inertia[i].x();
     omega[i].x() = sphere ? lx * inv : ox, omega[i].y() = sphere ? ly * inv : oy, omega[i].z() = sphere ? lz * inv : oz;
@@ -157,12 +151,13 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
       moment = cundall_damped(moment, shape[i] == ShapeKind::sphere ? Vec3(angmom[i] + 0.5 * dt * moment) : omega[i],
                               alpha_rot);
     }
-    const Vec3 v = settle(kick(vel[i], accel));
+    // Cundall's damping leaves a free particle's momentum alone: only the viscous decay settles it.
+    const Vec3 v = Local ? kick(vel[i], accel) : settle(kick(vel[i], accel));
     const Vec3 v_old = vel[i], l_old = angmom[i];
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    angmom[i] = settle(kick_rot(angmom[i], moment));
+    angmom[i] = Local ? kick_rot(angmom[i], moment) : settle(kick_rot(angmom[i], moment));
     if constexpr (Track) {
       // The kick's energy identity: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the damping
       // took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
