@@ -6,6 +6,8 @@
 #include <omp.h>
 
 #include <cstdlib>
+#include <optional>
+#include <utility>
 
 #include "qsdem/config.hpp"
 #include "qsdem/contact/hertz_mindlin.hpp"
@@ -89,34 +91,36 @@ void BM_StepFCC(benchmark::State& bs) {
 }
 BENCHMARK(BM_StepFCC)->Args({8, 1})->Args({8, 2})->Args({13, 1})->Args({13, 2})->Unit(benchmark::kMillisecond);
 
-void BM_StepPacking(benchmark::State& bs) {
+// The packing QSDEM_BENCH_PACKING with the triaxial model of the case QSDEM_BENCH_CASE; none (and
+// the benchmark skipped) when either is unset.
+std::optional<std::pair<State, Model>> env_packing(benchmark::State& bs) {
   const char* packing = std::getenv("QSDEM_BENCH_PACKING");
   const char* case_file = std::getenv("QSDEM_BENCH_CASE");
   if (!packing || !case_file) {
     bs.SkipWithError("set QSDEM_BENCH_PACKING and QSDEM_BENCH_CASE");
-    return;
+    return std::nullopt;
   }
-  omp_set_num_threads(static_cast<int>(bs.range(0)));
   const Params params = load_case(case_file);
   State st = read_packing(packing, params.material.density);
-  const Model model = triaxial_model(params, st);
-  run_steps(bs, std::move(st), model);
+  Model model = triaxial_model(params, st);
+  return std::pair{std::move(st), std::move(model)};
+}
+
+void BM_StepPacking(benchmark::State& bs) {
+  omp_set_num_threads(static_cast<int>(bs.range(0)));
+  auto loaded = env_packing(bs);
+  if (!loaded) return;
+  run_steps(bs, std::move(loaded->first), loaded->second);
 }
 BENCHMARK(BM_StepPacking)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
 
 // The kick alone (integrate_velocities, one thread) on the packing after 200 steps, with nd 0.5 %
 // (arg 0) or local damping 0.1 (arg 1): the two kicks on the same forces and velocities.
 void BM_KickPacking(benchmark::State& bs) {
-  const char* packing = std::getenv("QSDEM_BENCH_PACKING");
-  const char* case_file = std::getenv("QSDEM_BENCH_CASE");
-  if (!packing || !case_file) {
-    bs.SkipWithError("set QSDEM_BENCH_PACKING and QSDEM_BENCH_CASE");
-    return;
-  }
   omp_set_num_threads(1);
-  const Params params = load_case(case_file);
-  State st = read_packing(packing, params.material.density);
-  Model model = triaxial_model(params, st);
+  auto loaded = env_packing(bs);
+  if (!loaded) return;
+  auto& [st, model] = *loaded;
   if (bs.range(0) == 1) model.damping = resolve_damping("local", {0.1, model.material.wave_speed(), model.r_min});
   assign_damping(model, st.particles);
   evaluate_forces(model, st);

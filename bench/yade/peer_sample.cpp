@@ -16,11 +16,9 @@
 #include <filesystem>
 #include <iostream>
 #include <string>
-#include <variant>
 
 #include "peer_state.hpp"
 #include "qsdem/checkpoint.hpp"
-#include "qsdem/contact/hertz_mindlin.hpp"
 #include "qsdem/packing_io.hpp"
 #include "qsdem/phase_model.hpp"
 #include "qsdem/run_directory.hpp"
@@ -56,15 +54,8 @@ int run(int argc, char** argv) {
   if (yade.particles.size() != c.state.particles.size())
     throw InputError(fmt::format("{} has {} particles, the prepared sample {}", packing, yade.particles.size(),
                                  c.state.particles.size()));
-  const Model model = triaxial_model(params, yade);
-  if (!std::holds_alternative<HertzMindlin>(contact_law_of(model)))
-    throw InputError(fmt::format("contact.law must be {} (the law of the contacts file's history)", HertzMindlin::name));
-  const Mat3 L = gradient.empty() ? Mat3::Zero() : peer::parse_matrix(gradient);
-  peer::read_motion(motion_path, yade.particles, L, yade.cell);
-  yade.cell.L = L;
-  build_pairs(yade.particles, yade.cell, model.skin, yade.pairs, yade.neighbor);
-  adopt_history(yade.pairs, HertzMindlin::history);
-  peer::adopt_contacts(yade.pairs, peer::read_contacts(contacts_path));
+  const std::size_t contacts = peer::adopt_yade_state(yade, triaxial_model(params, yade), gradient, motion_path,
+                                                      contacts_path);
 
   State& st = c.state;
   st.particles = std::move(yade.particles);
@@ -77,21 +68,12 @@ int run(int argc, char** argv) {
   save_checkpoint(out / prepared_sample_file, c.case_text, c.case_source, st, c.run);
   load_checkpoint(out / prepared_sample_file);  // refuses what does not fit together
   std::cout << fmt::format("{}: {} particles, {} listed pairs, {} contacts with YADE's history\n",
-                           (out / prepared_sample_file).string(), st.particles.size(), st.pairs.size(),
-                           peer::read_contacts(contacts_path).size());
+                           (out / prepared_sample_file).string(), st.particles.size(), st.pairs.size(), contacts);
   return 0;
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
-  try {
-    return run(argc, argv);
-  } catch (const InputError& e) {
-    std::cerr << "qsdem_peer_sample: " << e.what() << "\n";
-    return 2;
-  } catch (const std::exception& e) {
-    std::cerr << "qsdem_peer_sample: " << e.what() << "\n";
-    return 3;
-  }
+  return peer::tool_main("qsdem_peer_sample", [&] { return run(argc, argv); });
 }

@@ -4,7 +4,9 @@
 #include <fmt/format.h>
 
 #include <cstdint>
+#include <exception>
 #include <fstream>
+#include <iostream>
 #include <map>
 #include <sstream>
 #include <string>
@@ -13,8 +15,11 @@
 
 #include "qsdem/cell.hpp"
 #include "qsdem/config.hpp"
+#include "qsdem/contact/hertz_mindlin.hpp"
+#include "qsdem/model.hpp"
 #include "qsdem/neighbor.hpp"
 #include "qsdem/particles.hpp"
+#include "qsdem/state.hpp"
 
 namespace peer {
 using namespace qsdem;
@@ -110,6 +115,37 @@ inline void adopt_contacts(PairList& pairs, const std::vector<Contact>& contacts
     for (int m = 0; m < 3; ++m) h[static_cast<std::size_t>(m)] = sign * c.shear[m];
   }
   if (missing) throw RunError(fmt::format("{} of the {} contacts are not in qsdem's pair list", missing, contacts.size()));
+}
+
+// YADE's state on a packing read in YADE's body order: the cell's velocity gradient (9 numbers row
+// by row, or none: 0), the particles' motion when `motion_path` is given, a fresh pair list and every
+// contact's stored tangential force. Returns the number of YADE's contacts. The model's law must be
+// HertzMindlin, the law of that history.
+inline std::size_t adopt_yade_state(State& st, const Model& model, const std::string& gradient,
+                                    const std::string& motion_path, const std::string& contacts_path) {
+  if (!std::holds_alternative<HertzMindlin>(contact_law_of(model)))
+    throw InputError(fmt::format("contact.law must be {} (the law of the contacts file's history)", HertzMindlin::name));
+  st.cell.L = gradient.empty() ? Mat3::Zero() : parse_matrix(gradient);
+  if (!motion_path.empty()) read_motion(motion_path, st.particles, st.cell.L, st.cell);
+  build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
+  adopt_history(st.pairs, HertzMindlin::history);
+  const std::vector<Contact> contacts = read_contacts(contacts_path);
+  adopt_contacts(st.pairs, contacts);
+  return contacts.size();
+}
+
+// A peer tool's main: its run, with input errors as exit code 2 and any other as 3, named `tool`.
+template <class Run>
+int tool_main(const char* tool, Run&& run) {
+  try {
+    return run();
+  } catch (const InputError& e) {
+    std::cerr << tool << ": " << e.what() << "\n";
+    return 2;
+  } catch (const std::exception& e) {
+    std::cerr << tool << ": " << e.what() << "\n";
+    return 3;
+  }
 }
 
 }  // namespace peer

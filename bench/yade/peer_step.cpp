@@ -65,18 +65,11 @@ int run(int argc, char** argv) {
   const Params params = load_case(case_path, overrides);
   State st = read_packing(packing, params.material.density);
   Model model = triaxial_model(params, st);
-  if (!std::holds_alternative<HertzMindlin>(contact_law_of(model)))
-    throw InputError(fmt::format("contact.law must be {} (the law of the contacts file's history)", HertzMindlin::name));
   model.sort_particles = false;  // particle k stays the file's line k (YADE's body id)
   model.skip_apart_pairs = false;
-  const Mat3 L = gradient.empty() ? Mat3::Zero() : peer::parse_matrix(gradient);
-  st.cell.L = L;
-  if (!motion_path.empty()) peer::read_motion(motion_path, st.particles, L, st.cell);
+  peer::adopt_yade_state(st, model, gradient, motion_path, contacts_path);
+  const Mat3 L = st.cell.L;
   assign_damping(model, st.particles);
-
-  build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
-  adopt_history(st.pairs, HertzMindlin::history);
-  peer::adopt_contacts(st.pairs, peer::read_contacts(contacts_path));
 
   // The last step's contacts at its force evaluation: force on j and the unit normal from i to j.
   std::vector<std::tuple<std::size_t, Vec3, Vec3>> last;
@@ -129,13 +122,5 @@ int run(int argc, char** argv) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  try {
-    return run(argc, argv);
-  } catch (const InputError& e) {
-    std::cerr << "qsdem_peer_step: " << e.what() << "\n";
-    return 2;
-  } catch (const std::exception& e) {
-    std::cerr << "qsdem_peer_step: " << e.what() << "\n";
-    return 3;
-  }
+  return peer::tool_main("qsdem_peer_step", [&] { return run(argc, argv); });
 }
