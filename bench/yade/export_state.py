@@ -20,20 +20,8 @@ if len(sys.argv) != 3:
 scene, out = sys.argv[1], sys.argv[2]
 os.makedirs(out, exist_ok=True)
 O.load(scene)
-hs, L = O.cell.hSize, O.cell.velGrad
-h = hs + O.dt * L * hs
-with open(os.path.join(out, "packing"), "w") as f:
-    f.write("# written by bench/yade/export_state.py: a YADE periodic packing; lengths in metres\n")
-    f.write("format qsdem-packing 1\n")
-    f.write("cell " + " ".join(repr(float(h[i, j])) for i in range(3) for j in range(3)) + "\n")
-    f.write(f"particles {len(O.bodies)}\n")
-    for b in O.bodies:
-        x, r = b.state.pos, b.shape.radius
-        f.write(f"{x[0]!r} {x[1]!r} {x[2]!r} {r!r} {r!r} {r!r} 1 0 0 0\n")
-with open(os.path.join(out, "motion.txt"), "w") as f:
-    for b in O.bodies:
-        v, w = b.state.vel, b.state.angVel
-        f.write(f"{v[0]!r} {v[1]!r} {v[2]!r} {w[0]!r} {w[1]!r} {w[2]!r}\n")
+peer.write_packing(os.path.join(out, "packing"), peer.next_cell())
+peer.write_motion(os.path.join(out, "motion.txt"))
 with open(os.path.join(out, "velocity_gradient.txt"), "w") as f:
-    f.write(" ".join(repr(float(L[i, j])) for i in range(3) for j in range(3)) + "\n")
+    f.write(peer.velocity_gradient() + "\n")
 print(f"export_state: {len(O.bodies)} bodies")

@@ -155,10 +155,24 @@ def symmetric_eigenvalues(s):
     return [a[0][0], a[1][1], a[2][2]]
 
 
-def write_packing(path):
-    """The bodies as a qsdem packing (docs/packing-format.md), in body-id order, centres as YADE has
-    them (unwrapped: the image keys of write_contacts refer to them)."""
+def next_cell():
+    """The cell (I + dt L) hSize that YADE's next force evaluation sees: YADE moves the cell at the
+    start of a step, the positions with the kick after it."""
     hs = O.cell.hSize
+    return hs + O.dt * O.cell.velGrad * hs
+
+
+def velocity_gradient():
+    """The cell's velocity gradient L, 9 numbers row by row (--velocity-gradient of the peer tools)."""
+    g = O.cell.velGrad
+    return " ".join(repr(float(g[a, b])) for a in range(3) for b in range(3))
+
+
+def write_packing(path, cell=None):
+    """The bodies as a qsdem packing (docs/packing-format.md), in body-id order, centres as YADE has
+    them (unwrapped: the image keys of write_contacts refer to them), in the cell matrix `cell`
+    (default: hSize)."""
+    hs = O.cell.hSize if cell is None else cell
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
         f.write("# written by bench/yade: a YADE periodic packing; lengths in metres; centres unwrapped\n")
@@ -169,6 +183,15 @@ def write_packing(path):
             x, r = b.state.pos, b.shape.radius
             f.write(f"{x[0]!r} {x[1]!r} {x[2]!r} {r!r} {r!r} {r!r} 1 0 0 0\n")
     os.replace(tmp, path)
+
+
+def write_motion(path):
+    """Per body in id order: velocity and angular velocity as YADE keeps them (total, with the mean
+    field: qsdem_peer_step and qsdem_peer_sample take the fluctuation v - L x)."""
+    with open(path, "w") as f:
+        for b in O.bodies:
+            v, w = b.state.vel, b.state.angVel
+            f.write(f"{v[0]!r} {v[1]!r} {v[2]!r} {w[0]!r} {w[1]!r} {w[2]!r}\n")
 
 
 def write_contacts(path):

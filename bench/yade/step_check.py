@@ -47,30 +47,14 @@ O.cell.velGrad = L
 O.run(warmup, True)
 
 
-def velocity_gradient():
-    g = O.cell.velGrad
-    return " ".join(repr(float(g[a, b])) for a in range(3) for b in range(3))
-
-
 def write_state(d):
     """The state before a step: positions with the cell they belong to (YADE integrates the cell
     at the start of the next step, so the positions are those of (I + dt L) hSize), contacts and
     velocities."""
     os.makedirs(d, exist_ok=True)
-    hs = O.cell.hSize
-    h = hs + O.dt * O.cell.velGrad * hs
-    with open(os.path.join(d, "packing"), "w") as f:
-        f.write("format qsdem-packing 1\n")
-        f.write("cell " + " ".join(repr(float(h[i, j])) for i in range(3) for j in range(3)) + "\n")
-        f.write(f"particles {len(O.bodies)}\n")
-        for b in O.bodies:
-            x, r = b.state.pos, b.shape.radius
-            f.write(f"{x[0]!r} {x[1]!r} {x[2]!r} {r!r} {r!r} {r!r} 1 0 0 0\n")
+    peer.write_packing(os.path.join(d, "packing"), peer.next_cell())
     peer.write_contacts(os.path.join(d, "contacts.txt"))
-    with open(os.path.join(d, "motion.txt"), "w") as f:
-        for b in O.bodies:
-            v, w = b.state.vel, b.state.angVel
-            f.write(f"{v[0]!r} {v[1]!r} {v[2]!r} {w[0]!r} {w[1]!r} {w[2]!r}\n")
+    peer.write_motion(os.path.join(d, "motion.txt"))
 
 
 before = os.path.join(out, "before")
@@ -92,7 +76,8 @@ g = O.cell.velGrad
 # The kick of SPEC 6.2 on YADE's own resultants of the step and the velocities it started from
 # (in the fluctuation frame), against the velocities YADE's NewtonIntegrator made of them.
 before_motion = [[float(x) for x in l.split()] for l in open(os.path.join(before, "motion.txt"))]
-before_pos = [[float(x) for x in l.split()[:3]] for l in open(os.path.join(before, "packing")).readlines()[3:]]
+before_pos = [[float(x) for x in l.split()[:3]]
+              for l in [l for l in open(os.path.join(before, "packing")) if not l.startswith("#")][3:]]
 kick_dv, kick_dw, kick_v, kick_w = 0.0, 0.0, 0.0, 0.0
 
 
@@ -125,7 +110,7 @@ qsdem_out = os.path.join(out, "qsdem")
 cmd = [tool, "--case", case, "--set", f"damping.model=local", "--set", f"damping.ratio={alpha!r}",
        "--set", f"triaxial.friction={mu!r}", "--packing", os.path.join(before, "packing"),
        "--contacts", os.path.join(before, "contacts.txt"), "--motion", os.path.join(before, "motion.txt"),
-       "--velocity-gradient", velocity_gradient(), "--steps", str(steps), "--out", qsdem_out]
+       "--velocity-gradient", peer.velocity_gradient(), "--steps", str(steps), "--out", qsdem_out]
 done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 if done.returncode != 0:
     raise SystemExit(f"qsdem_peer_step failed ({done.returncode}): {' '.join(cmd)}\n{done.stdout}")
@@ -282,7 +267,7 @@ if steps == 1:
 
 report = {
     "scene": scene, "alpha": alpha, "friction": mu, "rate": rate, "warmup": warmup, "steps": steps,
-    "velocity_gradient": velocity_gradient(),
+    "velocity_gradient": peer.velocity_gradient(),
     "contacts_yade": len(yade_forces), "contacts_qsdem": len(qsdem_forces), "contacts_common": len(common),
     "mean_normal_force_N": mean_fn, "mean_tangential_force_N": mean_ft,
     "normal_force_diff_max_rel": max(rel_n) if rel_n else None, "normal_force_diff_rms_N": rms(dn),
