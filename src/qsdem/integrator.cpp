@@ -415,15 +415,12 @@ void turn_spheroids(int k, TurnLanes& t, Particles& p, std::span<double> surface
   t.size = 0;
 }
 
-// Every |L_k| below 2^-540 (a rattler's L decayed by damping): each L_k^2 < 2^-1080 rounds to 0,
+// Every |L_k| below 2^-540 (kSettled; a rattler's L decayed by damping): each L_k^2 < 2^-1080 rounds to 0,
 // so |L|^2 = 0, spheroid_rotation returns q itself (`still`) and the chord is 0. Such an L is
 // often subnormal, and an operation on a subnormal costs ~50 ns here (a microcode assist, for the
 // whole vector it is in): these spheroids stay out of the lanes and get only their omega, by the
 // lanes' arithmetic (turn_lane).
-inline bool resting(const Vec3& l) {
-  constexpr double tiny = 0x1p-540;
-  return std::abs(l.x()) < tiny && std::abs(l.y()) < tiny && std::abs(l.z()) < tiny;
-}
+inline bool resting(const Vec3& l) { return settled(l.x(), l.y(), l.z()); }
 
 template <int K>
 inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
@@ -478,7 +475,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
   // rounds to 0: s and the path would keep their bits, and are left alone (no subnormal operation).
   const double largest = step_map.cwiseAbs().maxCoeff();
-  const double slow = largest > 0 ? std::min(0x1p-556 / (3 * largest), 0x1p-540) : 0.0;
+  const double slow = largest > 0 ? std::min(0x1p-556 / (3 * largest), kSettled) : 0.0;
   const auto still = [slow](const Vec3& v, const Vec3& s) {
     constexpr double far = 0x1p-500;
     return std::abs(v.x()) < slow && std::abs(v.y()) < slow && std::abs(v.z()) < slow && std::abs(s.x()) >= far &&
