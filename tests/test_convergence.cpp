@@ -157,3 +157,57 @@ TEST(Convergence, MalformedLaddersAreRefused) {
   missing[2].seeds.pop_back();
   EXPECT_THROW(certify(missing), std::invalid_argument);
 }
+
+namespace {
+
+// Two rungs of three seeds whose change is seed-dependent (the rate's effect on seed s is d[s],
+// constant in e1), the seeds' own offsets kSeeds cancelling in the pairing: at every grid strain
+// the seed mean is m = mean(d) and its standard error se = sd(d) / sqrt(3), so rms = |m|,
+// error = se and excess = sqrt(max(0, m^2 - se^2)) in closed form.
+Certificate noisy_pair(const std::vector<double>& d) {
+  std::vector<Rung> l{{1e-6, {}}, {1e-7, {}}};
+  for (std::size_t s = 0; s < d.size(); ++s) {
+    l[0].seeds.push_back(curve(kSeeds[s] + d[s], 0.0));
+    l[1].seeds.push_back(curve(kSeeds[s], 0.0));
+  }
+  ConvergenceTolerances tol;
+  tol.within_seed_scatter = false;
+  return certify(l, tol);
+}
+
+}  // namespace
+
+// A change of 0.6 deg whose seeds disagree (1.4, 0.3, 0.1): its noise (standard error 0.404 deg)
+// makes up most of the RMS; beyond it 0.44 deg, within the 0.5 deg tolerance, and resolved.
+TEST(Convergence, TheChangeIsJudgedBeyondTheNoiseOfItsSeedMean) {
+  const Certificate c = noisy_pair({1.4, 0.3, 0.1});
+  const CurveChange& phi = c.rungs[0].phi_to_next;
+  EXPECT_NEAR(phi.rms, 0.6, 1e-9);
+  EXPECT_NEAR(phi.error, std::sqrt(0.49 / 3), 1e-9);
+  EXPECT_NEAR(phi.excess, std::sqrt(0.36 - 0.49 / 3), 1e-9);
+  EXPECT_TRUE(c.rungs[0].resolved);
+  EXPECT_TRUE(c.rungs[0].within) << "the plain RMS, 0.6 deg, would count the noise as a change";
+  EXPECT_EQ(c.status, "converged") << c.reason;
+
+  const Certificate large = noisy_pair({1.8, 0.7, 0.5});  // the same noise, a change of 1 deg
+  EXPECT_NEAR(large.rungs[0].phi_to_next.excess, std::sqrt(1.0 - 0.49 / 3), 1e-9);
+  EXPECT_FALSE(large.rungs[0].within);
+  EXPECT_EQ(large.status, "not converged");
+  EXPECT_NE(large.reason.find("still differ"), std::string::npos) << large.reason;
+}
+
+// Seeds that disagree more than the tolerance (1.6, -0.6, 0.2; standard error 0.643 deg): the
+// mean change, 0.4 deg, is below its noise (excess 0), but three seeds cannot tell a change of 0.5
+// deg from none: "not resolved", nothing certified.
+TEST(Convergence, AChangeTheSeedsCannotResolveCertifiesNothing) {
+  const Certificate c = noisy_pair({1.6, -0.6, 0.2});
+  const CurveChange& phi = c.rungs[0].phi_to_next;
+  EXPECT_NEAR(phi.rms, 0.4, 1e-9);
+  EXPECT_NEAR(phi.error, std::sqrt(1.24 / 3), 1e-9);
+  EXPECT_EQ(phi.excess, 0.0);
+  EXPECT_FALSE(c.rungs[0].resolved);
+  EXPECT_FALSE(c.rungs[0].within);
+  EXPECT_EQ(c.status, "not resolved");
+  EXPECT_FALSE(c.certified.has_value());
+  EXPECT_NE(c.reason.find("more seeds"), std::string::npos) << c.reason;
+}

@@ -35,7 +35,9 @@ CurveChange change(const Rung& a, const Rung& b, Measure m, std::span<const doub
     sum += mean * mean, sum_error += se2, ++points;
   }
   CurveChange c;
-  if (points > 0) c.rms = std::sqrt(sum / points), c.error = std::sqrt(sum_error / points);
+  if (points > 0)
+    c.rms = std::sqrt(sum / points), c.error = std::sqrt(sum_error / points),
+    c.excess = std::sqrt(std::max(0.0, (sum - sum_error) / points));
   return c;
 }
 
@@ -61,12 +63,17 @@ double scatter(const Rung& r, Measure m, std::span<const double> grid) {
   return points > 0 ? std::sqrt(sum / points) : std::numeric_limits<double>::quiet_NaN();
 }
 
-// Whether a change is within the tolerances (and the seed scatter, when it counts).
-bool within(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol, double phi_scatter,
-            double ev_scatter) {
-  if (!(phi.rms <= tol.phi_rms_deg && ev.rms <= tol.ev_rms)) return false;  // NaN: no common strain, not within
+// Whether a change's excess is within the tolerances (and the seed scatter, when it counts).
+bool small(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol, double phi_scatter,
+           double ev_scatter) {
+  if (!(phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms)) return false;  // NaN: no common strain
   if (!tol.within_seed_scatter || !std::isfinite(phi_scatter)) return true;
-  return phi.rms <= phi_scatter && ev.rms <= ev_scatter;
+  return phi.excess <= phi_scatter && ev.excess <= ev_scatter;
+}
+
+// Whether the seeds resolve a change to the tolerances.
+bool resolved(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol) {
+  return phi.error <= tol.phi_rms_deg && ev.error <= tol.ev_rms;
 }
 
 // A curve's value at strain x (linear between its points; NaN outside it).
@@ -127,10 +134,11 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
       v.ev_to_slowest = change(ladder[k], slowest, &ResponseCurve::ev, grid);
       v.phi_to_next = change(ladder[k], ladder[k + 1], &ResponseCurve::phi_deg, grid);
       v.ev_to_next = change(ladder[k], ladder[k + 1], &ResponseCurve::ev, grid);
-      v.within = within(v.phi_to_slowest, v.ev_to_slowest, tol, c.phi_scatter_deg, c.ev_scatter);
+      v.resolved = resolved(v.phi_to_slowest, v.ev_to_slowest, tol);
+      v.within = v.resolved && small(v.phi_to_slowest, v.ev_to_slowest, tol, c.phi_scatter_deg, c.ev_scatter);
     } else {
-      v.phi_to_slowest = v.ev_to_slowest = {0.0, 0.0};
-      v.within = true;
+      v.phi_to_slowest = v.ev_to_slowest = {0.0, 0.0, 0.0};
+      v.within = v.resolved = true;
     }
     c.rungs.push_back(v);
   }
@@ -142,13 +150,20 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
     c.reason = "one rung: nothing to compare it with";
   } else {
     const RungVerdict& last = c.rungs[ladder.size() - 2];
-    if (!within(last.phi_to_next, last.ev_to_next, tol, c.phi_scatter_deg, c.ev_scatter)) {
-      c.reason = fmt::format("the two slowest rates still differ: RMS change of phi {:.3g} deg, of ev {:.3g} "
-                             "(tolerances {:.3g} deg, {:.3g}{})",
-                             last.phi_to_next.rms, last.ev_to_next.rms, tol.phi_rms_deg, tol.ev_rms,
-                             tol.within_seed_scatter && std::isfinite(c.phi_scatter_deg)
-                                 ? fmt::format("; seed scatter {:.3g} deg, {:.3g}", c.phi_scatter_deg, c.ev_scatter)
-                                 : std::string());
+    const CurveChange &phi = last.phi_to_next, &ev = last.ev_to_next;
+    const std::string change = fmt::format(
+        "change of phi {:.3g} deg (beyond the noise {:.3g}, standard error {:.3g}), of ev {:.3g} ({:.3g}, {:.3g}); "
+        "tolerances {:.3g} deg, {:.3g}{}",
+        phi.rms, phi.excess, phi.error, ev.rms, ev.excess, ev.error, tol.phi_rms_deg, tol.ev_rms,
+        tol.within_seed_scatter && std::isfinite(c.phi_scatter_deg)
+            ? fmt::format("; seed scatter {:.3g} deg, {:.3g}", c.phi_scatter_deg, c.ev_scatter)
+            : std::string());
+    if (!small(phi, ev, tol, c.phi_scatter_deg, c.ev_scatter)) {
+      c.reason = "the two slowest rates still differ: " + change;
+    } else if (!resolved(phi, ev, tol)) {
+      c.status = "not resolved";
+      c.reason = "the two slowest rates differ by less than their noise, but the noise exceeds a tolerance (more "
+                 "seeds would decide): " + change;
     } else {
       c.status = "converged";
       std::size_t k = ladder.size() - 1;

@@ -24,11 +24,12 @@ struct Rung {
   std::vector<ResponseCurve> seeds;
 };
 
-// When a rung counts as the slowest one's response. Fixed before any run (the defaults are
-// docs/analysis.md's): the RMS over the strain of the seed-mean change of phi and of ev, each at
-// most its tolerance, and, with two or more seeds and within_seed_scatter, at most the
-// seed-to-seed scatter of the slowest rung's response (a rate effect smaller than the choice of
-// sample).
+// When a rung counts as the slowest one's response (docs/analysis.md section 11; the defaults
+// fixed before any run): the change of phi and of ev beyond the noise of its seed mean
+// (CurveChange::excess), each at most its tolerance, its standard error too (a change the seeds
+// cannot resolve certifies nothing), and, with two or more seeds and within_seed_scatter, the
+// excess at most the seed-to-seed scatter of the slowest rung's response (a rate effect smaller
+// than the choice of sample).
 struct ConvergenceTolerances {
   double phi_rms_deg = 0.5;  // degrees
   double ev_rms = 1e-3;      // volumetric strain (0.1 %)
@@ -37,11 +38,15 @@ struct ConvergenceTolerances {
 
 // The change of one measure between two rungs: the seed mean, at each strain of the grid, of
 // (curve at the rung minus curve at the other rung) of the same seed, then its RMS over the
-// grid; `error` is the RMS of the standard error of that mean (0 with one seed).
+// grid; `error` is the RMS of the standard error of that mean (0 with one seed); `excess` is the
+// change beyond that noise, sqrt(max(0, rms^2 - error^2)): the mean square of a seed mean is the
+// square of the true change plus the squared standard error, and the sample variance estimates the
+// latter without bias, so excess^2 estimates the true mean square change without bias.
 struct CurveChange {
   static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
   double rms = nan;
   double error = nan;
+  double excess = nan;
 };
 
 // A scalar of the response (peak phi, its strain, and the values at the last common strain),
@@ -63,12 +68,14 @@ struct RungVerdict {
   CurveChange phi_to_slowest, ev_to_slowest;  // against the slowest rung
   CurveChange phi_to_next, ev_to_next;        // against the next slower rung
   bool within = false;                        // phi_to_slowest, ev_to_slowest within the tolerances
+  bool resolved = false;                      // their standard errors within the tolerances
 };
 
 struct Certificate {
   static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
   // "converged": the last change (the two slowest rungs) is within the tolerances;
-  // "not converged": it is not, or the ladder has one rung.
+  // "not resolved": its excess is, but its standard error is not (more seeds would decide);
+  // "not converged": its excess is not, or the ladder has one rung.
   std::string status = "not converged";
   std::string reason;                  // a sentence for the reader
   std::optional<std::size_t> certified;  // the fastest rung whose response and every slower rung's
