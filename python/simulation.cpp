@@ -71,12 +71,11 @@ void apply_change(const std::string& key, const py::handle& value_obj, const Pha
         key));
   const auto c = static_cast<int>(it - component_names.begin());
   ComponentControl& cc = next.component[static_cast<std::size_t>(c)];
-  using Kind = ComponentControl::Kind;
-  if (cc.kind == Kind::fixed || cc.kind == Kind::constant_volume)
+  if (cc.kind == ControlKind::fixed || cc.kind == ControlKind::constant_volume)
     throw py::value_error(fmt::format("on_sample: component {} is {} in this phase: it has no value to change "
                                       "(a callback changes values, not kinds)",
-                                      key, cc.kind == Kind::fixed ? "fixed" : "constant_volume"));
-  if (cc.kind == Kind::stress && is_normal(c) && value <= 0)
+                                      key, cc.kind == ControlKind::fixed ? "fixed" : "constant_volume"));
+  if (cc.kind == ControlKind::stress && is_normal(c) && value <= 0)
     throw py::value_error(
         fmt::format("on_sample: stress target {} = {} Pa is not allowed: give a value > 0", key, value));
   cc.value = value;

@@ -52,12 +52,12 @@ bool contact_geometry(const State& st, std::size_t k, const Vec3& l, ContactGeom
   return ellipsoid_contact(l, P.semi_axes[i], P.q[i], P.semi_axes[j], P.q[j], lambda, g);
 }
 
-const char* kind_name(ComponentControl::Kind k) {
+const char* kind_name(ControlKind k) {
   switch (k) {
-    case ComponentControl::Kind::fixed: return "fixed";
-    case ComponentControl::Kind::strain_rate: return "strain_rate";
-    case ComponentControl::Kind::stress: return "stress";
-    case ComponentControl::Kind::constant_volume: return "constant_volume";
+    case ControlKind::fixed: return "fixed";
+    case ControlKind::strain_rate: return "strain_rate";
+    case ControlKind::stress: return "stress";
+    case ControlKind::constant_volume: return "constant_volume";
   }
   return "?";
 }

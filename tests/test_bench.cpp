@@ -32,7 +32,6 @@ fs::path scratch(const std::string& name) {
 Model fixed_cell_triaxial(const Params& params, State& st) {
   Model m = triaxial_model(params, st);
   for (auto& c : m.control) c = {};
-  for (auto& c : m.shear_control) c = {};
   assign_damping(m, st.particles);
   return m;
 }

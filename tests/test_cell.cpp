@@ -429,8 +429,8 @@ TEST(CellDeform, StepMovesParticlesWithAffineField) {
   Model model = test_model(0.2e-3, 1e-4);
   const Vec3 rates(0.5, -0.3, 1.0);  // engineering strain rates, compression positive (1/s)
   for (int k = 0; k < 3; ++k) {
-    AxisControl& ac = model.control[static_cast<std::size_t>(k)];
-    ac.kind = AxisControl::Kind::strain_rate;
+    ResolvedControl& ac = model.control[static_cast<std::size_t>(k)];
+    ac.kind = ControlKind::strain_rate;
     ac.value = rates[k];
     ac.reference_length = h0(k, k);  // H0 = h_kk at e = 0 now, so L_kk = -rate (SPEC 3, servo.hpp)
   }

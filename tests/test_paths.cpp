@@ -64,9 +64,9 @@ fs::path run_example(const std::string& file, const std::string& dir_name, const
 TEST(LoadingPaths, ConstantVolumeRateKeepsTheCellVolume) {
   Model m;
   m.dt = 1e-7;
-  m.control[2] = {AxisControl::Kind::strain_rate, 1e2, 1.0};  // de/dt = 100 /s: dt L33 = -1e-5
-  m.control[0].kind = m.control[1].kind = AxisControl::Kind::constant_volume;
-  m.shear_control[1] = {AxisControl::Kind::strain_rate, 50.0, 0.0};  // L13
+  m.control[2] = {ControlKind::strain_rate, 1e2, 1.0};  // de/dt = 100 /s: dt L33 = -1e-5
+  m.control[0].kind = m.control[1].kind = ControlKind::constant_volume;
+  m.control[4] = {ControlKind::strain_rate, 50.0, 0.0};  // L13
   State st;
   st.cell = make_cell(Mat3::Identity());
   const double v0 = st.cell.volume;

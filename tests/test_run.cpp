@@ -97,7 +97,6 @@ std::pair<State, Model> large_packing() {
   set_matrix(start.cell, std::cbrt(0.2 / 0.35) * start.cell.h);
   Model model = triaxial_model(params, start);  // friction 0.5, nd 0.5 %, in a fixed cell:
   model.control = {};
-  model.shear_control = {};
   assign_damping(model, start.particles);
   return {start, model};
 }

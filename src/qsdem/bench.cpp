@@ -137,7 +137,6 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
                                      [&](const Phase& p) { return p.name == in.phase; });
   Model model = phase_model(params, phase, phase.controls, st.particles, st.cell.h);
   for (auto& c : model.control) c = {};
-  for (auto& c : model.shear_control) c = {};
   assign_damping(model, st.particles);
   // A packing's first list build is set-up, not stepping (LIGGGHTS' loop time leaves its own
   // out); at rest it changes no history. A checkpoint's list and history are stepped as they are.

@@ -629,7 +629,7 @@ void check_run(const ContentCheck& c, const RunProgress& r, const State& st, std
   const PhaseState& s = r.state;
   const PhaseRecord& now = r.phases[static_cast<std::size_t>(r.phase)];
   for (const ComponentControl& k : s.controls.component)
-    c.require(k.kind >= ComponentControl::Kind::fixed && k.kind <= ComponentControl::Kind::constant_volume &&
+    c.require(k.kind >= ControlKind::fixed && k.kind <= ControlKind::constant_volume &&
                   std::isfinite(k.value),
               "the current phase's controls hold an unknown kind or a value that is not finite");
   c.require(std::isfinite(s.controls.max_strain_rate) && s.controls.max_strain_rate >= 0 &&

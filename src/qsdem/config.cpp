@@ -567,7 +567,7 @@ void check_fire_phase(Reader& r, const std::string& k, const Phase& ph) {
     r.fail(k + ".solver", r.find(k + ".solver"),
            "not with output.energy = true: the energy ledger holds no term for FIRE's stops and mixing");
   bool driven = false;
-  for (const auto& c : ph.controls.component) driven = driven || c.kind == ComponentControl::Kind::strain_rate;
+  for (const auto& c : ph.controls.component) driven = driven || c.kind == ControlKind::strain_rate;
   if (!driven)
     r.fail(k + ".solver", r.find(k + ".solver"),
            "a FIRE phase needs a strain_rate component: its increments are steps of strain (their direction and "
@@ -607,8 +607,8 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
       r.fail(stress_key, r.find(stress_key),
              fmt::format("component {} has a strain_rate too: give one control per component", name));
     auto& control = ph.controls.component[static_cast<std::size_t>(c)];
-    if (rate) control = {ComponentControl::Kind::strain_rate, *rate};
-    if (stress) control = {ComponentControl::Kind::stress, *stress};
+    if (rate) control = {ControlKind::strain_rate, *rate};
+    if (stress) control = {ControlKind::stress, *stress};
     any_rate = any_rate || rate.has_value();
   }
   // The normal components whose shared rate keeps the cell's volume (an undrained test, SPEC 3.7).
@@ -626,16 +626,16 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     if (held.empty()) r.fail(cv_key, r.find(cv_key), "give at least one normal component");
     for (const std::string& name : held) {
       auto& control = ph.controls.component[static_cast<std::size_t>(std::stoi(name) / 11 - 1)];
-      if (control.kind == ComponentControl::Kind::constant_volume)
+      if (control.kind == ControlKind::constant_volume)
         r.fail(cv_key, r.find(cv_key), fmt::format("component {} is listed twice", name));
-      if (control.kind != ComponentControl::Kind::fixed)
+      if (control.kind != ControlKind::fixed)
         r.fail(cv_key, r.find(cv_key),
                fmt::format("component {} has a strain_rate or a stress too: give one control per component", name));
-      control.kind = ComponentControl::Kind::constant_volume;
+      control.kind = ControlKind::constant_volume;
     }
     bool driven = false;
     for (const auto& c : ph.controls.component)
-      driven = driven || c.kind == ComponentControl::Kind::strain_rate || c.kind == ComponentControl::Kind::stress;
+      driven = driven || c.kind == ControlKind::strain_rate || c.kind == ControlKind::stress;
     if (held.size() == 3 || !driven)
       r.fail(cv_key, r.find(cv_key),
              "another component must be driven (a strain_rate or a stress) for the volume to be held against");
@@ -662,7 +662,7 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
                                           "must be nonzero and in (-100 %, 100 %)");
     stop.stress[kc] = r.optional_quantity(k + ".stop.stress." + name, Dimension::stress, [](double) { return true; }, "");
     const auto& control = ph.controls.component[kc];
-    if (stop.strain[kc] && control.kind == ComponentControl::Kind::fixed)
+    if (stop.strain[kc] && control.kind == ControlKind::fixed)
       r.fail(k + ".stop.strain." + name, r.find(k + ".stop.strain." + name),
              fmt::format("component {} is fixed (no strain_rate, stress or constant_volume): its strain stays 0", name));
     if (planned_strain(ph, c) && (*stop.strain[kc] > 0) != (control.value > 0))
@@ -718,7 +718,7 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     const auto d = r.optional_quantity(key, Dimension::ratio, positive, "must be > 0");
     if (!d) continue;
     if (strain_step) r.fail(key, r.find(key), "give the strain interval of one component only");
-    if (ph.controls.component[static_cast<std::size_t>(c)].kind != ComponentControl::Kind::strain_rate)
+    if (ph.controls.component[static_cast<std::size_t>(c)].kind != ControlKind::strain_rate)
       r.fail(key, r.find(key), "the component must be strain-rate controlled (give it a strain_rate)");
     strain_step = d;
     out.cadence.strain_component = c;
@@ -779,7 +779,7 @@ Protocol default_protocol(const Params& p) {
   compaction.inertia = c.inertia;
   for (int k = 0; k < component_count; ++k)
     if (is_normal(k) || c.zero_shear_stress)
-      compaction.controls.component[static_cast<std::size_t>(k)] = {ComponentControl::Kind::stress,
+      compaction.controls.component[static_cast<std::size_t>(k)] = {ControlKind::stress,
                                                                      is_normal(k) ? c.stress : 0.0};
   compaction.controls.max_strain_rate = c.max_strain_rate;
   compaction.stop.equilibrium = StopCriteria::Equilibrium{c.stress_tolerance, c.ufr_tolerance, std::nullopt, c.check_interval};
@@ -796,12 +796,12 @@ Protocol default_protocol(const Params& p) {
   triaxial.friction = t.friction;
   triaxial.damping = {p.damping.model, p.damping.ratio, p.damping.acts_on};
   triaxial.inertia = t.inertia;
-  triaxial.controls.component[0] = {ComponentControl::Kind::stress, t.confining_stress};
-  triaxial.controls.component[1] = {ComponentControl::Kind::stress, t.confining_stress};
-  triaxial.controls.component[2] = {ComponentControl::Kind::strain_rate, t.strain_rate};
+  triaxial.controls.component[0] = {ControlKind::stress, t.confining_stress};
+  triaxial.controls.component[1] = {ControlKind::stress, t.confining_stress};
+  triaxial.controls.component[2] = {ControlKind::strain_rate, t.strain_rate};
   if (t.zero_shear_stress)
     for (int k = 3; k < component_count; ++k)
-      triaxial.controls.component[static_cast<std::size_t>(k)] = {ComponentControl::Kind::stress, 0.0};
+      triaxial.controls.component[static_cast<std::size_t>(k)] = {ControlKind::stress, 0.0};
   triaxial.controls.rate_factor = t.lateral_rate_factor;
   triaxial.stop.strain[2] = t.final_axial_strain;
   triaxial.output.file = "series.csv";
@@ -1132,9 +1132,9 @@ nlohmann::json to_json(const Phase& ph) {
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = ph.controls.component[static_cast<std::size_t>(c)];
     const char* name = component_names[static_cast<std::size_t>(c)];
-    if (cc.kind == ComponentControl::Kind::strain_rate) controls[name] = {{"strain_rate", cc.value}};
-    if (cc.kind == ComponentControl::Kind::stress) controls[name] = {{"stress_Pa", cc.value}};
-    if (cc.kind == ComponentControl::Kind::constant_volume) controls[name] = {{"constant_volume", true}};
+    if (cc.kind == ControlKind::strain_rate) controls[name] = {{"strain_rate", cc.value}};
+    if (cc.kind == ControlKind::stress) controls[name] = {{"stress_Pa", cc.value}};
+    if (cc.kind == ControlKind::constant_volume) controls[name] = {{"constant_volume", true}};
   }
   nlohmann::json stop = nlohmann::json::object();
   if (ph.stop.steps > 0) stop["steps"] = ph.stop.steps;

@@ -47,14 +47,14 @@ ControllerFactory read_schedule(ControllerKeys& keys, const Phase& phase, double
   const std::string name = keys.text("component", names);
   const int c = static_cast<int>(std::find(names.begin(), names.end(), name) - names.begin());
   const ComponentControl& control = phase.controls.component[static_cast<std::size_t>(c)];
-  if (control.kind == ComponentControl::Kind::fixed || control.kind == ComponentControl::Kind::constant_volume)
+  if (control.kind == ControlKind::fixed || control.kind == ControlKind::constant_volume)
     keys.fail("component", "the phase does not drive this component by a value (give it a strain_rate or a stress)");
   std::vector<long> at = keys.integers("at_sample", 1, 100'000'000);
   if (at.empty()) keys.fail("at_sample", "give at least one sample point number");
   for (std::size_t k = 1; k < at.size(); ++k)
     if (at[k] <= at[k - 1]) keys.fail("at_sample", "the sample point numbers must increase");
   std::vector<double> values;
-  if (control.kind == ComponentControl::Kind::strain_rate) {
+  if (control.kind == ControlKind::strain_rate) {
     values = keys.numbers("values");
     for (double v : values) {
       if (!(std::abs(v) > 0 && std::abs(v) < 0.01)) keys.fail("values", "each strain rate eps' must be in (0, 0.01) in magnitude");

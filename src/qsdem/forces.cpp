@@ -172,7 +172,9 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
     const double l2 = (l[0] * l[0] + l[1] * l[1]) + l[2] * l[2];
     for (int q = 0; q < 3; ++q) {
       c.stiffness[q][a] = (kn * n2[q] + kt * (1 - n2[q])) * (l[q] * l[q]);
-      const int u = q < 2 ? 0 : 1, w = q == 0 ? 1 : 2;  // the pair (a, b) of shear q
+      // The pair (a, b) of shear q: component_axes[3 + q] written out, as the table's lookup here
+      // made the contact stage 10 % slower.
+      const int u = q < 2 ? 0 : 1, w = q == 0 ? 1 : 2;
       const double nn = n2[u] * n2[w], half = 0.5 * (n2[u] + n2[w]);
       c.shear_stiffness[q][a] = l2 * (2 * kn * nn + kt * (half - 2 * nn));
       if constexpr (Law::has_dashpots) {  // the same sums of the viscous coefficients

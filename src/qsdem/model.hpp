@@ -5,6 +5,7 @@
 #include <array>
 #include <optional>
 
+#include "qsdem/cell_components.hpp"
 #include "qsdem/contact/laws.hpp"
 #include "qsdem/damping/models.hpp"
 #include "qsdem/particles.hpp"
@@ -24,9 +25,10 @@ struct Material {
   double wave_speed() const;  // sqrt(E / rho)
 };
 
-// How one component of the cell's velocity gradient is driven (SPEC 3, servo.hpp).
-struct AxisControl {
-  enum class Kind { fixed, strain_rate, stress, constant_volume } kind = Kind::fixed;
+// How one component of the cell's velocity gradient is driven, in SI units (SPEC 3, servo.hpp):
+// a phase's ComponentControl resolved by phase_model.
+struct ResolvedControl {
+  ControlKind kind = ControlKind::fixed;
   // strain_rate: a normal component's engineering rate de/dt (1/s, compression positive), a shear
   // component's L_ab (1/s); stress: the target (Pa, compression positive).
   double value = 0;
@@ -49,8 +51,7 @@ struct Model {
   double step_gain = 1;         // s, the particles' inertia scaling's gain of the step (SPEC 5.6)
   double dt = 0;                // c_t s t_c
   ResolvedDamping damping;      // the particle damping and what it asks of the stages (damping/)
-  std::array<AxisControl, 3> control{};        // the normal components 11, 22, 33
-  std::array<AxisControl, 3> shear_control{};  // the shear components 12, 13, 23
+  std::array<ResolvedControl, component_count> control{};  // 11, 22, 33, 12, 13, 23 (cell_components.hpp)
   Servo servo;
   double skin = 0;              // Verlet skin (m)
   bool sort_particles = false;  // re-sort particles in space at every list rebuild (reorder.hpp);

@@ -20,7 +20,6 @@ double CycleLoop::damping_ratio() const {
 
 namespace {
 
-using Kind = ComponentControl::Kind;
 
 struct CyclicSettings {
   bool strain_bounds = false;  // the bounds are of e1 (else of q)
@@ -162,7 +161,7 @@ class TrueTriaxial final : public Controller {
 
 ControllerFactory read_cyclic(ControllerKeys& keys, const Phase& phase, double step_ratio) {
   const ComponentControl& axial = phase.controls.component[2];
-  if (axial.kind != Kind::strain_rate || !(axial.value > 0))
+  if (axial.kind != ControlKind::strain_rate || !(axial.value > 0))
     keys.fail("kind", "a cyclic phase loads axis 3 first: give the phase strain_rate = { 33 = eps' > 0 }");
   if (phase.stop.strain[2])
     keys.fail("kind", "a cyclic phase ends after its cycles: remove stop.strain.33 (it would plan an end at one rate)");
@@ -190,9 +189,9 @@ ControllerFactory read_cyclic(ControllerKeys& keys, const Phase& phase, double s
 
 ControllerFactory read_true_triaxial(ControllerKeys& keys, const Phase& phase, double /*step_ratio*/) {
   const auto& c = phase.controls.component;
-  if (c[2].kind != Kind::strain_rate)
+  if (c[2].kind != ControlKind::strain_rate)
     keys.fail("kind", "true_triaxial loads s1 along axis 3: give the phase strain_rate = { 33 = eps' }");
-  if (c[0].kind != Kind::stress || c[1].kind != Kind::stress)
+  if (c[0].kind != ControlKind::stress || c[1].kind != ControlKind::stress)
     keys.fail("kind", "true_triaxial sets the stress targets of axes 1 and 2: give the phase stress = { 11 = ..., 22 = ... }");
   const double p = keys.stress("p", std::nullopt, [](double v) { return v > 0; }, "must be > 0");
   const double b = keys.number("b", std::nullopt, [](double v) { return v >= 0 && v <= 1; }, "must be in [0, 1]");

@@ -10,17 +10,17 @@ namespace qsdem {
 bool planned_strain(const Phase& phase, int c) {
   // A FIRE phase's strain grows by its increments, measured (fire_phase.hpp).
   return !phase.fire && is_normal(c) && phase.stop.strain[static_cast<std::size_t>(c)].has_value() &&
-         phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::strain_rate;
+         phase.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::strain_rate;
 }
 
 bool holds_volume(const Phase& phase) {
   return std::any_of(phase.controls.component.begin(), phase.controls.component.end(),
-                     [](const ComponentControl& c) { return c.kind == ComponentControl::Kind::constant_volume; });
+                     [](const ComponentControl& c) { return c.kind == ControlKind::constant_volume; });
 }
 
 bool shears(const Phase& phase) {
   return std::any_of(phase.controls.component.begin() + 3, phase.controls.component.end(),
-                     [](const ComponentControl& c) { return c.kind == ComponentControl::Kind::strain_rate; });
+                     [](const ComponentControl& c) { return c.kind == ControlKind::strain_rate; });
 }
 
 long planned_step(long from, double strain, double target, double step_ratio, double eps) {

@@ -12,22 +12,16 @@
 #include <string>
 #include <vector>
 
+#include "qsdem/cell_components.hpp"
 #include "qsdem/types.hpp"
 
 namespace qsdem {
 
 class Controller;
 
-// The six components of the cell, in the order of the case keys 11, 22, 33, 12, 13, 23.
-inline constexpr int component_count = 6;
-inline constexpr std::array<const char*, component_count> component_names{"11", "22", "33", "12", "13", "23"};
-inline constexpr std::array<std::array<int, 2>, component_count> component_axes{
-    {{0, 0}, {1, 1}, {2, 2}, {0, 1}, {0, 2}, {1, 2}}};
-inline constexpr bool is_normal(int component) { return component < 3; }
 
 struct ComponentControl {
-  enum class Kind : std::int32_t { fixed, strain_rate, stress, constant_volume };
-  Kind kind = Kind::fixed;
+  ControlKind kind = ControlKind::fixed;
   // strain_rate: eps' = rate t_c (dimensionless, SPEC 8), de/dt of a normal component
   // (compression positive) or L_ab of a shear one; stress: the target (Pa, compression positive);
   // constant_volume (normal components only): the rate that keeps the cell's volume, shared by

@@ -9,7 +9,6 @@ namespace qsdem {
 
 namespace {
 
-using Kind = ComponentControl::Kind;
 
 // What every phase of a case shares: material, time step, servo gains, skin.
 Model case_model(const Params& params, const Particles& particles) {
@@ -45,17 +44,17 @@ Model phase_model(const Params& params, const Phase& phase, const PhaseControls&
   double fastest = 0;  // the fastest strain-rate component (1/s)
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = controls.component[static_cast<std::size_t>(c)];
-    AxisControl& axis = is_normal(c) ? m.control[static_cast<std::size_t>(c)] : m.shear_control[static_cast<std::size_t>(c - 3)];
+    ResolvedControl& axis = m.control[static_cast<std::size_t>(c)];
     switch (cc.kind) {
-      case Kind::fixed: axis = {}; break;
-      case Kind::strain_rate: {
+      case ControlKind::fixed: axis = {}; break;
+      case ControlKind::strain_rate: {
         const double rate = cc.value / m.critical_time;  // eps' = rate t_c (SPEC 8)
-        axis = {AxisControl::Kind::strain_rate, rate, is_normal(c) ? h0(c, c) : 0.0};
+        axis = {ControlKind::strain_rate, rate, is_normal(c) ? h0(c, c) : 0.0};
         fastest = std::max(fastest, std::abs(rate));
         break;
       }
-      case Kind::stress: axis = {AxisControl::Kind::stress, cc.value, 0.0}; break;
-      case Kind::constant_volume: axis = {AxisControl::Kind::constant_volume, 0.0, 0.0}; break;
+      case ControlKind::stress: axis = {ControlKind::stress, cc.value, 0.0}; break;
+      case ControlKind::constant_volume: axis = {ControlKind::constant_volume, 0.0, 0.0}; break;
     }
   }
   m.servo.max_strain_rate =

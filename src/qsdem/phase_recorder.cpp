@@ -9,7 +9,6 @@
 
 namespace qsdem {
 
-using Kind = ComponentControl::Kind;
 
 void record_row(const Phase& phase, State& st, RunProgress& run, const RowSink& sink, const Measures& m,
                 const RowPlace& at, std::optional<double> strain_rate, std::optional<Relaxation> relaxation) {
@@ -49,12 +48,12 @@ void record_row(const Phase& phase, State& st, RunProgress& run, const RowSink& 
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
     const auto [a, b] = component_axes[static_cast<std::size_t>(c)];
-    if (is_normal(c) && cc.kind == Kind::stress) {
+    if (is_normal(c) && cc.kind == ControlKind::stress) {
       const double err = std::abs(m.stress(a, a) / cc.value - 1);
       rec.max_stress_error = std::max(rec.max_stress_error, err);
       rec.stress_error += err;
     } else if (!is_normal(c) && m.mean_stress > 0) {
-      const double target = cc.kind == Kind::stress ? cc.value : 0.0;
+      const double target = cc.kind == ControlKind::stress ? cc.value : 0.0;
       rec.max_shear_stress = std::max(rec.max_shear_stress, std::abs(m.stress(a, b) - target) / m.mean_stress);
     }
   }

@@ -48,13 +48,12 @@ void check_kinetic(const Measures& m, const Params& params, const Phase& phase, 
         phase.keys.strain_rate));
 }
 
-using Kind = ComponentControl::Kind;
 
 // The largest stress target of the stress-controlled normal components (0 without any).
 double largest_normal_target(const PhaseControls& c) {
   double t = 0;
   for (int k = 0; k < 3; ++k)
-    if (c.component[static_cast<std::size_t>(k)].kind == Kind::stress)
+    if (c.component[static_cast<std::size_t>(k)].kind == ControlKind::stress)
       t = std::max(t, c.component[static_cast<std::size_t>(k)].value);
   return t;
 }
@@ -67,7 +66,7 @@ double stress_error(const Measures& m, const PhaseControls& c) {
   double worst = 0;
   for (int k = 0; k < component_count; ++k) {
     const ComponentControl& cc = c.component[static_cast<std::size_t>(k)];
-    if (cc.kind != Kind::stress) continue;
+    if (cc.kind != ControlKind::stress) continue;
     const auto [a, b] = component_axes[static_cast<std::size_t>(k)];
     worst = std::max(worst, std::abs(m.stress(a, b) - cc.value) / (is_normal(k) ? cc.value : scale));
   }
@@ -193,7 +192,7 @@ void run_fire_phase(const Params& params, State& st, RunProgress& run, const Row
   int driver = -1;
   for (int c = 0; c < component_count; ++c) {
     const ComponentControl& cc = ps.controls.component[static_cast<std::size_t>(c)];
-    if (cc.kind == Kind::strain_rate &&
+    if (cc.kind == ControlKind::strain_rate &&
         (driver < 0 || std::abs(cc.value) > std::abs(ps.controls.component[static_cast<std::size_t>(driver)].value)))
       driver = c;
   }
@@ -223,7 +222,7 @@ void run_fire_phase(const Params& params, State& st, RunProgress& run, const Row
       increment = std::abs(*target - strain), last = true;
     PhaseControls loading = ps.controls;
     for (ComponentControl& cc : loading.component)
-      if (cc.kind == Kind::strain_rate) cc.value *= increment / (fastest * step_ratio);  // one step's strain
+      if (cc.kind == ControlKind::strain_rate) cc.value *= increment / (fastest * step_ratio);  // one step's strain
     Model load = phase_model(params, phase, loading, st.particles, rec.h0);
     for (std::size_t i = 0; i < st.particles.size(); ++i)  // each increment from rest (athermal)
       st.particles.v[i].setZero(), st.particles.angmom[i].setZero(), st.particles.omega[i].setZero();
@@ -231,10 +230,8 @@ void run_fire_phase(const Params& params, State& st, RunProgress& run, const Row
     evaluation();
     // The relaxation: the strain-rate components held, the stress-controlled ones on their servo.
     Model relax = load;
-    for (AxisControl& a : relax.control)
-      if (a.kind == AxisControl::Kind::strain_rate) a = {};
-    for (AxisControl& a : relax.shear_control)
-      if (a.kind == AxisControl::Kind::strain_rate) a = {};
+    for (ResolvedControl& a : relax.control)
+      if (a.kind == ControlKind::strain_rate) a = {};
     FireState fire = fire_start(relax);
     long iterations = 0;
     bool relaxed = false;

@@ -116,7 +116,7 @@ RateControlSettings read_rate_control_settings(ControllerKeys& keys, const Phase
   }
   s.component = component;
   const ComponentControl& control = phase.controls.component[static_cast<std::size_t>(component)];
-  if (control.kind != ComponentControl::Kind::strain_rate)
+  if (control.kind != ControlKind::strain_rate)
     keys.fail("component", "the component must be strain-rate controlled (give it a strain_rate: the start rate)");
   const std::string index = keys.text_or("index", "imom", {"imom", "ufr", "iuf"});
   s.index = index == "ufr" ? RateControlSettings::Index::ufr

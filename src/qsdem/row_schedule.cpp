@@ -5,7 +5,6 @@
 
 namespace qsdem {
 
-using Kind = ComponentControl::Kind;
 
 long planned_end(const Phase& phase, const PhaseState& s, double step_ratio) {
   long end = phase.stop.steps > 0 ? phase.stop.steps - 1 : -1;
@@ -54,7 +53,7 @@ bool measured_row(const Phase& phase, const PhaseState& s, long rows, const Stat
 void controls_changed(const PhaseControls& before, PhaseState& s, long n, long rows, double step_ratio) {
   for (std::size_t k = 0; k < 3; ++k) {
     const ComponentControl& old = before.component[k];
-    if (old.kind != Kind::strain_rate || old.value == s.controls.component[k].value) continue;
+    if (old.kind != ControlKind::strain_rate || old.value == s.controls.component[k].value) continue;
     s.segment_strain[k] += static_cast<double>(n + 1 - s.segment_step[k]) * (step_ratio * old.value);
     s.segment_step[k] = n + 1;
   }

@@ -13,7 +13,7 @@ void hold_volume(const Model& model, Mat3& L) {
   std::array<bool, 3> held{};
   bool any = false;
   for (int k = 0; k < 3; ++k) {
-    held[static_cast<std::size_t>(k)] = model.control[static_cast<std::size_t>(k)].kind == AxisControl::Kind::constant_volume;
+    held[static_cast<std::size_t>(k)] = model.control[static_cast<std::size_t>(k)].kind == ControlKind::constant_volume;
     any = any || held[static_cast<std::size_t>(k)];
   }
   if (!any) return;
@@ -44,15 +44,15 @@ void servo_update(const Model& model, State& state) {
   const Mat3& last = state.cell.L;  // the rates of the last step
   Mat3 L = Mat3::Zero();
   for (int k = 0; k < 3; ++k) {
-    const AxisControl& c = model.control[static_cast<std::size_t>(k)];
+    const ResolvedControl& c = model.control[static_cast<std::size_t>(k)];
     switch (c.kind) {
-      case AxisControl::Kind::fixed:
-      case AxisControl::Kind::constant_volume:  // set last, by hold_volume
+      case ControlKind::fixed:
+      case ControlKind::constant_volume:  // set last, by hold_volume
         break;
-      case AxisControl::Kind::strain_rate:
+      case ControlKind::strain_rate:
         L(k, k) = -c.value * c.reference_length / state.cell.h(k, k);
         break;
-      case AxisControl::Kind::stress: {
+      case ControlKind::stress: {
         const double target = c.value;
         const double err = (target - state.stress(k, k)) / target;
         const double cap = model.servo.max_strain_rate;
@@ -77,21 +77,20 @@ void servo_update(const Model& model, State& state) {
   // stress within 10 %): before that they are collisional noise, and chasing them only tilts the cell.
   bool jammed = true;
   for (int k = 0; k < 3; ++k) {
-    const AxisControl& c = model.control[static_cast<std::size_t>(k)];
-    if (c.kind == AxisControl::Kind::stress && std::abs(state.stress(k, k) / c.value - 1) > 0.1) jammed = false;
+    const ResolvedControl& c = model.control[static_cast<std::size_t>(k)];
+    if (c.kind == ControlKind::stress && std::abs(state.stress(k, k) / c.value - 1) > 0.1) jammed = false;
   }
-  constexpr int pair[3][2] = {{0, 1}, {0, 2}, {1, 2}};
   for (int s = 0; s < 3; ++s) {
-    const AxisControl& c = model.shear_control[static_cast<std::size_t>(s)];
-    const int a = pair[s][0], b = pair[s][1];
+    const ResolvedControl& c = model.control[static_cast<std::size_t>(3 + s)];
+    const auto [a, b] = component_axes[static_cast<std::size_t>(3 + s)];
     switch (c.kind) {
-      case AxisControl::Kind::fixed:
-      case AxisControl::Kind::constant_volume:  // normal components only
+      case ControlKind::fixed:
+      case ControlKind::constant_volume:  // normal components only
         break;
-      case AxisControl::Kind::strain_rate:
+      case ControlKind::strain_rate:
         L(a, b) = c.value;  // simple shear: x_a moves in proportion to x_b
         break;
-      case AxisControl::Kind::stress: {
+      case ControlKind::stress: {
         const double g = state.shear_stiffness[s], viscosity = state.shear_viscosity[s];
         if (!jammed || g <= 0) break;
         const double cap = model.servo.max_strain_rate;

@@ -33,7 +33,7 @@ nlohmann::json measures_json(const Measures& m) {
 std::optional<double> isotropic_target(const Phase& phase) {
   const auto& c = phase.controls.component;
   for (std::size_t k = 0; k < 3; ++k)
-    if (c[k].kind != ComponentControl::Kind::stress || std::abs(c[k].value - c[0].value) > 1e-9 * std::abs(c[0].value))
+    if (c[k].kind != ControlKind::stress || std::abs(c[k].value - c[0].value) > 1e-9 * std::abs(c[0].value))
       return std::nullopt;
   return c[0].value;
 }
@@ -67,7 +67,7 @@ nlohmann::json phase_figures(const Protocol& protocol, const std::vector<PhaseRe
   const double rows = static_cast<double>(std::max(1L, r.rows));
   int normal_targets = 0;
   for (int c = 0; c < 3; ++c)
-    normal_targets += phase.controls.component[static_cast<std::size_t>(c)].kind == ComponentControl::Kind::stress;
+    normal_targets += phase.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::stress;
   nlohmann::json j = {{"name", phase.name},
                       {"file", phase.output.file},
                       {"steps", r.steps},
