@@ -748,14 +748,17 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     for (const ControllerKind& kind : controller_kinds()) names.emplace_back(kind.name);
     ph.controller = r.text(k + ".controller.kind", std::nullopt, names);
     ControllerTable table(r, k + ".controller");
-    for (const ControllerKind& kind : controller_kinds())
-      if (kind.name == ph.controller) ph.make_controller = kind.read(table, ph, step_ratio);
-    if (ph.controller == "rate") {
+    const ControllerKind& kind =
+        *std::find_if(controller_kinds().begin(), controller_kinds().end(), [&](const ControllerKind& c) {
+          return c.name == ph.controller;
+        });
+    ph.make_controller = kind.read(table, ph, step_ratio);
+    if (kind.writes_rate_column) {
       const std::vector<std::string> components(component_names.begin(), component_names.end());
       const std::string name = r.text(k + ".controller.component", std::nullopt, components);
       ph.rate_component = static_cast<int>(std::find(components.begin(), components.end(), name) - components.begin());
     }
-    if (ph.inertia.on() && (ph.controller == "cyclic" || ph.controller == "rate"))
+    if (ph.inertia.on() && kind.plans_with_step_ratio)
       r.fail(k + ".inertia_scaling", r.find(k + ".inertia_scaling"),
              fmt::format("not with controller \"{}\", which plans its steps with time.step_ratio alone", ph.controller));
   }

@@ -78,10 +78,10 @@ const std::vector<ControllerKind>& controller_kinds() {
       {"schedule", "at the sample points at_sample, the component's strain rate or stress target becomes the next of values",
        &read_schedule},
       {"rate", "the component's strain rate follows an equilibrium index to its target (docs/physics.md, adaptive loading rate)",
-       &read_rate_control},
+       &read_rate_control, false, true, true},
       {"cyclic", "axis 3's strain rate turns whenever q (or e1) reaches a bound, for the given number of cycles "
                  "(docs/loading-paths.md, cyclic triaxial)",
-       &read_cyclic, true},
+       &read_cyclic, true, true},
       {"true_triaxial", "the stress targets of axes 1 and 2 hold p and b = (s2 - s3)/(s1 - s3) while axis 3 is strained "
                         "(docs/loading-paths.md, true triaxial)",
        &read_true_triaxial},

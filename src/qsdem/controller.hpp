@@ -86,6 +86,10 @@ struct ControllerKind {
   // Reads the kind's own keys for `phase` (whose controls are read) and returns its factory.
   ControllerFactory (*read)(ControllerKeys& keys, const Phase& phase, double step_ratio);
   bool ends_phase = false;  // its done() ends the phase: the phase needs no stop criterion of its own
+  // It plans its steps with time.step_ratio alone: the phase refuses inertia scaling.
+  bool plans_with_step_ratio = false;
+  // It moves the strain rate of its `component` key: that eps' is the phase's strain_rate column.
+  bool writes_rate_column = false;
 };
 
 // Every controller kind a case may name (phase.controller.kind).
