@@ -1,17 +1,21 @@
 #!/usr/bin/env python3
-"""Tables and figures of docs/results/quasi-static-limit.md, from the study's own files.
+"""Tables and figures of docs/results/quasi-static-limit.md, from the studies' own files.
 
-  python3 docs/results/quasi-static-limit/make.py collect runs/qs-limit-small
-      copies the study's study.toml, study.json, analysis/ and report.html, of every prepared
-      sample summary.json and compaction.csv, and of every finished run summary.json, series.csv
-      and classes.csv.gz, to docs/results/quasi-static-limit/small/ (`qsdem analyze` of that copy
-      gives its analysis again);
-  python3 docs/results/quasi-static-limit/make.py
-      reads the copy and writes tables.md and figures/*.png (gnuplot, pngcairo).
+  python3 docs/results/quasi-static-limit/make.py collect runs/qs-limit-small [NAME]
+      copies the study's study.toml, study.json, analysis/ and report.html (and a `qsdem
+      converge` directory's certificate.json, case.toml and cases/), of every prepared sample
+      summary.json and compaction.csv, and of every finished run summary.json, series.csv and
+      classes.csv.gz, to docs/results/quasi-static-limit/NAME/ (default `small`; `qsdem analyze`
+      of that copy gives its analysis again);
+  python3 docs/results/quasi-static-limit/make.py [NAME]
+      reads the copy and writes tables.md (NAME small) or tables-NAME.md, and
+      figures/limit-A-small.png (NAME small) or figures/limit-NAME.png (gnuplot, pngcairo).
 
 Measures: the certificate of each ladder (analysis.json "convergence", docs/analysis.md section
 11): per rung the seed mean and standard error of peak phi and of ev at the last strain, the paired
-RMS change to the slowest rung, the status. The fines: the smallest size class of classes.csv, its
+change to the slowest rung (RMS, beyond the noise, standard error), the status. Where the runs kept
+the energy ledger (summary.json phases[-1].energy), the shares of the triaxial work dissipated by
+sliding, by the contact dashpots and by the particle damping. The fines: the smallest size class of classes.csv, its
 fraction in contact (in_contact) and mean speed, averaged over the rows with e1 in [1 %, 10 %],
 then over the seeds. Python 3 standard library only; gnuplot draws the PNGs.
 """
@@ -25,7 +29,7 @@ import subprocess
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-COPY = os.path.join(HERE, "small")
+COPY = os.path.join(HERE, "small")  # set by main()
 
 
 def gz(src, dst):
@@ -38,8 +42,11 @@ def collect(study):
     if os.path.exists(COPY):
         shutil.rmtree(COPY)
     os.makedirs(COPY)
-    for f in ("study.toml", "study.json", "report.html"):
-        shutil.copy(os.path.join(study, f), COPY)
+    for f in ("study.toml", "study.json", "report.html", "certificate.json", "case.toml"):
+        if os.path.exists(os.path.join(study, f)):
+            shutil.copy(os.path.join(study, f), COPY)
+    if os.path.isdir(os.path.join(study, "cases")):
+        shutil.copytree(os.path.join(study, "cases"), os.path.join(COPY, "cases"))
     shutil.copytree(os.path.join(study, "analysis"), os.path.join(COPY, "analysis"))
     for s in sorted(os.listdir(os.path.join(study, "samples"))):
         d = os.path.join(COPY, "samples", s)
@@ -83,31 +90,38 @@ def scalar(l, name):
     return next(s for s in l["scalars"] if s["name"] == name)
 
 
-def tables(a, manifest):
+def tables(a, manifest, name):
     ladders = a["convergence"]
+    n_seeds = len(ladders[0]["seeds"])
     out = ["# Tables of docs/results/quasi-static-limit.md",
            "",
-           "Made by `python3 docs/results/quasi-static-limit/make.py` from `small/` (the study's files).",
+           f"Made by `python3 docs/results/quasi-static-limit/make.py {name}` from `{name}/` (the study's files).",
            "",
            "## The certificate of each model (tolerances RMS Δφ 0.5°, RMS Δεv 0.1 %, and the seed scatter)",
            "",
-           "Δ: the seed mean of the paired change between the two slowest rungs, RMS over the strain, ± its",
-           "standard error over the seeds. Scatter: the standard deviation over the seeds at the slowest rung.",
-           "Peak φ and εv at 10 %: seed mean ± standard error at the slowest rung.",
+           "Δ: the seed mean of the paired change between the two slowest rungs, RMS over the strain (beyond",
+           "its noise in brackets, docs/analysis.md 11), ± its standard error over the seeds. Scatter: the",
+           "standard deviation over the seeds at the slowest rung. Peak φ and εv at the end: seed mean ±",
+           "standard error at the slowest rung.",
            "",
-           "| model | rates run | Δφ two slowest (°) | Δεv two slowest (%) | seed scatter φ (°) / εv (%) | status | peak φ at the slowest (°) | εv at 10 % at the slowest (%) | steps |",
+           "| model | rates run | Δφ two slowest (°) | Δεv two slowest (%) | seed scatter φ (°) / εv (%) | status | peak φ at the slowest (°) | εv at the end at the slowest (%) | steps |",
            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for l in ladders:
         r = l["rungs"][-2] if len(l["rungs"]) > 1 else None
         pk, ev = scalar(l, "peak_phi_deg"), scalar(l, "ev")
-        out.append("| {} | {} | {} ± {} | {} ± {} | {} / {} | {} | {} ± {} | {} ± {} | {} |".format(
-            label(l), ", ".join(f"{x:.3g}" for x in l["rates"]),
-            fmt(r["phi_to_next"]["rms"], 2) if r else "—", fmt(r["phi_to_next"]["error"], 2) if r else "—",
-            fmt(100 * r["ev_to_next"]["rms"], 2) if r else "—", fmt(100 * r["ev_to_next"]["error"], 2) if r else "—",
+
+        def change(key, scale):
+            if not r:
+                return "—"
+            c = r[key + "_to_slowest"]
+            return f"{fmt(scale * c['rms'], 2)} ({fmt(scale * c['excess'], 2)}) ± {fmt(scale * c['error'], 2)}"
+
+        out.append("| {} | {} | {} | {} | {} / {} | {} | {} ± {} | {} ± {} | {} |".format(
+            label(l), ", ".join(f"{x:.3g}" for x in l["rates"]), change("phi", 1), change("ev", 100),
             fmt(l["phi_scatter_deg"], 2), fmt(100 * l["ev_scatter"], 2), l["status"],
             fmt(pk["mean"][-1], 4), fmt(pk["error"][-1], 2), fmt(100 * ev["mean"][-1], 3), fmt(100 * ev["error"][-1], 2),
             fmt(l["steps"], 3)))
-    out += ["", "## Peak φ and εv at 10 % at each rate (seed mean ± standard error)", "",
+    out += ["", "## Peak φ and εv at the end at each rate (seed mean ± standard error)", "",
             "| model | " + " | ".join(f"ε' = {x:.3g}" for x in ladders[0]["rates"]) + " |",
             "| --- |" + " --- |" * len(ladders[0]["rates"])]
     rates = sorted({x for l in ladders for x in l["rates"]}, reverse=True)
@@ -126,10 +140,12 @@ def tables(a, manifest):
     # Paired by seed against the undamped run of the same sample and rate.
     runs = {r["id"]: r for r in a["runs"]}
     by = {(r["model"], r["xi"], r["rate"], r["seed"]): r for r in a["runs"] if r["finished"]}
+    if not any(l["model"] == "none" for l in ladders):
+        return "\n".join(out) + "\n"
     out += ["", "## Against the undamped run of the same seed and rate", "",
             "Per seed, the model's run minus the undamped run on the same sample at the same rate, then the mean",
-            "± its standard error over the three seeds (summary.json: peak_phi_deg, final_ev).", "",
-            "| model | " + " | ".join(f"ε' = {x:.3g}: Δ peak φ (°) / Δ εv at 10 % (%)" for x in rates) + " |",
+            f"± its standard error over the {n_seeds} seeds (summary.json: peak_phi_deg, final_ev).", "",
+            "| model | " + " | ".join(f"ε' = {x:.3g}: Δ peak φ (°) / Δ εv at the end (%)" for x in rates) + " |",
             "| --- |" + " --- |" * len(rates)]
 
     def mean_se(v):
@@ -169,12 +185,36 @@ def tables(a, manifest):
         if l["model"] == "none":
             base = speed
         rows.append((label(l), contact, speed, imom))
-    for name, contact, speed, imom in rows:
-        out.append(f"| {name} | {contact:.3f} | {1000 * speed:.3g} | {speed / base:.2f} | {100 * imom:.3g} |")
+    for model, contact, speed, imom in rows:
+        out.append(f"| {model} | {contact:.3f} | {1000 * speed:.3g} | {speed / base:.2f} | {100 * imom:.3g} |")
+    # Where the work went: the energy ledger of the triaxial phase, when the runs kept it.
+    energy = {}
+    for l in ladders:
+        k = l["rates"].index(common)
+        shares = []
+        for i in l["rungs"][k]["runs"]:
+            summary = json.load(open(os.path.join(COPY, runs[i]["dir"], "summary.json")))
+            e = summary["phases"][-1].get("energy")
+            if not e:
+                break
+            w = e["work_J"]
+            shares.append((e["friction_J"] / w, e["contact_damping_J"] / w, e["damping_J"] / w,
+                           e["elastic_change_J"] / w, e["kinetic_change_J"] / w))
+        if len(shares) == len(l["rungs"][k]["runs"]):
+            energy[label(l)] = [sum(s[j] for s in shares) / len(shares) for j in range(5)]
+    if energy:
+        out += ["", f"## Where the work goes at ε' = {common:.3g}", "",
+                "The triaxial phase's energy ledger (summary.json phases[-1].energy, docs/physics.md 12): the work",
+                "of the cell, and its shares dissipated by sliding, by the contact dashpots and by the particle",
+                "damping, stored as elastic energy and left as kinetic energy, mean over the seeds.", "",
+                "| model | sliding | dashpots | particle damping | elastic change | kinetic change |",
+                "| --- | --- | --- | --- | --- | --- |"]
+        for model, v in energy.items():
+            out.append(f"| {model} | " + " | ".join(f"{100 * x:.1f} %" for x in v) + " |")
     return "\n".join(out) + "\n"
 
 
-def plot(a):
+def plot(a, name):
     os.makedirs(os.path.join(HERE, "figures"), exist_ok=True)
     ladders = a["convergence"]
     dat = os.path.join(HERE, "figures", "limit.dat")
@@ -187,10 +227,11 @@ def plot(a):
             o.write("\n\n")
     n = len(ladders)
     titles = [label(l) for l in ladders]
-    png = os.path.join(HERE, "figures", "limit-A-small.png")
+    sample = ladders[0]["sample"]
+    png = os.path.join(HERE, "figures", "limit-A-small.png" if name == "small" else f"limit-{name}.png")
     script = f"""set terminal pngcairo size 1400,600 font ',11' noenhanced
 set output '{png}'
-set multiplot layout 1,2 title 'paper-A-small, 3 seeds: the response as the strain rate falls (seed mean ± standard error)'
+set multiplot layout 1,2 title '{sample} ({name}/), {len(ladders[0]["seeds"])} seeds: the response as the strain rate falls (seed mean ± standard error)'
 set logscale x
 set xrange [*:*] reverse
 set xlabel "strain rate ε'"
@@ -208,14 +249,18 @@ unset multiplot
 
 
 def main():
-    if len(sys.argv) == 3 and sys.argv[1] == "collect":
+    global COPY
+    collecting = len(sys.argv) in (3, 4) and sys.argv[1] == "collect"
+    name = (sys.argv[3] if len(sys.argv) == 4 else "small") if collecting else (sys.argv[1] if len(sys.argv) == 2 else "small")
+    COPY = os.path.join(HERE, name)
+    if collecting:
         collect(sys.argv[2])
         return
     a = json.load(open(os.path.join(COPY, "analysis", "analysis.json")))
     manifest = json.load(open(os.path.join(COPY, "study.json")))
-    with open(os.path.join(HERE, "tables.md"), "w") as o:
-        o.write(tables(a, manifest))
-    plot(a)
+    with open(os.path.join(HERE, "tables.md" if name == "small" else f"tables-{name}.md"), "w") as o:
+        o.write(tables(a, manifest, name))
+    plot(a, name)
 
 
 if __name__ == "__main__":
