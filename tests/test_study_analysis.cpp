@@ -744,22 +744,28 @@ TEST(StudyAnalysisResults, CommittedFullStudyReanalysesFromItsRuns) {
   fs::remove_all(dir);
 }
 
-// The committed quasi-static-limit study (docs/results/quasi-static-limit/small) holds every run's
+// The committed quasi-static-limit studies (docs/results/quasi-static-limit/: the Sample A study
+// `small` and the default case's `qsdem converge` ladder `default-case`) hold every run's
 // summary.json and series.csv: `qsdem analyze` of a copy gives its certificate (convergence.csv),
 // per_run.csv and tables byte for byte, so docs/results/quasi-static-limit.md comes from those files.
-TEST(StudyAnalysisResults, CommittedQuasiStaticLimitStudyReanalysesFromItsRuns) {
-  const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "quasi-static-limit" / "small";
-  ASSERT_TRUE(fs::exists(results / "analysis" / "convergence.csv"));
-  const fs::path dir = fresh_temp_dir("analysis-qs-limit");
-  for (const char* f : {"study.json", "study.toml"}) fs::copy_file(results / f, dir / f);
-  for (const char* d : {"runs", "samples"}) fs::copy(results / d, dir / d, fs::copy_options::recursive);
-  const std::string cmd = fmt::format("'{}' analyze '{}' > '{}/log' 2>&1", QSDEM_BINARY, dir.string(), dir.string());
-  ASSERT_EQ(std::system(cmd.c_str()), 0) << slurp(dir / "log");
-  for (const char* f : {"convergence.csv", "per_run.csv", "deviation.csv"})
-    EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
-  const auto without_date = [](std::string md) { return md.erase(0, md.find("Indices in percent")); };
-  EXPECT_EQ(without_date(slurp(dir / "analysis" / "tables.md")), without_date(slurp(results / "analysis" / "tables.md")));
-  fs::remove_all(dir);
+TEST(StudyAnalysisResults, CommittedQuasiStaticLimitStudiesReanalyseFromTheirRuns) {
+  for (const char* name : {"small", "default-case"}) {
+    SCOPED_TRACE(name);
+    const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "quasi-static-limit" / name;
+    ASSERT_TRUE(fs::exists(results / "analysis" / "convergence.csv"));
+    const fs::path dir = fresh_temp_dir("analysis-qs-limit");
+    for (const char* f : {"study.json", "study.toml"}) fs::copy_file(results / f, dir / f);
+    for (const char* d : {"runs", "samples"}) fs::copy(results / d, dir / d, fs::copy_options::recursive);
+    if (fs::exists(results / "case.toml")) fs::copy_file(results / "case.toml", dir / "case.toml");
+    const std::string cmd = fmt::format("'{}' analyze '{}' > '{}/log' 2>&1", QSDEM_BINARY, dir.string(), dir.string());
+    ASSERT_EQ(std::system(cmd.c_str()), 0) << slurp(dir / "log");
+    for (const char* f : {"convergence.csv", "per_run.csv", "deviation.csv"})
+      EXPECT_EQ(slurp(dir / "analysis" / f), slurp(results / "analysis" / f)) << f;
+    const auto without_date = [](std::string md) { return md.erase(0, md.find("Indices in percent")); };
+    EXPECT_EQ(without_date(slurp(dir / "analysis" / "tables.md")),
+              without_date(slurp(results / "analysis" / "tables.md")));
+    fs::remove_all(dir);
+  }
 }
 
 TEST(StudyAnalysisResults, CommittedCriticalStateStudyReanalysesFromItsRuns) {
