@@ -580,20 +580,9 @@ constexpr long default_points = 250, default_every_steps = 200, default_max_step
 // below the step counter's range (a rate near 1e-20 plans past it).
 constexpr double max_planned_steps = 1e12;
 
-// One [[phase]] entry, `k` = "phase.N" (docs/config.md).
-Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step_ratio, const ContactSettings& contact) {
-  Phase ph;
-  ph.name = r.text(k + ".name", fmt::format("phase-{}", index), {});
-  if (ph.name.empty() || ph.name.find_first_of(",\"\n\r") != std::string::npos)
-    r.fail(k + ".name", r.find(k + ".name"), "must be a non-empty name without commas, quotes or line breaks (a CSV column)");
-  ph.friction = r.number(k + ".friction", std::nullopt, non_negative, "must be >= 0");
-  std::tie(ph.damping.model, ph.damping.ratio) =
-      damping_model(r, k + ".damping.model", k + ".damping.ratio", contact);
-  ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
-  ph.inertia = inertia_scaling(r, k);
-  ph.fire = fire_solver(r, k);
-  if (ph.fire) ph.damping = {"none", 0.0, DampedMotion::both};
-
+// A phase's controls: a strain rate or a stress per component, the components that hold the
+// volume, and the cap of the servo's rate.
+void read_phase_controls(Reader& r, const std::string& k, Phase& ph) {
   bool any_rate = false;
   for (int c = 0; c < component_count; ++c) {
     const std::string name = component_names[static_cast<std::size_t>(c)];
@@ -650,8 +639,11 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
            "the phase has no strain-rate component to scale; give servo.max_strain_rate");
   ph.controls.max_strain_rate = cap ? *cap : (factor || any_rate ? 0.0 : 2e-5);
   ph.controls.rate_factor = factor ? *factor : (cap || !any_rate ? 0.0 : 10.0);
-  if (ph.fire) check_fire_phase(r, k, ph);
+}
 
+// When a phase ends: steps, strain or stress of a component, equilibrium, or a controller that
+// ends it; and its step budget.
+void read_phase_stop(Reader& r, const std::string& k, Phase& ph, double step_ratio) {
   auto& stop = ph.stop;
   stop.steps = r.optional_integer(k + ".stop.steps", 1, std::numeric_limits<long>::max()).value_or(0);
   for (int c = 0; c < component_count; ++c) {
@@ -699,7 +691,12 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   const long end = planned_end(ph, step_ratio);
   stop.max_steps = r.optional_integer(k + ".stop.max_steps", 1, std::numeric_limits<long>::max())
                        .value_or(end < 0 ? default_max_steps : 0);
+}
 
+// Where a phase's rows go and when it takes one: points over a planned end, every steps, or
+// every strain of a strain-rate component.
+void read_phase_output(Reader& r, const std::string& k, Phase& ph, double step_ratio) {
+  const long end = planned_end(ph, step_ratio);
   auto& out = ph.output;
   out.file = r.text(k + ".output.file", std::string("series.csv"), {});
   if (out.file.size() < 5 || out.file.substr(out.file.size() - 4) != ".csv" || out.file.find('/') != std::string::npos ||
@@ -742,26 +739,47 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
     out.cadence.kind = Cadence::Kind::points;
     out.cadence.points = points.value_or(std::min(default_points, end));
   }
+}
 
-  if (r.find(k + ".controller")) {
-    std::vector<std::string> names;
-    for (const ControllerKind& kind : controller_kinds()) names.emplace_back(kind.name);
-    ph.controller = r.text(k + ".controller.kind", std::nullopt, names);
-    ControllerTable table(r, k + ".controller");
-    const ControllerKind& kind =
-        *std::find_if(controller_kinds().begin(), controller_kinds().end(), [&](const ControllerKind& c) {
-          return c.name == ph.controller;
-        });
-    ph.make_controller = kind.read(table, ph, step_ratio);
-    if (kind.writes_rate_column) {
-      const std::vector<std::string> components(component_names.begin(), component_names.end());
-      const std::string name = r.text(k + ".controller.component", std::nullopt, components);
-      ph.rate_component = static_cast<int>(std::find(components.begin(), components.end(), name) - components.begin());
-    }
-    if (ph.inertia.on() && kind.plans_with_step_ratio)
-      r.fail(k + ".inertia_scaling", r.find(k + ".inertia_scaling"),
-             fmt::format("not with controller \"{}\", which plans its steps with time.step_ratio alone", ph.controller));
+// A phase's controller (controller_kinds()), with what its entry declares.
+void read_phase_controller(Reader& r, const std::string& k, Phase& ph, double step_ratio) {
+  if (!r.find(k + ".controller")) return;
+  std::vector<std::string> names;
+  for (const ControllerKind& kind : controller_kinds()) names.emplace_back(kind.name);
+  ph.controller = r.text(k + ".controller.kind", std::nullopt, names);
+  ControllerTable table(r, k + ".controller");
+  const ControllerKind& kind = *std::find_if(controller_kinds().begin(), controller_kinds().end(),
+                                             [&](const ControllerKind& c) { return c.name == ph.controller; });
+  ph.make_controller = kind.read(table, ph, step_ratio);
+  if (kind.writes_rate_column) {
+    const std::vector<std::string> components(component_names.begin(), component_names.end());
+    const std::string name = r.text(k + ".controller.component", std::nullopt, components);
+    ph.rate_component = static_cast<int>(std::find(components.begin(), components.end(), name) - components.begin());
   }
+  if (ph.inertia.on() && kind.plans_with_step_ratio)
+    r.fail(k + ".inertia_scaling", r.find(k + ".inertia_scaling"),
+           fmt::format("not with controller \"{}\", which plans its steps with time.step_ratio alone", ph.controller));
+}
+
+// One [[phase]] entry, `k` = "phase.N" (docs/config.md).
+Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step_ratio, const ContactSettings& contact) {
+  Phase ph;
+  ph.name = r.text(k + ".name", fmt::format("phase-{}", index), {});
+  if (ph.name.empty() || ph.name.find_first_of(",\"\n\r") != std::string::npos)
+    r.fail(k + ".name", r.find(k + ".name"), "must be a non-empty name without commas, quotes or line breaks (a CSV column)");
+  ph.friction = r.number(k + ".friction", std::nullopt, non_negative, "must be >= 0");
+  std::tie(ph.damping.model, ph.damping.ratio) =
+      damping_model(r, k + ".damping.model", k + ".damping.ratio", contact);
+  ph.damping.acts_on = damped_motion(r, k + ".damping.acts_on");
+  ph.inertia = inertia_scaling(r, k);
+  ph.fire = fire_solver(r, k);
+  if (ph.fire) ph.damping = {"none", 0.0, DampedMotion::both};
+
+  read_phase_controls(r, k, ph);
+  if (ph.fire) check_fire_phase(r, k, ph);
+  read_phase_stop(r, k, ph, step_ratio);
+  read_phase_output(r, k, ph, step_ratio);
+  read_phase_controller(r, k, ph, step_ratio);
   int planned = 2;
   for (int c = 0; c < 3; ++c)
     if (planned_strain(ph, c)) planned = c;
