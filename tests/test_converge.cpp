@@ -78,6 +78,13 @@ TEST_F(Converge, StopsAtTheFirstConvergedRungs) {
   EXPECT_TRUE(fs::exists(dir_ / "wide" / "analysis" / "convergence.csv"));
   EXPECT_TRUE(fs::exists(dir_ / "wide" / "analysis" / "figures" / "ladder_case_nd_0_5.png"));
   EXPECT_NE(r.out.find("certificate: converged at eps' = 0.000125"), std::string::npos) << r.out;
+  // The certificate's page: the verdict, one row per rung, the limits and the ladder's figure.
+  EXPECT_EQ(c["page"], "certificate.html");
+  const std::string page = qsdem_test::slurp(dir_ / "wide" / "certificate.html");
+  EXPECT_NE(page.find("<h2>converged at ε′ = 0.000125</h2>"), std::string::npos) << page;
+  EXPECT_NE(page.find("<td>6.25e-05</td><td>0 (the slowest)</td>"), std::string::npos) << page;
+  EXPECT_NE(page.find("<td>peak_phi_deg</td>"), std::string::npos) << page;
+  EXPECT_NE(page.find("src=\"analysis/figures/ladder_case_nd_0_5.png\""), std::string::npos) << page;
 }
 
 // Tolerances no two rates meet: every rung runs, the certificate is "not converged" (exit 4),

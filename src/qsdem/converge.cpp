@@ -5,6 +5,7 @@
 #include <fmt/format.h>
 #include <toml++/toml.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -14,6 +15,7 @@
 #include <thread>
 
 #include "qsdem/config.hpp"
+#include "qsdem/converge_page.hpp"
 #include "qsdem/default_case.hpp"
 #include "qsdem/files.hpp"
 #include "qsdem/output.hpp"
@@ -211,7 +213,15 @@ int run_ladder(const LadderOptions& o) {
   c["wall_s"] = l["wall_s"];
   c["ladder"] = l;
   c["report"] = "report.html";
+  c["page"] = "certificate.html";
   write_file_atomic(o.out / "certificate.json", c.dump(2) + "\n");
+  std::vector<std::string> figures;
+  if (fs::is_directory(o.out / "analysis" / "figures"))
+    for (const auto& e : fs::directory_iterator(o.out / "analysis" / "figures"))
+      if (e.path().extension() == ".png" && e.path().filename().string().rfind("ladder_", 0) == 0)
+        figures.push_back(e.path().filename().string());
+  std::sort(figures.begin(), figures.end());
+  write_file_atomic(o.out / "certificate.html", certificate_html(c, figures));
 
   std::string limits;
   for (const auto& s : l["scalars"])
@@ -220,7 +230,7 @@ int run_ladder(const LadderOptions& o) {
                             s["limit"].get<double>(), s["band"].is_number() ? s["band"].get<double>() : NAN,
                             s["extrapolated"].get<bool>() ? " (extrapolated)" : "");
   std::printf("\ncertificate: %s%s\n  %s\n  %zu rungs of %d seeds, %.4g steps, %.4g s of runs%s\nIn %s/ "
-              "(certificate.json, report.html, analysis/convergence.csv)\n",
+              "(certificate.html, certificate.json, report.html, analysis/convergence.csv)\n",
               l["status"].get<std::string>().c_str(),
               converged ? fmt::format(" at eps' = {:g}", l["certified_rate"].get<double>()).c_str() : "",
               c["reason"].get<std::string>().c_str(), l["rates"].size(), o.seeds, l["steps"].get<double>(),
