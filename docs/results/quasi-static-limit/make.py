@@ -3,7 +3,7 @@
 
   python3 docs/results/quasi-static-limit/make.py collect runs/qs-limit-small [NAME]
       copies the study's study.toml, study.json, analysis/ and report.html (and a `qsdem
-      converge` directory's certificate.json, case.toml and cases/), of every prepared sample
+      converge` directory's certificate.json and .html, case.toml and cases/), of every prepared sample
       summary.json and compaction.csv, and of every finished run summary.json, series.csv and
       classes.csv.gz, to docs/results/quasi-static-limit/NAME/ (default `small`; `qsdem analyze`
       of that copy gives its analysis again);
@@ -42,7 +42,7 @@ def collect(study):
     if os.path.exists(COPY):
         shutil.rmtree(COPY)
     os.makedirs(COPY)
-    for f in ("study.toml", "study.json", "report.html", "certificate.json", "case.toml"):
+    for f in ("study.toml", "study.json", "report.html", "certificate.json", "certificate.html", "case.toml"):
         if os.path.exists(os.path.join(study, f)):
             shutil.copy(os.path.join(study, f), COPY)
     if os.path.isdir(os.path.join(study, "cases")):
