@@ -843,44 +843,27 @@ nlohmann::json to_json(const toml::table& tbl) {
 namespace {
 
 // parse_case; `asked`, when given, receives every key the parser asked for.
-Params parse(const std::string& toml_text, const std::string& source, const std::vector<std::string>& overrides,
-             const std::filesystem::path& base_dir, std::set<std::string>* asked) {
-  toml::table root;
-  try {
-    root = toml::parse(toml_text, source);
-  } catch (const toml::parse_error& e) {
-    throw InputError(fmt::format("{}:{}: TOML syntax error: {}", source, e.source().begin.line,
-                                 e.description()));
-  }
-  for (const auto& o : overrides) apply_override(root, o);
-
-  Reader r(root, source);
-  Params p;
-  p.source = source;
-  p.name = r.text("name", std::string("case"), {});
-
-  p.material.density = r.quantity("material.density", Dimension::density, std::nullopt, positive, "must be > 0");
-  p.material.young_modulus = r.quantity("material.young_modulus", Dimension::stress, std::nullopt, positive, "must be > 0");
-  p.material.poisson_ratio = r.number("material.poisson_ratio", std::nullopt,
-                                      [](double v) { return v > -1 && v < 0.5; }, "must be in (-1, 0.5)");
-
-  p.sample.seed = static_cast<std::uint64_t>(r.integer("sample.seed", 1, 0, std::numeric_limits<long>::max()));
-  p.sample.initial_solid_fraction = r.number("sample.initial_solid_fraction", 0.15,
+// [sample]: the seed, the loose packing's solid fraction and the particles: a size table, a sieve
+// curve, or a given sample (sample.from, kept absolute in the case text).
+void read_sample(Reader& r, toml::table& root, const std::string& source, const std::filesystem::path& base_dir,
+                 Params::Sample& sample) {
+  sample.seed = static_cast<std::uint64_t>(r.integer("sample.seed", 1, 0, std::numeric_limits<long>::max()));
+  sample.initial_solid_fraction = r.number("sample.initial_solid_fraction", 0.15,
                                              [](double v) { return v > 0 && v <= 0.2; }, "must be in (0, 0.2] (SPEC 8: a loose sample)");
-  p.sample.total_particles = r.integer("sample.total_particles", 0, 0, 100'000'000);
-  p.sample.from = r.text("sample.from", std::string(), {});
-  if (!p.sample.from.empty()) {
+  sample.total_particles = r.integer("sample.total_particles", 0, 0, 100'000'000);
+  sample.from = r.text("sample.from", std::string(), {});
+  if (!sample.from.empty()) {
     // In the case file: relative to the case file's directory (as study paths are to the study
     // file); on the command line (--set): relative to the working directory. Kept absolute, in
     // the case text too, so that a resume elsewhere names the same sample.
     namespace fs = std::filesystem;
     const auto& src = r.find("sample.from")->source();
     const bool in_file = src.path && *src.path == source;
-    fs::path from = p.sample.from;
+    fs::path from = sample.from;
     if (from.is_relative() && in_file) from = base_dir / from;
-    p.sample.from = fs::absolute(from).lexically_normal().string();
-    require_utf8(p.sample.from, "sample.from");  // with the working directory that made it absolute
-    root["sample"].as_table()->insert_or_assign("from", p.sample.from);
+    sample.from = fs::absolute(from).lexically_normal().string();
+    require_utf8(sample.from, "sample.from");  // with the working directory that made it absolute
+    root["sample"].as_table()->insert_or_assign("from", sample.from);
   }
   // A sieve curve instead of the size table: sample.total_particles particles drawn from it.
   if (const toml::node* grading = r.get("sample.grading", false)) {
@@ -889,28 +872,22 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
              "a case gives either the size table [[sample.particles]] or the sieve curve [[sample.grading]], not both");
     if (!grading->is_array_of_tables())
       r.fail("sample.grading", grading, "expected an array of tables ([[sample.grading]] entries, one per point)");
-    p.sample.grading = read_grading(r, *grading->as_array());
-    if (p.sample.total_particles == 0)
+    sample.grading = read_grading(r, *grading->as_array());
+    if (sample.total_particles == 0)
       r.fail("sample.total_particles", r.find("sample.total_particles"),
              "a sieve curve [[sample.grading]] needs the number of particles to draw from it: set it >= 1");
   }
   // A given sample replaces the generated one: then the size table is not needed (nor read).
-  if (p.sample.grading.empty() && (p.sample.from.empty() || r.find("sample.particles"))) {
+  if (sample.grading.empty() && (sample.from.empty() || r.find("sample.particles"))) {
     const auto* table = r.array_of_tables("sample.particles");
     for (std::size_t k = 0; k < table->size(); ++k)
-      p.sample.table.push_back(read_size_class(r, "sample.particles." + std::to_string(k)));
+      sample.table.push_back(read_size_class(r, "sample.particles." + std::to_string(k)));
   }
 
-  // Stability: dt must stay below about 20 % of the Rayleigh time 2.73 t_c (LIGGGHTS' rule), c_t <= 0.5.
-  p.step_ratio = r.number("time.step_ratio", 0.32, [](double v) { return v > 0 && v <= 0.5; },
-                          "must be in (0, 0.5]: above 0.5 the time step exceeds the stability bound (20 % of the "
-                          "Rayleigh time)");
+}
 
-  p.contact = read_contact(r);
-
-  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio", p.contact);
-  p.damping.acts_on = damped_motion(r, "damping.acts_on");
-
+// [compaction] and [triaxial]: the default protocol's tables (SPEC 8.2, 8.3).
+void read_default_tables(Reader& r, Params& p) {
   auto& c = p.compaction;
   c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
   c.stress = r.quantity("compaction.stress", Dimension::stress, 390e3, positive, "must be > 0");
@@ -934,10 +911,17 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   t.lateral_rate_factor = r.number("triaxial.lateral_rate_factor", 10.0, [](double v) { return v >= 1; }, "must be >= 1");
   t.zero_shear_stress = r.boolean("triaxial.zero_shear_stress", false);
   t.inertia = inertia_scaling(r, "triaxial");
+}
 
+// [servo]: the stress servo's gains (SPEC 3).
+void read_servo(Reader& r, Params& p) {
   p.servo.proportional_gain = r.number("servo.proportional_gain", 0.1, [](double v) { return v > 0 && v < 1; }, "must be in (0, 1)");
   p.servo.integral_gain = r.number("servo.integral_gain", 0.002, [](double v) { return v >= 0 && v <= 0.1; }, "must be in [0, 0.1]");
+}
 
+// The protocol: the [[phase]] list, or [compaction] then [triaxial] (with [triaxial.rate_control]).
+void read_protocol(Reader& r, Params& p) {
+  const auto& t = p.triaxial;
   p.phase_list = r.find("phase") != nullptr;
   if (!p.phase_list) {
     const double steps = t.final_axial_strain / (p.step_ratio * t.strain_rate);
@@ -984,7 +968,11 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
                  fmt::format("phase.{} has the same name: each phase needs its own", j));
     }
   }
+}
 
+// What every run of the case shares beyond the physics: the neighbour list's skin, checkpoints,
+// extra output and the safety limits.
+void read_run_settings(Reader& r, Params& p) {
   p.neighbor.skin_ratio = r.number("neighbor.skin_ratio", 0.2, [](double v) { return v > 0 && v <= 2; }, "must be in (0, 2]");
 
   p.checkpoint.every_sample_points =
@@ -996,7 +984,45 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   p.limits.max_overlap = r.quantity("limits.max_overlap", Dimension::ratio, 1.0, [](double v) { return v > 0 && v <= 1; },
                                     "must be in (0, 100 %]");
   p.limits.max_kinetic_ratio = r.number("limits.max_kinetic_ratio", 1.0, positive, "must be > 0");
+}
 
+Params parse(const std::string& toml_text, const std::string& source, const std::vector<std::string>& overrides,
+             const std::filesystem::path& base_dir, std::set<std::string>* asked) {
+  toml::table root;
+  try {
+    root = toml::parse(toml_text, source);
+  } catch (const toml::parse_error& e) {
+    throw InputError(fmt::format("{}:{}: TOML syntax error: {}", source, e.source().begin.line,
+                                 e.description()));
+  }
+  for (const auto& o : overrides) apply_override(root, o);
+
+  Reader r(root, source);
+  Params p;
+  p.source = source;
+  p.name = r.text("name", std::string("case"), {});
+
+  p.material.density = r.quantity("material.density", Dimension::density, std::nullopt, positive, "must be > 0");
+  p.material.young_modulus = r.quantity("material.young_modulus", Dimension::stress, std::nullopt, positive, "must be > 0");
+  p.material.poisson_ratio = r.number("material.poisson_ratio", std::nullopt,
+                                      [](double v) { return v > -1 && v < 0.5; }, "must be in (-1, 0.5)");
+
+  read_sample(r, root, source, base_dir, p.sample);
+
+  // Stability: dt must stay below about 20 % of the Rayleigh time 2.73 t_c (LIGGGHTS' rule), c_t <= 0.5.
+  p.step_ratio = r.number("time.step_ratio", 0.32, [](double v) { return v > 0 && v <= 0.5; },
+                          "must be in (0, 0.5]: above 0.5 the time step exceeds the stability bound (20 % of the "
+                          "Rayleigh time)");
+
+  p.contact = read_contact(r);
+
+  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio", p.contact);
+  p.damping.acts_on = damped_motion(r, "damping.acts_on");
+
+  read_default_tables(r, p);
+  read_servo(r, p);
+  read_protocol(r, p);
+  read_run_settings(r, p);
   r.reject_unknown();
   if (asked) *asked = r.asked();
   p.as_written = to_json(root);
