@@ -1,6 +1,7 @@
 // The FIRE relaxation (docs/physics.md 5.7) against closed forms and its own invariants: a
-// perturbed, frictionless compressed chain lattice relaxes to the Hertz solution (equal overlaps,
-// the stress of the closed form, the least stored energy), the power check stops every particle and
+// perturbed, frictionless compressed chain lattice of spheres or of spheroids touching pole to pole
+// relaxes to the Hertz solution (equal overlaps, the stress of the closed form, the least stored
+// energy), the power check stops every particle and
 // restarts the step and the mixing, and the energy of the conservative system falls to its minimum.
 #include <gtest/gtest.h>
 
@@ -24,12 +25,15 @@ constexpr double kR = 1e-3, kDelta = 4e-6;  // sphere radius, the chains' overla
 constexpr int kLateral = 3, kChain = 6;     // chains of kChain spheres on a kLateral^2 grid
 constexpr double kGap = 2.4 * kR;           // lateral spacing: no contact between chains
 
-// Chains of equal spheres along 33 in a periodic cell, each contact with overlap kDelta; the 33
+// Chains of equal particles along 33 in a periodic cell, each contact with overlap kDelta; the 33
 // fractional positions of the free ones moved by up to `shake` of the overlap (the chains stay in
-// contact). Frictionless: a perturbed chain relaxes along its axis only.
-State chains(double shake, unsigned seed) {
+// contact). Frictionless: a perturbed chain relaxes along its axis only. Spheres of radius kR, or
+// prolate spheroids of semi-axes (kR, kR, a) with their axis of revolution along 33, touching pole
+// to pole.
+State chains(double shake, unsigned seed, double a = kR) {
   State st;
-  const double pitch = 2 * kR - kDelta;
+  const double pitch = 2 * a - kDelta;
+  const ShapeKind shape = a == kR ? ShapeKind::sphere : ShapeKind::ellipsoid;
   Mat3 h = Mat3::Zero();
   h(0, 0) = h(1, 1) = kLateral * kGap;
   h(2, 2) = kChain * pitch;
@@ -42,7 +46,7 @@ State chains(double shake, unsigned seed) {
       for (int z = 0; z < kChain; ++z) {
         const double dz = z == 0 ? 0.0 : shake * kDelta * u(rng) / h(2, 2);
         const Vec3 s((x + 0.5) / kLateral, (y + 0.5) / kLateral, (z + 0.5) / kChain + dz);
-        st.particles.add(id++, ShapeKind::sphere, Vec3::Constant(kR), kRho, s, Quat::Identity());
+        st.particles.add(id++, shape, Vec3(kR, kR, a), kRho, s, Quat::Identity());
       }
   return st;
 }
@@ -59,9 +63,25 @@ Model fire_model(const State& st) {
   return m;
 }
 
-// Hertz between equal spheres: F = 4/3 E* sqrt(R/2) delta^(3/2), stored 2/5 F delta (SPEC 4).
-double hertz_force(const Model& m, double delta) {
-  return 4.0 / 3.0 * m.material.effective_modulus() * std::sqrt(kR / 2) * std::pow(delta, 1.5);
+// Hertz between equal surfaces of radius of curvature r: F = 4/3 E* sqrt(r/2) delta^(3/2), stored
+// 2/5 F delta (SPEC 4); a sphere's r is kR.
+double hertz_force(const Model& m, double delta, double r = kR) {
+  return 4.0 / 3.0 * m.material.effective_modulus() * std::sqrt(r / 2) * std::pow(delta, 1.5);
+}
+
+// FIRE steps until UFR < 1e-11 (checked every 10 steps) or 20000 steps; the UFR reached.
+double relax(const Model& model, State& st, long& steps, long& resets) {
+  FireState fire = fire_start(model);
+  Schedule schedule;
+  double ufr = 1;
+  steps = 0;
+  while (steps < 20000) {
+    fire_step(model, st, schedule, fire);
+    ++steps;
+    if (steps % 10 == 0 && (ufr = measure(st).ufr) < 1e-11) break;
+  }
+  resets = fire.resets;
+  return ufr;
 }
 
 double kinetic(const Particles& p) {
@@ -81,16 +101,9 @@ TEST(Fire, PerturbedChainsRelaxToTheHertzSolution) {
   assign_damping(model, st.particles);
   evaluate_forces(model, st);
   const double start = st.energy.elastic;
-  FireState fire = fire_start(model);
-  Schedule schedule;
-  long steps = 0;
-  double ufr = 1;
-  while (steps < 20000) {
-    fire_step(model, st, schedule, fire);
-    ++steps;
-    if (steps % 10 == 0 && (ufr = measure(st).ufr) < 1e-11) break;
-  }
-  std::printf("[ info ] %ld FIRE steps, %ld stops, UFR %.3g\n", steps, fire.resets, ufr);
+  long steps = 0, resets = 0;
+  const double ufr = relax(model, st, steps, resets);
+  std::printf("[ info ] %ld FIRE steps, %ld stops, UFR %.3g\n", steps, resets, ufr);
   ASSERT_LT(ufr, 1e-11);
   const Measures m = measure(st);
   const double f = hertz_force(model, kDelta);
@@ -102,6 +115,38 @@ TEST(Fire, PerturbedChainsRelaxToTheHertzSolution) {
   // Each chain equally spaced: neighbours' 33 separation = 2R - delta.
   const double pitch = 2 * kR - kDelta;
   for (std::size_t i = 0; i + 1 < st.particles.size(); ++i) {
+    if ((i + 1) % kChain == 0) continue;
+    const double dz = st.cell.h(2, 2) * (st.particles.s[i + 1].z() - st.particles.s[i].z());
+    EXPECT_NEAR(dz, pitch, 1e-9 * kDelta) << "particle " << i;
+  }
+}
+
+// The same lattice of prolate spheroids (semi-axes 1, 1, 1.5 mm) touching pole to pole, an exact
+// ellipsoid contact (Perram-Wertheim, docs/physics.md 4.4-4.6): at a pole both principal radii of
+// curvature are b^2/a, so the relaxed lattice carries the Hertz force of two spheres of that radius
+// at overlap kDelta, sigma_33 = F / gap^2, and stores N 2/5 F delta; the poles stay on the axis.
+TEST(Fire, PerturbedSpheroidChainsRelaxToTheHertzSolutionAtThePoles) {
+  constexpr double a = 1.5 * kR;
+  State st = chains(0.4, 5, a);
+  ASSERT_EQ(st.particles.shape.front(), ShapeKind::ellipsoid);  // the Perram-Wertheim path, not the spheres'
+  const Model model = fire_model(st);
+  assign_damping(model, st.particles);
+  evaluate_forces(model, st);
+  const double start = st.energy.elastic;
+  long steps = 0, resets = 0;
+  const double ufr = relax(model, st, steps, resets);
+  std::printf("[ info ] spheroids: %ld FIRE steps, %ld stops, UFR %.3g\n", steps, resets, ufr);
+  ASSERT_LT(ufr, 1e-11);
+  const Measures m = measure(st);
+  const double f = hertz_force(model, kDelta, kR * kR / a);
+  EXPECT_NEAR(m.stress(2, 2), f / (kGap * kGap), 1e-9 * f / (kGap * kGap));
+  EXPECT_NEAR(m.stress(0, 0), 0.0, 1e-12 * f / (kGap * kGap));
+  const double n = static_cast<double>(st.particles.size());
+  EXPECT_NEAR(st.energy.elastic, n * 0.4 * f * kDelta, 1e-8 * n * 0.4 * f * kDelta);
+  EXPECT_GT(start, st.energy.elastic) << "the perturbation stored more";
+  const double pitch = 2 * a - kDelta;
+  for (std::size_t i = 0; i + 1 < st.particles.size(); ++i) {
+    EXPECT_NEAR(st.particles.q[i].angularDistance(Quat::Identity()), 0.0, 1e-12) << "particle " << i << " turned";
     if ((i + 1) % kChain == 0) continue;
     const double dz = st.cell.h(2, 2) * (st.particles.s[i + 1].z() - st.particles.s[i].z());
     EXPECT_NEAR(dz, pitch, 1e-9 * kDelta) << "particle " << i;
