@@ -210,7 +210,7 @@ def tables(a, manifest, name):
                 "| model | sliding | dashpots | particle damping | elastic change | kinetic change |",
                 "| --- | --- | --- | --- | --- | --- |"]
         for model, v in energy.items():
-            out.append(f"| {model} | " + " | ".join(f"{100 * x:.1f} %" for x in v) + " |")
+            out.append(f"| {model} | " + " | ".join(f"{round(100 * x, 1) + 0.0:.1f} %" for x in v) + " |")
     return "\n".join(out) + "\n"
 
 
