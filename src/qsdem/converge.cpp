@@ -5,7 +5,6 @@
 #include <fmt/format.h>
 #include <toml++/toml.h>
 
-#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -13,6 +12,7 @@
 #include <optional>
 #include <sstream>
 #include <thread>
+#include <vector>
 
 #include "qsdem/config.hpp"
 #include "qsdem/converge_page.hpp"
@@ -65,16 +65,30 @@ bool rank_zero() {
   return true;
 }
 
-// The ladder of the case in DIR/analysis/analysis.json, or null.
-nlohmann::json ladder_of(const fs::path& out) {
-  const fs::path f = out / "analysis" / "analysis.json";
-  const std::optional<std::string> text = read_regular_file(f);
+// DIR/analysis/analysis.json, or null.
+nlohmann::json analysis_of(const fs::path& out) {
+  const std::optional<std::string> text = read_regular_file(out / "analysis" / "analysis.json");
   if (!text) return nullptr;
-  const nlohmann::json a = nlohmann::json::parse(*text, nullptr, false);
-  if (a.is_discarded() || !a.contains("convergence")) return nullptr;
+  nlohmann::json a = nlohmann::json::parse(*text, nullptr, false);
+  return a.is_discarded() ? nullptr : a;
+}
+
+// The ladder of the case in an analysis, or null.
+nlohmann::json ladder_in(const nlohmann::json& a) {
+  if (!a.is_object() || !a.contains("convergence")) return nullptr;
   for (const auto& l : a["convergence"])
     if (l.value("sample", "") == sample_name) return l;
   return nullptr;
+}
+
+// The ladder figures the analysis drew (PNG names under DIR/analysis/figures/).
+std::vector<std::string> ladder_figures(const nlohmann::json& a) {
+  std::vector<std::string> figures;
+  if (a.is_object() && a.contains("figures"))
+    for (const auto& f : a["figures"])
+      if (f.value("drawn", false) && f.value("name", "").rfind("ladder_", 0) == 0)
+        figures.push_back(f["name"].get<std::string>() + ".png");
+  return figures;
 }
 
 // Creates DIR with the ladder's study.toml (and the built-in case), or checks that DIR holds this
@@ -173,7 +187,7 @@ int run_ladder(const LadderOptions& o) {
   };
   const auto next = [&](int round) -> std::optional<std::vector<std::string>> {
     if (round == 0) return stages_to(2);
-    const nlohmann::json l = ladder_of(o.out);
+    const nlohmann::json l = ladder_in(analysis_of(o.out));
     const std::size_t done = l.is_object() ? l["rates"].size() : 0;
     if (!l.is_object() || done < std::size_t(round) + 1) return stopped_by = "failed runs", std::nullopt;
     if (l["status"] == "converged") return stopped_by = "converged", std::nullopt;
@@ -191,7 +205,8 @@ int run_ladder(const LadderOptions& o) {
   const int code = run_study_rounds(o.out / "study.toml", so, next);
   if (code != 0 || !rank_zero()) return code;
 
-  const nlohmann::json l = ladder_of(o.out);
+  const nlohmann::json a = analysis_of(o.out);
+  const nlohmann::json l = ladder_in(a);
   if (!l.is_object()) {
     std::fprintf(stderr, "qsdem: the analysis of '%s' holds no ladder\n", o.out.string().c_str());
     return 3;
@@ -215,13 +230,7 @@ int run_ladder(const LadderOptions& o) {
   c["report"] = "report.html";
   c["page"] = "certificate.html";
   write_file_atomic(o.out / "certificate.json", c.dump(2) + "\n");
-  std::vector<std::string> figures;
-  if (fs::is_directory(o.out / "analysis" / "figures"))
-    for (const auto& e : fs::directory_iterator(o.out / "analysis" / "figures"))
-      if (e.path().extension() == ".png" && e.path().filename().string().rfind("ladder_", 0) == 0)
-        figures.push_back(e.path().filename().string());
-  std::sort(figures.begin(), figures.end());
-  write_file_atomic(o.out / "certificate.html", certificate_html(c, figures));
+  write_file_atomic(o.out / "certificate.html", certificate_html(c, ladder_figures(a)));
 
   std::string limits;
   for (const auto& s : l["scalars"])

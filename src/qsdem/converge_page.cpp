@@ -7,28 +7,22 @@
 #include <vector>
 
 #include "qsdem/figures.hpp"
+#include "qsdem/study_analysis_data.hpp"
 #include "qsdem/version.hpp"
 
 namespace qsdem {
 namespace {
 
 using ojson = nlohmann::ordered_json;
+using analysis::sig;
 
 double number(const ojson& v) { return v.is_number() ? v.get<double>() : std::nan(""); }
-
-std::string sig(double v, int digits = 3) { return std::isfinite(v) ? fmt::format("{:.{}g}", v, digits) : "—"; }
 
 // A change between two rungs as the certificate judges it (docs/analysis.md 11): beyond the noise
 // ± its standard error, and the plain RMS.
 std::string change(const ojson& c, double scale) {
   return fmt::format("{} ± {} (RMS {})", sig(scale * number(c["excess"]), 2), sig(scale * number(c["error"]), 2),
                      sig(scale * number(c["rms"]), 2));
-}
-
-std::string row(const std::vector<std::string>& cells, const char* tag = "td") {
-  std::string s = "<tr>";
-  for (const std::string& c : cells) s += fmt::format("<{0}>{1}</{0}>", tag, html_escape(c));
-  return s + "</tr>\n";
 }
 
 }  // namespace
@@ -62,36 +56,38 @@ std::string certificate_html(const ojson& c, const std::vector<std::string>& fig
     if (s["name"] == "peak_phi_deg") peak = &s;
     if (s["name"] == "ev") ev = &s;
   }
-  h += "<h3>The rungs</h3>\n<table>\n" +
-       row({"ε′", "Δφ to the slowest (°)", "Δεv to the slowest (%)", "within", "resolved", "peak φ (°)",
-            "εv at the end (%)", "steps", "run time (s)"},
-           "th");
-  const ojson& rungs = l["rungs"];
-  for (std::size_t k = 0; k < rungs.size(); ++k) {
-    const ojson& r = rungs[k];
-    const bool last = k + 1 == rungs.size();
+  analysis::Table rungs{"The rungs",
+                        "Δ: the seed mean of (curve at the rung − curve at the slowest rung) of the same seed, over "
+                        "the strain: beyond its noise ± its standard error (the plain RMS in brackets). Peak φ and "
+                        "εv: seed mean ± standard error.",
+                        {"ε′", "Δφ to the slowest (°)", "Δεv to the slowest (%)", "within", "resolved", "peak φ (°)",
+                         "εv at the end (%)", "steps", "run time (s)"},
+                        {}};
+  for (std::size_t k = 0; k < l["rungs"].size(); ++k) {
+    const ojson& r = l["rungs"][k];
+    const bool last = k + 1 == l["rungs"].size();
     const auto at = [&](const ojson* s, double scale) {
       return s ? fmt::format("{} ± {}", sig(scale * number((*s)["mean"][k]), 4), sig(scale * number((*s)["error"][k]), 2))
                : std::string("—");
     };
-    h += row({sig(number(r["rate"])), last ? "0 (the slowest)" : change(r["phi_to_slowest"], 1),
-              last ? "0" : change(r["ev_to_slowest"], 100), r["within"].get<bool>() ? "yes" : "no",
-              r.value("resolved", true) ? "yes" : "no", at(peak, 1), at(ev, 100), sig(number(r["steps"]), 4),
-              sig(number(r["wall_s"]), 4)});
+    rungs.rows.push_back({sig(number(r["rate"])), last ? "0 (the slowest)" : change(r["phi_to_slowest"], 1),
+                          last ? "0" : change(r["ev_to_slowest"], 100), r["within"].get<bool>() ? "yes" : "no",
+                          r.value("resolved", true) ? "yes" : "no", at(peak, 1), at(ev, 100),
+                          sig(number(r["steps"]), 4), sig(number(r["wall_s"]), 4)});
   }
-  h += "</table>\n<p class=\"note\">Δ: the seed mean of (curve at the rung − curve at the slowest rung) of the same "
-       "seed, over the strain: beyond its noise ± its standard error (the plain RMS in brackets). Peak φ and εv: "
-       "seed mean ± standard error.</p>\n";
+  h += analysis::to_html(rungs);
 
-  // Limits.
-  h += "<h3>The response as ε′ → 0</h3>\n<table>\n" + row({"measure", "limit", "band", "how"}, "th");
+  analysis::Table limits{"The response as ε′ → 0",
+                         fmt::format("Limit resolved by the seeds: {}. Cost of the certificate: {} steps, {} s of runs.",
+                                     l["limit_resolved"].get<bool>() ? "yes" : "no", sig(number(c["steps"]), 4),
+                                     sig(number(c["wall_s"]), 4)),
+                         {"measure", "limit", "band", "how"},
+                         {}};
   for (const ojson& s : l["scalars"])
-    h += row({s["name"].get<std::string>(), sig(number(s["limit"]), 4), sig(number(s["band"]), 2),
-              s["extrapolated"].get<bool>() ? "Aitken's extrapolation of the last three rungs" : "the slowest rung"});
-  h += fmt::format("</table>\n<p class=\"note\">Limit resolved by the seeds: {}. Cost of the certificate: {} steps, "
-                   "{} s of runs.</p>\n",
-                   l["limit_resolved"].get<bool>() ? "yes" : "no", sig(number(c["steps"]), 4),
-                   sig(number(c["wall_s"]), 4));
+    limits.rows.push_back({s["name"].get<std::string>(), sig(number(s["limit"]), 4), sig(number(s["band"]), 2),
+                           s["extrapolated"].get<bool>() ? "Aitken's extrapolation of the last three rungs"
+                                                         : "the slowest rung"});
+  h += analysis::to_html(limits);
 
   for (const std::string& f : figures)
     h += "<figure><img src=\"analysis/figures/" + html_escape(f) + "\" alt=\"" + html_escape(f) +

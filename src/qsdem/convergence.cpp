@@ -66,7 +66,7 @@ double scatter(const Rung& r, Measure m, std::span<const double> grid) {
 // Whether a change's excess is within the tolerances (and the seed scatter, when it counts).
 bool small(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol, double phi_scatter,
            double ev_scatter) {
-  if (!(phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms)) return false;  // NaN: no common strain
+  if (!within_tolerances(phi, ev, tol)) return false;
   if (!tol.within_seed_scatter || !std::isfinite(phi_scatter)) return true;
   return phi.excess <= phi_scatter && ev.excess <= ev_scatter;
 }
@@ -111,6 +111,10 @@ void set_limit(ScalarLimit& s) {
 }
 
 }  // namespace
+
+bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol) {
+  return phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms;
+}
 
 Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances& tol) {
   if (ladder.empty()) throw std::invalid_argument("certify: the ladder has no rung");

@@ -93,6 +93,10 @@ struct Certificate {
   }
 };
 
+// Whether a change's part beyond the noise (CurveChange::excess) is within the tolerances of phi and
+// ev; NaN (no common strain) is not.
+bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol);
+
 // The certificate of a ladder ordered from the fastest rate to the slowest (rates strictly
 // decreasing, every rung with the same number of seeds >= 1); std::invalid_argument otherwise.
 // The strain grid is the slowest rung's first seed's e1; a curve is compared where both cover it.

@@ -1,5 +1,6 @@
 // The data of a study's analysis, shared by its computation (study_analysis.cpp) and its
-// rendering as tables, figures and the report (study_report.cpp). Internal to the two.
+// rendering as tables, figures and the report (study_report.cpp, and the certificate's page,
+// converge_page.cpp). Internal to the study layer.
 #pragma once
 #include <algorithm>
 #include <cctype>
@@ -273,6 +274,9 @@ struct Table {
   std::vector<std::vector<std::string>> rows;
   bool detail = false;  // folded (<details>) in the report
 };
+
+// A table as HTML: its title as a heading (or a <details> summary), its note, its cells escaped.
+std::string to_html(const Table& t);
 
 // A finite number as JSON, NaN and infinities as null.
 inline json number_or_null(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }

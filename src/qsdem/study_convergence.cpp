@@ -139,7 +139,8 @@ json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerance
 std::string ladders_csv(const std::vector<Ladder>& ladders) {
   std::string out =
       "sample,model,xi,rate,seeds,phi_to_slowest_deg,phi_to_slowest_error_deg,phi_to_slowest_excess_deg,"
-      "ev_to_slowest,ev_to_slowest_error,ev_to_slowest_excess,phi_to_next_deg,ev_to_next,within,resolved,certified,peak_phi_deg,peak_phi_error_deg,ev_end,ev_end_error,steps,wall_s\n";
+      "ev_to_slowest,ev_to_slowest_error,ev_to_slowest_excess,phi_to_next_deg,ev_to_next,within,resolved,certified,"
+      "peak_phi_deg,peak_phi_error_deg,ev_end,ev_end_error,steps,wall_s\n";
   for (const Ladder& l : ladders) {
     const Certificate& c = l.certificate;
     const ScalarLimit *peak = c.scalar("peak_phi_deg"), *ev = c.scalar("ev");
@@ -174,9 +175,6 @@ Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceToleran
           {}};
   for (const Ladder& l : ladders) {
     const Certificate& c = l.certificate;
-    const auto small = [&](const RungVerdict& v) {
-      return v.phi_to_slowest.excess <= tol.phi_rms_deg && v.ev_to_slowest.excess <= tol.ev_rms;
-    };
     std::string changes;
     for (const RungVerdict& v : c.rungs) {
       if (!changes.empty()) changes += "; ";
@@ -184,8 +182,9 @@ Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceToleran
       const auto shown = [&](const CurveChange& d, double scale) {
         return last ? std::string("0") : fmt::format("{} ± {}", sig(scale * d.excess, 2), sig(scale * d.error, 2));
       };
+      const bool unresolved = !v.resolved && within_tolerances(v.phi_to_slowest, v.ev_to_slowest, tol);
       changes += fmt::format("{}: {} / {}{}", sig(v.rate, 2), shown(v.phi_to_slowest, 1), shown(v.ev_to_slowest, 100),
-                             v.within ? "" : !v.resolved && small(v) ? " ?" : " ✗");
+                             v.within ? "" : unresolved ? " ?" : " ✗");
     }
     const auto limit = [&](const char* name, double scale) {
       const ScalarLimit* s = c.scalar(name);

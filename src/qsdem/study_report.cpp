@@ -31,22 +31,6 @@ std::string md_escape(const std::string& s) {
 // Tables
 // ---------------------------------------------------------------------------------------------
 
-std::string to_html(const Table& t) {
-  std::string s = t.detail ? "<details><summary>" + html_escape(t.title) + "</summary>\n"
-                           : "<h3>" + html_escape(t.title) + "</h3>\n";
-  if (!t.note.empty()) s += "<p class=\"note\">" + html_escape(t.note) + "</p>\n";
-  s += "<table>\n<thead><tr>";
-  for (const auto& c : t.head) s += "<th>" + html_escape(c) + "</th>";
-  s += "</tr></thead>\n<tbody>\n";
-  for (const auto& r : t.rows) {
-    s += "<tr>";
-    for (const auto& c : r) s += "<td>" + html_escape(c) + "</td>";
-    s += "</tr>\n";
-  }
-  if (t.rows.empty()) s += "<tr><td colspan=\"" + std::to_string(t.head.size()) + "\">(no rows)</td></tr>\n";
-  return s + "</tbody></table>\n" + (t.detail ? "</details>\n" : "");
-}
-
 std::string fit_text(double a, double b) {
   return std::isfinite(a) ? fmt::format("{} ε'^{}", sig(a, 5), sig(b, 4)) : "—";
 }
@@ -688,6 +672,22 @@ Figure deviation_figure(const Analysis& a, const std::string& s) {
 }
 
 }  // namespace
+
+std::string to_html(const Table& t) {
+  std::string s = t.detail ? "<details><summary>" + html_escape(t.title) + "</summary>\n"
+                           : "<h3>" + html_escape(t.title) + "</h3>\n";
+  if (!t.note.empty()) s += "<p class=\"note\">" + html_escape(t.note) + "</p>\n";
+  s += "<table>\n<thead><tr>";
+  for (const auto& c : t.head) s += "<th>" + html_escape(c) + "</th>";
+  s += "</tr></thead>\n<tbody>\n";
+  for (const auto& r : t.rows) {
+    s += "<tr>";
+    for (const auto& c : r) s += "<td>" + html_escape(c) + "</td>";
+    s += "</tr>\n";
+  }
+  if (t.rows.empty()) s += "<tr><td colspan=\"" + std::to_string(t.head.size()) + "\">(no rows)</td></tr>\n";
+  return s + "</tbody></table>\n" + (t.detail ? "</details>\n" : "");
+}
 
 std::string to_markdown(const Table& t) {
   std::string s = "### " + t.title + "\n\n";
