@@ -74,7 +74,7 @@ void apply_change(const std::string& key, const py::handle& value_obj, const Pha
   if (cc.kind == ControlKind::fixed || cc.kind == ControlKind::constant_volume)
     throw py::value_error(fmt::format("on_sample: component {} is {} in this phase: it has no value to change "
                                       "(a callback changes values, not kinds)",
-                                      key, cc.kind == ControlKind::fixed ? "fixed" : "constant_volume"));
+                                      key, control_kind_name(cc.kind)));
   if (cc.kind == ControlKind::stress && is_normal(c) && value <= 0)
     throw py::value_error(
         fmt::format("on_sample: stress target {} = {} Pa is not allowed: give a value > 0", key, value));

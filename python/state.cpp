@@ -52,16 +52,6 @@ bool contact_geometry(const State& st, std::size_t k, const Vec3& l, ContactGeom
   return ellipsoid_contact(l, P.semi_axes[i], P.q[i], P.semi_axes[j], P.q[j], lambda, g);
 }
 
-const char* kind_name(ControlKind k) {
-  switch (k) {
-    case ControlKind::fixed: return "fixed";
-    case ControlKind::strain_rate: return "strain_rate";
-    case ControlKind::stress: return "stress";
-    case ControlKind::constant_volume: return "constant_volume";
-  }
-  return "?";
-}
-
 }  // namespace
 
 py::array_t<double> matrix(const Mat3& a) {
@@ -97,7 +87,7 @@ py::dict measures_dict(const Measures& m) {
 py::dict controls_dict(const PhaseControls& c, const Phase& phase) {
   py::dict d;
   for (std::size_t k = 0; k < component_count; ++k)
-    d[component_names[k]] = py::make_tuple(kind_name(c.component[k].kind), c.component[k].value);
+    d[component_names[k]] = py::make_tuple(control_kind_name(c.component[k].kind), c.component[k].value);
   d["max_strain_rate"] = c.max_strain_rate;
   d["rate_factor"] = c.rate_factor;
   d["friction"] = phase.friction;

@@ -20,4 +20,15 @@ inline constexpr bool is_normal(int component) { return component < 3; }
 // Stored as int32 in checkpoints.
 enum class ControlKind : std::int32_t { fixed, strain_rate, stress, constant_volume };
 
+// A kind's name as the case keys spell it.
+inline constexpr const char* control_kind_name(ControlKind k) {
+  switch (k) {
+    case ControlKind::fixed: return "fixed";
+    case ControlKind::strain_rate: return "strain_rate";
+    case ControlKind::stress: return "stress";
+    case ControlKind::constant_volume: return "constant_volume";
+  }
+  return "?";
+}
+
 }  // namespace qsdem

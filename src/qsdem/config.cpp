@@ -642,8 +642,8 @@ void read_phase_controls(Reader& r, const std::string& k, Phase& ph) {
 }
 
 // When a phase ends: steps, strain or stress of a component, equilibrium, or a controller that
-// ends it; and its step budget.
-void read_phase_stop(Reader& r, const std::string& k, Phase& ph, double step_ratio) {
+// ends it; and its step budget. Returns the planned end (planned_end: -1 when not known in advance).
+long read_phase_stop(Reader& r, const std::string& k, Phase& ph, double step_ratio) {
   auto& stop = ph.stop;
   stop.steps = r.optional_integer(k + ".stop.steps", 1, std::numeric_limits<long>::max()).value_or(0);
   for (int c = 0; c < component_count; ++c) {
@@ -691,12 +691,12 @@ void read_phase_stop(Reader& r, const std::string& k, Phase& ph, double step_rat
   const long end = planned_end(ph, step_ratio);
   stop.max_steps = r.optional_integer(k + ".stop.max_steps", 1, std::numeric_limits<long>::max())
                        .value_or(end < 0 ? default_max_steps : 0);
+  return end;
 }
 
 // Where a phase's rows go and when it takes one: points over a planned end, every steps, or
-// every strain of a strain-rate component.
-void read_phase_output(Reader& r, const std::string& k, Phase& ph, double step_ratio) {
-  const long end = planned_end(ph, step_ratio);
+// every strain of a strain-rate component; `end`: the phase's planned end (read_phase_stop).
+void read_phase_output(Reader& r, const std::string& k, Phase& ph, long end) {
   auto& out = ph.output;
   out.file = r.text(k + ".output.file", std::string("series.csv"), {});
   if (out.file.size() < 5 || out.file.substr(out.file.size() - 4) != ".csv" || out.file.find('/') != std::string::npos ||
@@ -777,8 +777,8 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
 
   read_phase_controls(r, k, ph);
   if (ph.fire) check_fire_phase(r, k, ph);
-  read_phase_stop(r, k, ph, step_ratio);
-  read_phase_output(r, k, ph, step_ratio);
+  const long end = read_phase_stop(r, k, ph, step_ratio);
+  read_phase_output(r, k, ph, end);
   read_phase_controller(r, k, ph, step_ratio);
   int planned = 2;
   for (int c = 0; c < 3; ++c)

@@ -20,7 +20,6 @@ double CycleLoop::damping_ratio() const {
 
 namespace {
 
-
 struct CyclicSettings {
   bool strain_bounds = false;  // the bounds are of e1 (else of q)
   double lower = 0, upper = 0;  // Pa (q) or e1

@@ -19,7 +19,6 @@ namespace qsdem {
 
 class Controller;
 
-
 struct ComponentControl {
   ControlKind kind = ControlKind::fixed;
   // strain_rate: eps' = rate t_c (dimensionless, SPEC 8), de/dt of a normal component

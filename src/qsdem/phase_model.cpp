@@ -9,7 +9,6 @@ namespace qsdem {
 
 namespace {
 
-
 // What every phase of a case shares: material, time step, servo gains, skin.
 Model case_model(const Params& params, const Particles& particles) {
   Model m;

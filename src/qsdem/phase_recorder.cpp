@@ -9,7 +9,6 @@
 
 namespace qsdem {
 
-
 void record_row(const Phase& phase, State& st, RunProgress& run, const RowSink& sink, const Measures& m,
                 const RowPlace& at, std::optional<double> strain_rate, std::optional<Relaxation> relaxation) {
   PhaseRecord& rec = run.current();

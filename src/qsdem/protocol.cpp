@@ -48,7 +48,6 @@ void check_kinetic(const Measures& m, const Params& params, const Phase& phase, 
         phase.keys.strain_rate));
 }
 
-
 // The largest stress target of the stress-controlled normal components (0 without any).
 double largest_normal_target(const PhaseControls& c) {
   double t = 0;

@@ -5,7 +5,6 @@
 
 namespace qsdem {
 
-
 long planned_end(const Phase& phase, const PhaseState& s, double step_ratio) {
   long end = phase.stop.steps > 0 ? phase.stop.steps - 1 : -1;
   for (int c = 0; c < 3; ++c)
