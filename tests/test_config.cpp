@@ -100,15 +100,17 @@ TEST(Config, ShippedExamplesParseWithSiValues) {
       // Rounded to 0.01 mm in the file: within half a digit of the equal-volume diameter.
       EXPECT_NEAR(2 * c.semi_axes.x(), 1e-3 * equal_volume_diameter(rows[k].a_mm, rows[k].b_mm), 0.005e-3) << k;
     }
-    EXPECT_EQ(p.damping.model, "nd");
-    EXPECT_DOUBLE_EQ(p.damping.ratio, 0.005);               // "0.5 %"
-    EXPECT_DOUBLE_EQ(p.compaction.friction, 0.2);           // mu_0
-    EXPECT_DOUBLE_EQ(p.compaction.stress, 390000);          // "390 kPa"
-    EXPECT_DOUBLE_EQ(p.triaxial.friction, 0.5);
-    EXPECT_DOUBLE_EQ(p.triaxial.confining_stress, 390000);
-    EXPECT_DOUBLE_EQ(p.triaxial.strain_rate, 1e-5);
-    EXPECT_DOUBLE_EQ(p.triaxial.final_axial_strain, 0.10);  // "10 %"
-    EXPECT_EQ(p.triaxial.sample_points, 250);
+    ASSERT_EQ(p.protocol.size(), 2u);
+    const Phase &compaction = p.protocol[0], &triaxial = p.protocol[1];
+    EXPECT_EQ(triaxial.damping.model, "nd");
+    EXPECT_DOUBLE_EQ(triaxial.damping.ratio, 0.005);                         // "0.5 %"
+    EXPECT_DOUBLE_EQ(compaction.friction, 0.2);                              // mu_0
+    EXPECT_DOUBLE_EQ(compaction.controls.component[0].value, 390000);        // "390 kPa"
+    EXPECT_DOUBLE_EQ(triaxial.friction, 0.5);
+    EXPECT_DOUBLE_EQ(triaxial.controls.component[0].value, 390000);
+    EXPECT_DOUBLE_EQ(triaxial.controls.component[2].value, 1e-5);
+    EXPECT_DOUBLE_EQ(*triaxial.stop.strain[2], 0.10);                        // "10 %"
+    EXPECT_EQ(triaxial.output.cadence.points, 250);
   }
   // The paper's own samples: exactly Tables 1-3 (spheroids a x b = c, counts), full and scaled.
   for (const auto& [file, rows, total] :
@@ -130,9 +132,9 @@ TEST(Config, ShippedExamplesParseWithSiValues) {
       EXPECT_DOUBLE_EQ(c.semi_axes.y(), 1e-3 * rows[k].b_mm);
       EXPECT_DOUBLE_EQ(c.semi_axes.z(), 1e-3 * rows[k].b_mm);
     }
-    EXPECT_DOUBLE_EQ(p.compaction.friction, 0.2);
-    EXPECT_DOUBLE_EQ(p.triaxial.friction, 0.5);
-    EXPECT_DOUBLE_EQ(p.triaxial.confining_stress, 390000);
+    EXPECT_DOUBLE_EQ(p.protocol[0].friction, 0.2);
+    EXPECT_DOUBLE_EQ(p.protocol[1].friction, 0.5);
+    EXPECT_DOUBLE_EQ(p.protocol[1].controls.component[1].value, 390000);
   }
   // The spot value of the brief: 2.13 mm is 0.00213 m.
   const Params a = load_case((examples / "spheres-A.toml").string());
@@ -144,23 +146,26 @@ TEST(Config, ShippedExamplesParseWithSiValues) {
 // --set overrides (docs/config.md): the value is TOML, or a bare string as the shell passes it.
 TEST(Config, OverridesReplaceValues) {
   const std::string text = base_case();
-  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"damping.ratio=\"0.3 %\""}).damping.ratio, 0.003);
-  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"damping.ratio=0.3 %"}).damping.ratio, 0.003);
-  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"damping.ratio=0.003"}).damping.ratio, 0.003);
+  const auto test = [&](const std::string& set) { return parse_case(text, "case.toml", {set}).protocol.back(); };
+  EXPECT_DOUBLE_EQ(test("damping.ratio=\"0.3 %\"").damping.ratio, 0.003);
+  EXPECT_DOUBLE_EQ(test("damping.ratio=0.3 %").damping.ratio, 0.003);
+  EXPECT_DOUBLE_EQ(test("damping.ratio=0.003").damping.ratio, 0.003);
   const Params od = parse_case(text, "case.toml", {"damping.model=od"});
-  EXPECT_EQ(od.damping.model, "od");
+  EXPECT_EQ(od.protocol.back().damping.model, "od");
   EXPECT_EQ(od.as_written["damping"]["model"], "od");  // summary.json shows what was run
-  EXPECT_EQ(to_json(od)["damping"]["model"], "od");
-  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"triaxial.strain_rate=1e-6"}).triaxial.strain_rate, 1e-6);
+  EXPECT_FALSE(od.as_written.contains("phase")) << "the case as written, not its phases";
+  EXPECT_EQ(to_json(od)["protocol"][1]["damping"]["model"], "od");
+  EXPECT_DOUBLE_EQ(test("triaxial.strain_rate=1e-6").controls.component[2].value, 1e-6);
   EXPECT_EQ(parse_case(text, "case.toml", {"sample.particles.0.count=10"}).sample.table[0].count, 10);
   // Several at once, the last one of a key wins.
   const Params p = parse_case(text, "case.toml",
                               {"sample.total_particles=2000", "damping.model=none", "damping.model=od"});
   EXPECT_EQ(p.sample.total_particles, 2000);
-  EXPECT_EQ(p.damping.model, "od");
+  EXPECT_EQ(p.protocol.back().damping.model, "od");
   // An override of a key the file does not set.
-  EXPECT_DOUBLE_EQ(parse_case(text, "case.toml", {"compaction.stress_tolerance=0.02"}).compaction.stress_tolerance,
-                   0.02);
+  EXPECT_DOUBLE_EQ(
+      parse_case(text, "case.toml", {"compaction.stress_tolerance=0.02"}).protocol[0].stop.equilibrium->stress_tolerance,
+      0.02);
   // Overrides are validated like the file.
   expect_mentions(error_of(text, {"damping.model=xd"}), {"damping.model", "xd", "\"od\""});
   expect_mentions(error_of(text, {"damping.ratoi=0.1"}), {"unknown key", "damping.ratoi"});
@@ -260,9 +265,9 @@ TEST(Config, UnknownDampingModelIsAnError) {
 
 // damping.acts_on: what the triaxial phase's particle damping acts on (damping/models.hpp), both by default.
 TEST(Config, DampingActsOnIsChecked) {
-  EXPECT_EQ(parse_case(base_case(), "case.toml").damping.acts_on, DampedMotion::both);
-  EXPECT_EQ(parse_case(base_case(13, "acts_on = \"rotation\""), "case.toml").damping.acts_on, DampedMotion::rotation);
-  EXPECT_EQ(parse_case(base_case(), "case.toml", {"damping.acts_on=translation"}).damping.acts_on,
+  EXPECT_EQ(parse_case(base_case(), "case.toml").protocol[1].damping.acts_on, DampedMotion::both);
+  EXPECT_EQ(parse_case(base_case(13, "acts_on = \"rotation\""), "case.toml").protocol[1].damping.acts_on, DampedMotion::rotation);
+  EXPECT_EQ(parse_case(base_case(), "case.toml", {"damping.acts_on=translation"}).protocol[1].damping.acts_on,
             DampedMotion::translation);
   expect_mentions(error_of(base_case(13, "acts_on = \"spin\"")),
                   {"case.toml:13", "damping.acts_on", "\"spin\"", "\"both\"", "\"translation\"", "\"rotation\""});

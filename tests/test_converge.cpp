@@ -141,3 +141,43 @@ TEST_F(Converge, BadOptionsAreRefusedNamingTheOption) {
   }
   EXPECT_FALSE(fs::exists(dir_ / "bad"));
 }
+
+// The tiny case written as its two [[phase]] tables: the ladder varies the last phase's keys
+// (phase.1.damping.*, phase.1.strain_rate.33) and its runs are those of the [compaction] and
+// [triaxial] case bit for bit, so the two certificates agree to the last digit.
+TEST_F(Converge, APhaseListCaseGivesTheCertificateOfItsTables) {
+  std::string text = qsdem_test::tiny_case("converge-tiny");
+  text = text.substr(0, text.find("[damping]")) + R"([[phase]]
+name = "compaction"
+friction = 0.2
+damping = { model = "nd", ratio = "0.5 %" }
+stress = { 11 = "390 kPa", 22 = "390 kPa", 33 = "390 kPa", 12 = "0 Pa", 13 = "0 Pa", 23 = "0 Pa" }
+servo = { max_strain_rate = 1e-3 }
+stop = { max_steps = 2000000, equilibrium = { stress_tolerance = 0.01, ufr = 0.01, every = 200 } }
+output = { file = "compaction.csv", clock = "run", every_steps = 200 }
+[[phase]]
+name = "triaxial"
+friction = 0.5
+damping = { model = "nd", ratio = "0.5 %" }
+stress = { 11 = "390 kPa", 22 = "390 kPa" }
+strain_rate = { 33 = 1.25e-4 }
+servo = { rate_factor = 10 }
+stop = { strain = { 33 = "1 %" } }
+output = { file = "series.csv", points = 10 }
+)";
+  const std::vector<std::string> opts{"--rungs", "2", "--phi-tolerance", "1e-9", "--ev-tolerance", "1e-12"};
+  ASSERT_EQ(ladder("tables", opts).code, 4);
+  case_ = dir_ / "phases.toml";
+  std::ofstream(case_) << text;
+  const Result r = ladder("phases", opts);
+  ASSERT_EQ(r.code, 4) << r.err << r.out;
+  json phases = certificate("phases")["ladder"]["rungs"], tables = certificate("tables")["ladder"]["rungs"];
+  for (json* rungs : {&phases, &tables})
+    for (json& rung : *rungs) rung.erase("wall_s");  // the runs' wall time, their only difference
+  EXPECT_EQ(phases, tables);
+  const fs::path run = fs::path("runs") / "case-seed2" / "nd" / "xi-0.5%" / "rate-6.25e-05";
+  EXPECT_EQ(qsdem_test::slurp(dir_ / "phases" / run / "series.csv"), qsdem_test::slurp(dir_ / "tables" / run / "series.csv"));
+  // The rung's rate went in through the phase's own key.
+  const json written = json::parse(qsdem_test::slurp(dir_ / "phases" / run / "summary.json"))["config"]["as_written"];
+  EXPECT_EQ(written["phase"][1]["strain_rate"]["33"].get<double>(), 6.25e-5) << written.dump();
+}

@@ -207,10 +207,10 @@ TEST(LocalDamping, CaseKeys) {
   const Params p = parse_case(base + "[damping]\nmodel = \"local\"\nratio = 0.1\n[compaction]\ndamping_model = "
                                      "\"local\"\ndamping_ratio = 0.7\n",
                               "case.toml");
-  EXPECT_EQ(p.damping.model, "local");
-  EXPECT_EQ(p.damping.ratio, 0.1);
-  EXPECT_EQ(p.compaction.damping_model, "local");
-  EXPECT_EQ(p.compaction.damping_ratio, 0.7);
+  EXPECT_EQ(p.protocol[1].damping.model, "local");
+  EXPECT_EQ(p.protocol[1].damping.ratio, 0.1);
+  EXPECT_EQ(p.protocol[0].damping.model, "local");
+  EXPECT_EQ(p.protocol[0].damping.ratio, 0.7);
   for (const char* bad : {"[damping]\nmodel = \"local\"\nratio = 1\n",
                           "[compaction]\ndamping_model = \"local\"\ndamping_ratio = \"120 %\"\n"}) {
     try {
@@ -222,7 +222,7 @@ TEST(LocalDamping, CaseKeys) {
       EXPECT_NE(why.find("[0, 1)"), std::string::npos) << why;
     }
   }
-  EXPECT_EQ(parse_case(base + "[damping]\nmodel = \"nd\"\nratio = 1.5\n", "case.toml").damping.ratio, 1.5)
+  EXPECT_EQ(parse_case(base + "[damping]\nmodel = \"nd\"\nratio = 1.5\n", "case.toml").protocol[1].damping.ratio, 1.5)
       << "the viscous models' ratio is not bounded by 1";
 }
 
@@ -403,8 +403,8 @@ TEST(ContactDampingModel, CaseKeys) {
       "[material]\ndensity = \"2650 kg/m^3\"\nyoung_modulus = \"78 GPa\"\npoisson_ratio = 0.3\n"
       "[[sample.particles]]\ndiameter = \"2 mm\"\ncount = 100\n";
   const Params p = parse_case(base + "[damping]\nmodel = \"contact\"\nratio = \"20 %\"\n", "case.toml");
-  EXPECT_EQ(p.damping.model, "contact");
-  EXPECT_EQ(p.damping.ratio, 0.2);
+  EXPECT_EQ(p.protocol[1].damping.model, "contact");
+  EXPECT_EQ(p.protocol[1].damping.ratio, 0.2);
   const auto error_of = [&](const std::string& extra) { return qsdem_test::error_of(base + extra); };
   const std::string ratio = error_of("[damping]\nmodel = \"contact\"\nratio = 1\n");
   EXPECT_NE(ratio.find("case.toml:10"), std::string::npos) << ratio;

@@ -317,13 +317,13 @@ PhaseRecord* ServoProtocol::compaction_ = nullptr;
 // isotropic (q small against p) and the cell only slightly tilted.
 TEST_F(ServoProtocol, IsotropicCompactionReachesTargetOnAllAxes) {
   const Measures m = measure(*state_);
-  const double target = params_->compaction.stress;
-  ASSERT_TRUE(params_->compaction.zero_shear_stress);
+  const double target = params_->protocol[0].controls.component[0].value;
+  ASSERT_EQ(params_->protocol[0].controls.component[3].kind, ControlKind::stress);
   for (int k = 0; k < 3; ++k)
-    EXPECT_LT(std::abs(m.stress(k, k) / target - 1), params_->compaction.stress_tolerance) << "axis " << k;
+    EXPECT_LT(std::abs(m.stress(k, k) / target - 1), params_->protocol[0].stop.equilibrium->stress_tolerance) << "axis " << k;
   for (int a = 0; a < 3; ++a)
     for (int b = a + 1; b < 3; ++b)
-      EXPECT_LT(std::abs(m.stress(a, b)) / target, params_->compaction.stress_tolerance) << "shear " << a << b;
+      EXPECT_LT(std::abs(m.stress(a, b)) / target, params_->protocol[0].stop.equilibrium->stress_tolerance) << "shear " << a << b;
   // q = sqrt(3 J2) of a tensor within 1 % of isotropic on every component: at most ~3.5 % of p.
   EXPECT_LT(m.deviator / m.mean_stress, 0.035);
   // Relaxing them takes a shear strain that is not only elastic: the packing rearranges. Measured
@@ -333,7 +333,7 @@ TEST_F(ServoProtocol, IsotropicCompactionReachesTargetOnAllAxes) {
   const double tilt = (h - Mat3(h.diagonal().asDiagonal())).cwiseAbs().maxCoeff() / h.diagonal().minCoeff();
   std::printf("[ info ] cell tilt after compaction: %.3g %%, q/p = %.3g %%\n", 100 * tilt, 100 * m.deviator / m.mean_stress);
   EXPECT_LT(tilt, 0.1);
-  EXPECT_LT(m.ufr, params_->compaction.ufr_tolerance);
+  EXPECT_LT(m.ufr, *params_->protocol[0].stop.equilibrium->ufr);
   EXPECT_GT(m.contacts, 0);
   EXPECT_GT(m.coordination, 3.0);  // a mechanically stable packing of frictional spheres
   EXPECT_GT(compaction_->steps, 0);
@@ -356,7 +356,7 @@ TEST_F(ServoProtocol, ShearServoDrivesAnImposedShearStressToZero) {
   State st = *state_;
   const Model model = compaction_model(*params_, st);
   for (int s = 3; s < component_count; ++s) ASSERT_EQ(model.control[static_cast<std::size_t>(s)].kind, ControlKind::stress);
-  const double target = params_->compaction.stress;
+  const double target = params_->protocol[0].controls.component[0].value;
   Mat3 shear = Mat3::Identity();
   shear(0, 1) = 2e-4;
   set_matrix(st.cell, shear * st.cell.h);  // s unchanged: the particles follow the cell
@@ -371,9 +371,9 @@ TEST_F(ServoProtocol, ShearServoDrivesAnImposedShearStressToZero) {
   }
   std::printf("[ info ] sigma_12: %.3g %% of p imposed, at most %.3g %% over the last 1000 steps\n",
               100 * imposed / target, 100 * worst_late / target);
-  EXPECT_LT(worst_late, params_->compaction.stress_tolerance * target);
+  EXPECT_LT(worst_late, params_->protocol[0].stop.equilibrium->stress_tolerance * target);
   for (int k = 0; k < 3; ++k)
-    EXPECT_NEAR(st.stress(k, k), target, 2 * params_->compaction.stress_tolerance * target) << "axis " << k;
+    EXPECT_NEAR(st.stress(k, k), target, 2 * params_->protocol[0].stop.equilibrium->stress_tolerance * target) << "axis " << k;
 }
 
 // SPEC 3 / 8, drained triaxial: axis 3 at constant strain rate, axes 1 and 2 stress-controlled at
@@ -391,8 +391,8 @@ TEST_F(ServoProtocol, DrainedTriaxialHoldsLateralStress) {
   const PhaseRecord r = run_phase(*params_, 1, st, quiet, &series);
   series.commit();
   const Table t = read_csv(dir / "series.csv");
-  ASSERT_EQ(t.rows.size(), static_cast<std::size_t>(params_->triaxial.sample_points));
-  const double sc = params_->triaxial.confining_stress;
+  ASSERT_EQ(t.rows.size(), static_cast<std::size_t>(params_->protocol[1].output.cadence.points));
+  const double sc = params_->protocol[1].controls.component[0].value;
   const std::size_t c11 = t.col("s11_Pa"), c22 = t.col("s22_Pa"), c33 = t.col("s33_Pa"), cq = t.col("q_Pa"),
                     ce1 = t.col("e1");
   double worst = 0;
@@ -406,7 +406,7 @@ TEST_F(ServoProtocol, DrainedTriaxialHoldsLateralStress) {
   EXPECT_GT(t.rows.back()[c33], 1.1 * sc);
   EXPECT_GT(t.rows.back()[cq], t.rows.front()[cq]);
   // SPEC 8: the last row is at the final axial strain (250 steps of c_t eps'; round-off only).
-  EXPECT_NEAR(t.rows.back()[ce1], params_->triaxial.final_axial_strain, 1e-9);
+  EXPECT_NEAR(t.rows.back()[ce1], *params_->protocol[1].stop.strain[2], 1e-9);
   if (!HasFailure()) std::filesystem::remove_all(dir);
 }
 

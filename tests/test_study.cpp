@@ -408,7 +408,8 @@ TEST(Study, TinyCriticalStateStudyEndToEnd) {
     const auto summary = nlohmann::json::parse(slurp(rd / "summary.json"));
     const double sigma = run["confining_stress_Pa"];
     EXPECT_NEAR(summary["compaction"]["final"]["p_Pa"].get<double>(), sigma, 0.02 * sigma) << "prepared at its stress";
-    EXPECT_EQ(summary["config"]["resolved_si"]["triaxial"]["confining_stress_Pa"].get<double>(), sigma) << "sheared at it";
+    EXPECT_EQ(summary["config"]["resolved_si"]["protocol"][1]["control"]["11"]["stress_Pa"].get<double>(), sigma)
+        << "sheared at it";
     EXPECT_EQ(run["p0_Pa"], summary["compaction"]["final"]["p_Pa"]);
     // The window means, from series.csv by a plain loop.
     std::istringstream in(slurp(rd / "series.csv"));
@@ -464,10 +465,10 @@ TEST(Study, TinyStudyEndToEnd) {
     EXPECT_TRUE(fs::exists(d / "run.log"));
     // The run sheared the prepared sample with the design's values.
     const auto s = nlohmann::json::parse(slurp(d / "summary.json"));
-    const auto& cfg = s["config"]["resolved_si"];
+    const auto& cfg = s["config"]["resolved_si"]["protocol"][1];
     EXPECT_EQ(cfg["damping"]["model"], r["model"]) << cfg.dump();
     EXPECT_EQ(cfg["damping"]["ratio"], r["xi"]);
-    EXPECT_EQ(cfg["triaxial"]["strain_rate"], r["rate"]);
+    EXPECT_EQ(cfg["control"]["33"]["strain_rate"], r["rate"]);
     EXPECT_EQ(s["triaxial"]["rows"], 10);
   }
   EXPECT_EQ(ids.size(), 8u);
@@ -1030,7 +1031,7 @@ TEST(StudyStages, PicksTheOptimumOfTheFinishedSweep) {
     // The run at the picked ratio, at the stage's rate, with exactly that ratio.
     const fs::path run = ref.dir / fmt::format("runs/tiny-seed1/{}/xi-{:g}%/rate-2.5e-06", model, 100 * picked);
     ASSERT_TRUE(fs::exists(run / "summary.json")) << run;
-    const auto cfg = nlohmann::json::parse(slurp(run / "summary.json"))["config"]["resolved_si"];
+    const auto cfg = nlohmann::json::parse(slurp(run / "summary.json"))["config"]["resolved_si"]["protocol"][1];
     EXPECT_EQ(cfg["damping"]["ratio"].get<double>(), picked);
     EXPECT_EQ(cfg["damping"]["model"], model);
   }
@@ -1049,7 +1050,8 @@ TEST(StudyStages, PicksTheOptimumOfTheFinishedSweep) {
   EXPECT_EQ((*undamped)["damping_model"], "none");
   EXPECT_EQ((*undamped)["stage"], "reference");
   const fs::path ref_run = ref.dir / (*undamped)["dir"].get<std::string>();
-  EXPECT_EQ(nlohmann::json::parse(slurp(ref_run / "summary.json"))["config"]["resolved_si"]["damping"]["model"], "none");
+  EXPECT_EQ(nlohmann::json::parse(slurp(ref_run / "summary.json"))["config"]["resolved_si"]["protocol"][1]["damping"]["model"],
+            "none");
   // The damping dependence against the undamped run: one row per run; one RMS dphi by hand (both
   // runs sample the same strains, so no interpolation is needed).
   const std::string dev = slurp(ref.dir / "analysis" / "deviation.csv");
@@ -1204,7 +1206,7 @@ TEST(Study, DampingSmallStudyRunsOnATinySample) {
     const fs::path d = dir / "out" / run["dir"].get<std::string>();
     SCOPED_TRACE(d.string());
     const auto s = nlohmann::json::parse(slurp(d / "summary.json"));
-    const auto& cfg = s["config"]["resolved_si"];
+    const auto& cfg = s["config"]["resolved_si"]["protocol"][1];
     EXPECT_EQ(cfg["damping"]["model"], run.contains("damping_model") ? run["damping_model"] : run["model"]);
     EXPECT_EQ(cfg["damping"]["ratio"], run["xi"]);
     EXPECT_EQ(s["triaxial"]["rows"], 5);

@@ -135,11 +135,36 @@ class Reader : public TomlSource {
     }
     asked_.insert(path);
     if (n) used_.insert(path);
+    if (const std::string w = written(path); w != path) {  // the key the case wrote, asked and read
+      asked_.insert(w);
+      if (find(w)) used_.insert(w);
+    }
     return n;
   }
 
   // Every key some reader asked for, found or not (case_keys).
   const std::set<std::string>& asked() const { return asked_; }
+
+  // Keys under `path` stand for those under `written` in messages (the [[phase]] tables written
+  // from [compaction] and [triaxial]: a message names the key the case wrote, at its line).
+  void alias(const std::string& path, const std::string& written) { aliases_[path] = written; }
+
+  // The key the case wrote for `path`: its alias, or that of its longest aliased prefix.
+  std::string written(const std::string& path) const {
+    for (std::string p = path;;) {
+      if (const auto it = aliases_.find(p); it != aliases_.end()) return it->second + path.substr(p.size());
+      const auto dot = p.rfind('.');
+      if (dot == std::string::npos) return path;
+      p.resize(dot);
+    }
+  }
+
+  // Throws InputError naming the key the case wrote (with its node, for its line).
+  [[noreturn]] void fail(const std::string& path, const toml::node* n, const std::string& why) const {
+    const std::string w = written(path);
+    const toml::node* at = w == path ? n : find(w);
+    TomlSource::fail(w, at ? at : n, why);
+  }
 
   using Check = std::function<bool(double)>;
 
@@ -292,8 +317,10 @@ class Reader : public TomlSource {
                                          where(&v), path));
           visit_unknown(v, path);
         } else if (!used_.count(path)) {
+          const std::string w = written(path);  // a key of a written phase: the case's own
+          const toml::node* at = w == path ? &v : find(w);
           throw InputError(fmt::format("{}: unknown key '{}' (see docs/config.md for the keys)",
-                                       where(&v), path));
+                                       where(at ? at : &v), w));
         }
       }
     } else if (const auto* arr = node.as_array()) {
@@ -304,6 +331,7 @@ class Reader : public TomlSource {
   const toml::table& root_;
   std::set<std::string> used_;
   std::set<std::string> asked_;
+  std::map<std::string, std::string> aliases_;
 };
 
 const auto positive = [](double v) { return v > 0; };
@@ -780,56 +808,18 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   const long end = read_phase_stop(r, k, ph, step_ratio);
   read_phase_output(r, k, ph, end);
   read_phase_controller(r, k, ph, step_ratio);
-  int planned = 2;
-  for (int c = 0; c < 3; ++c)
-    if (planned_strain(ph, c)) planned = c;
-  ph.keys = {k + ".stop.max_steps", k + ".damping.ratio", k + ".stop.equilibrium.ufr",
-             k + ".strain_rate." + component_names[static_cast<std::size_t>(planned)], k + ".output.points"};
+  // The keys messages and studies name: those the case wrote (Reader::written).
+  std::string rate = k + ".servo.max_strain_rate";
+  for (int c = component_count - 1; c >= 0; --c)
+    if (ph.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::strain_rate)
+      rate = k + ".strain_rate." + component_names[static_cast<std::size_t>(c)];
+  ph.keys = {r.written(k + ".stop.max_steps"), r.written(k + ".damping.model"), r.written(k + ".damping.ratio"),
+             r.written(k + ".stop.equilibrium.ufr"), r.written(rate), {}};
+  for (int c = 0; c < component_count; ++c)
+    if (ph.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::strain_rate)
+      ph.keys.strain_rates[static_cast<std::size_t>(c)] =
+          r.written(k + ".strain_rate." + component_names[static_cast<std::size_t>(c)]);
   return ph;
-}
-
-// [compaction] then [triaxial] as two phases (SPEC 8.2, 8.3).
-Protocol default_protocol(const Params& p) {
-  const auto& c = p.compaction;
-  const auto& t = p.triaxial;
-  Phase compaction;
-  compaction.name = "compaction";
-  compaction.contact = p.contact;
-  compaction.friction = c.friction;
-  compaction.damping = {c.damping_model, c.damping_ratio, DampedMotion::both};
-  compaction.inertia = c.inertia;
-  for (int k = 0; k < component_count; ++k)
-    if (is_normal(k) || c.zero_shear_stress)
-      compaction.controls.component[static_cast<std::size_t>(k)] = {ControlKind::stress,
-                                                                     is_normal(k) ? c.stress : 0.0};
-  compaction.controls.max_strain_rate = c.max_strain_rate;
-  compaction.stop.equilibrium = StopCriteria::Equilibrium{c.stress_tolerance, c.ufr_tolerance, std::nullopt, c.check_interval};
-  compaction.stop.max_steps = c.max_steps;
-  compaction.output = {"compaction.csv", PhaseOutput::Clock::run, {}};
-  compaction.output.cadence.kind = Cadence::Kind::every_steps;
-  compaction.output.cadence.every_steps = c.check_interval;
-  compaction.keys = {"compaction.max_steps", "compaction.damping_ratio", "compaction.ufr_tolerance",
-                     "compaction.max_strain_rate", "compaction.check_interval"};
-
-  Phase triaxial;
-  triaxial.name = "triaxial";
-  triaxial.contact = p.contact;
-  triaxial.friction = t.friction;
-  triaxial.damping = {p.damping.model, p.damping.ratio, p.damping.acts_on};
-  triaxial.inertia = t.inertia;
-  triaxial.controls.component[0] = {ControlKind::stress, t.confining_stress};
-  triaxial.controls.component[1] = {ControlKind::stress, t.confining_stress};
-  triaxial.controls.component[2] = {ControlKind::strain_rate, t.strain_rate};
-  if (t.zero_shear_stress)
-    for (int k = 3; k < component_count; ++k)
-      triaxial.controls.component[static_cast<std::size_t>(k)] = {ControlKind::stress, 0.0};
-  triaxial.controls.rate_factor = t.lateral_rate_factor;
-  triaxial.stop.strain[2] = t.final_axial_strain;
-  triaxial.output.file = "series.csv";
-  triaxial.output.cadence.kind = Cadence::Kind::points;
-  triaxial.output.cadence.points = t.sample_points;
-  triaxial.keys = {"", "damping.ratio", "", "triaxial.strain_rate", "triaxial.sample_points"};
-  return {compaction, triaxial};
 }
 
 nlohmann::json to_json(const toml::table& tbl) {
@@ -886,31 +876,134 @@ void read_sample(Reader& r, toml::table& root, const std::string& source, const 
 
 }
 
-// [compaction] and [triaxial]: the default protocol's tables (SPEC 8.2, 8.3).
-void read_default_tables(Reader& r, Params& p) {
-  auto& c = p.compaction;
-  c.friction = r.number("compaction.friction", 0.2, non_negative, "must be >= 0");
-  c.stress = r.quantity("compaction.stress", Dimension::stress, 390e3, positive, "must be > 0");
-  c.max_strain_rate = r.number("compaction.max_strain_rate", 2e-5, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)");
-  c.stress_tolerance = r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
-  c.ufr_tolerance = r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0");
-  std::tie(c.damping_model, c.damping_ratio) =
-      damping_model(r, "compaction.damping_model", "compaction.damping_ratio", p.contact);
-  c.max_steps = r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max());
-  c.check_interval = r.integer("compaction.check_interval", 200, 1, 1'000'000);
-  c.zero_shear_stress = r.boolean("compaction.zero_shear_stress", true);
-  c.inertia = inertia_scaling(r, "compaction");
+// The [[phase]] table the default protocol's tables are written into: each value is the written
+// key's node (its text, so that the phase reads the same number) or, when the case leaves the key
+// out, its default; the phase's key then names the written one in messages.
+class PhaseTable {
+ public:
+  PhaseTable(Reader& r, std::string path, std::string name) : r_(r), path_(std::move(path)) { t_.insert("name", name); }
 
-  auto& t = p.triaxial;
-  t.friction = r.number("triaxial.friction", 0.5, non_negative, "must be >= 0");
-  t.confining_stress = r.quantity("triaxial.confining_stress", Dimension::stress, 390e3, positive, "must be > 0");
-  t.strain_rate = r.number("triaxial.strain_rate", 1e-5, [](double v) { return v > 0 && v < 0.01; }, "eps' must be in (0, 0.01)");
-  t.final_axial_strain = r.quantity("triaxial.final_axial_strain", Dimension::ratio, 0.10,
-                                    [](double v) { return v > 0 && v < 0.5; }, "must be in (0, 50 %)");
-  t.sample_points = static_cast<int>(r.integer("triaxial.sample_points", 250, 1, 1'000'000));
-  t.lateral_rate_factor = r.number("triaxial.lateral_rate_factor", 10.0, [](double v) { return v >= 1; }, "must be >= 1");
-  t.zero_shear_stress = r.boolean("triaxial.zero_shear_stress", false);
-  t.inertia = inertia_scaling(r, "triaxial");
+  // `key` of the phase from the written key `from` (checked by the caller), or `value` when absent.
+  template <class V>
+  void put(const std::string& key, const std::string& from, V value) {
+    if (const toml::node* n = r_.find(from))
+      n->visit([&](const auto& node) { insert(key, node); });
+    else
+      insert(key, std::move(value));
+    r_.alias(path_ + "." + key, from);
+  }
+  // `key` of the phase with a value that no written key holds (named as the phase's own).
+  template <class V>
+  void set(const std::string& key, V value) {
+    insert(key, std::move(value));
+    r_.alias(path_ + "." + key, path_ + "." + key);
+  }
+  const toml::table& table() const { return t_; }
+
+ private:
+  template <class V>
+  void insert(const std::string& key, V value) {
+    toml::table* t = &t_;
+    std::size_t from = 0;
+    for (std::size_t dot; (dot = key.find('.', from)) != std::string::npos; from = dot + 1) {
+      const std::string part = key.substr(from, dot - from);
+      if (!t->contains(part)) t->insert(part, toml::table{});
+      t = t->get(part)->as_table();
+    }
+    t->insert_or_assign(key.substr(from), std::move(value));
+  }
+
+  Reader& r_;
+  std::string path_;
+  toml::table t_;
+};
+
+std::string pascals(double v) { return fmt::format("{:.17g} Pa", v); }
+
+// [compaction] (SPEC 8.2): the loose sample compressed to an isotropic stress, as phase.0.
+toml::table compaction_phase(Reader& r, const ContactSettings& contact) {
+  PhaseTable ph(r, "phase.0", "compaction");
+  ph.put("friction", "compaction.friction", r.number("compaction.friction", 0.2, non_negative, "must be >= 0"));
+  const auto [model, ratio] = damping_model(r, "compaction.damping_model", "compaction.damping_ratio", contact);
+  ph.put("damping.model", "compaction.damping_model", model);
+  ph.put("damping.ratio", "compaction.damping_ratio", ratio);
+  const double stress = r.quantity("compaction.stress", Dimension::stress, 390e3, positive, "must be > 0");
+  for (const char* c : {"11", "22", "33"}) ph.put(std::string("stress.") + c, "compaction.stress", pascals(stress));
+  if (r.boolean("compaction.zero_shear_stress", true))
+    for (const char* c : {"12", "13", "23"}) ph.set(std::string("stress.") + c, pascals(0.0));
+  ph.put("servo.max_strain_rate", "compaction.max_strain_rate",
+         r.number("compaction.max_strain_rate", 2e-5, [](double v) { return v > 0 && v < 0.1; }, "must be in (0, 0.1)"));
+  ph.put("stop.equilibrium.stress_tolerance", "compaction.stress_tolerance",
+         r.quantity("compaction.stress_tolerance", Dimension::ratio, 0.01, positive, "must be > 0"));
+  ph.put("stop.equilibrium.ufr", "compaction.ufr_tolerance",
+         r.quantity("compaction.ufr_tolerance", Dimension::ratio, 0.01, positive, "must be > 0"));
+  const long every = r.integer("compaction.check_interval", 200, 1, 1'000'000);
+  ph.put("stop.equilibrium.every", "compaction.check_interval", std::int64_t{every});
+  ph.put("stop.max_steps", "compaction.max_steps",
+         std::int64_t{r.integer("compaction.max_steps", 2'000'000, 1, std::numeric_limits<long>::max())});
+  ph.set("output.file", "compaction.csv");
+  ph.set("output.clock", "run");
+  ph.put("output.every_steps", "compaction.check_interval", std::int64_t{every});
+  if (inertia_scaling(r, "compaction").on()) ph.put("inertia_scaling", "compaction.inertia_scaling", toml::table{});
+  return ph.table();
+}
+
+// [triaxial] with [damping] (SPEC 8.3): the drained triaxial test at a constant axial strain rate,
+// or one that follows an index ([triaxial.rate_control]), as phase.1.
+toml::table triaxial_phase(Reader& r, const ContactSettings& contact, double step_ratio) {
+  PhaseTable ph(r, "phase.1", "triaxial");
+  ph.put("friction", "triaxial.friction", r.number("triaxial.friction", 0.5, non_negative, "must be >= 0"));
+  const auto [model, ratio] = damping_model(r, "damping.model", "damping.ratio", contact);
+  ph.put("damping.model", "damping.model", model);
+  ph.put("damping.ratio", "damping.ratio", ratio);
+  ph.put("damping.acts_on", "damping.acts_on", to_string(damped_motion(r, "damping.acts_on")));
+  const double confining =
+      r.quantity("triaxial.confining_stress", Dimension::stress, 390e3, positive, "must be > 0");
+  for (const char* c : {"11", "22"}) ph.put(std::string("stress.") + c, "triaxial.confining_stress", pascals(confining));
+  if (r.boolean("triaxial.zero_shear_stress", false))
+    for (const char* c : {"12", "13", "23"}) ph.set(std::string("stress.") + c, pascals(0.0));
+  const double rate =
+      r.number("triaxial.strain_rate", 1e-5, [](double v) { return v > 0 && v < 0.01; }, "eps' must be in (0, 0.01)");
+  ph.put("strain_rate.33", "triaxial.strain_rate", rate);
+  ph.put("servo.rate_factor", "triaxial.lateral_rate_factor",
+         r.number("triaxial.lateral_rate_factor", 10.0, [](double v) { return v >= 1; }, "must be >= 1"));
+  const double final_strain = r.quantity("triaxial.final_axial_strain", Dimension::ratio, 0.10,
+                                         [](double v) { return v > 0 && v < 0.5; }, "must be in (0, 50 %)");
+  ph.put("stop.strain.33", "triaxial.final_axial_strain", final_strain);
+  const long points = r.integer("triaxial.sample_points", 250, 1, 1'000'000);
+  const double steps = final_strain / (step_ratio * rate);
+  if (steps > max_planned_steps)
+    r.fail("triaxial.strain_rate", r.find("triaxial.strain_rate"),
+           fmt::format("the test would take {:.3g} steps (final_axial_strain / (time.step_ratio strain_rate)), more "
+                       "than the {:.0e} allowed: raise the rate",
+                       steps, max_planned_steps));
+  if (points > steps)
+    r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
+           fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "
+                       "strain_rate)): lower it or lower triaxial.strain_rate",
+                       steps));
+  ph.set("output.file", "series.csv");
+  const bool inertia = inertia_scaling(r, "triaxial").on();
+  if (inertia) ph.put("inertia_scaling", "triaxial.inertia_scaling", toml::table{});
+  if (const toml::node* control = r.find("triaxial.rate_control")) {
+    // The axial strain rate follows an index; the rows are spread by axial strain, so that each
+    // stands for an equal strain increment whatever the rate (docs/config.md).
+    if (inertia)
+      r.fail("triaxial.inertia_scaling", r.find("triaxial.inertia_scaling"),
+             "not with triaxial.rate_control, which plans its steps with time.step_ratio alone");
+    if (!control->is_table()) r.fail("triaxial.rate_control", control, "expected a table of the rate controller's keys");
+    for (const char* own : {"kind", "component"})
+      if (const toml::node* n = r.find(std::string("triaxial.rate_control.") + own))
+        r.fail(std::string("triaxial.rate_control.") + own, n,
+               "unknown key: [triaxial.rate_control] drives the axial component (33) with the rate controller");
+    ph.put("controller", "triaxial.rate_control", toml::table{});
+    ph.set("controller.kind", "rate");
+    ph.set("controller.component", "33");
+    ph.set("output.every_strain.33", final_strain / static_cast<double>(points));
+  } else {
+    ph.put("output.points", "triaxial.sample_points", std::int64_t{points});
+  }
+  return ph.table();
 }
 
 // [servo]: the stress servo's gains (SPEC 3).
@@ -919,54 +1012,28 @@ void read_servo(Reader& r, Params& p) {
   p.servo.integral_gain = r.number("servo.integral_gain", 0.002, [](double v) { return v >= 0 && v <= 0.1; }, "must be in [0, 0.1]");
 }
 
-// The protocol: the [[phase]] list, or [compaction] then [triaxial] (with [triaxial.rate_control]).
-void read_protocol(Reader& r, Params& p) {
-  const auto& t = p.triaxial;
+// The protocol: the [[phase]] list, or [compaction] then [triaxial] (with [triaxial.rate_control]
+// and [damping]) written into the case as the two phases they stand for, read as a list.
+void read_protocol(Reader& r, toml::table& root, Params& p) {
   p.phase_list = r.find("phase") != nullptr;
-  if (!p.phase_list) {
-    const double steps = t.final_axial_strain / (p.step_ratio * t.strain_rate);
-    if (steps > max_planned_steps)
-      r.fail("triaxial.strain_rate", r.find("triaxial.strain_rate"),
-             fmt::format("the test would take {:.3g} steps (final_axial_strain / (time.step_ratio strain_rate)), more "
-                         "than the {:.0e} allowed: raise the rate",
-                         steps, max_planned_steps));
-    if (t.sample_points > steps)
-      r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
-             fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "
-                         "strain_rate)): lower it or lower triaxial.strain_rate",
-                         steps));
-    p.protocol = default_protocol(p);
-    if (r.find("triaxial.rate_control")) {
-      // The axial strain rate follows an index; the rows are spread by axial strain, so that each
-      // stands for an equal strain increment whatever the rate (docs/config.md).
-      Phase& triaxial = p.protocol.back();
-      if (t.inertia.on())
-        r.fail("triaxial.inertia_scaling", r.find("triaxial.inertia_scaling"),
-               "not with triaxial.rate_control, which plans its steps with time.step_ratio alone");
-      ControllerTable table(r, "triaxial.rate_control");
-      triaxial.controller = "rate";
-      triaxial.make_controller = rate_control_factory(read_rate_control_settings(table, triaxial, 2, p.step_ratio));
-      triaxial.rate_component = 2;
-      triaxial.output.cadence.kind = Cadence::Kind::every_strain;
-      triaxial.output.cadence.strain_component = 2;
-      triaxial.output.cadence.every_strain = t.final_axial_strain / t.sample_points;
-    }
-  } else {
+  if (p.phase_list) {
     // The phase list is the whole protocol: the tables of the default one would be ignored.
     for (const char* section : {"compaction", "triaxial", "damping"})
       if (const toml::node* n = r.find(section))
         throw InputError(fmt::format("{}: [{}] with [[phase]]: the protocol is the phase list, which does not read "
                                      "[{}]; write its settings in the phases (docs/config.md)",
                                      r.where(n), section, section));
-    const auto* phases = r.array_of_tables("phase");
-    for (std::size_t k = 0; k < phases->size(); ++k) {
-      p.protocol.push_back(read_phase(r, "phase." + std::to_string(k), k, p.step_ratio, p.contact));
-      p.protocol.back().contact = p.contact;
-      for (std::size_t j = 0; j < k; ++j)
-        if (p.protocol[j].name == p.protocol[k].name)
-          r.fail("phase." + std::to_string(k) + ".name", r.find("phase." + std::to_string(k) + ".name"),
-                 fmt::format("phase.{} has the same name: each phase needs its own", j));
-    }
+  } else {
+    root.insert("phase", toml::array{compaction_phase(r, p.contact), triaxial_phase(r, p.contact, p.step_ratio)});
+  }
+  const auto* phases = r.array_of_tables("phase");
+  for (std::size_t k = 0; k < phases->size(); ++k) {
+    p.protocol.push_back(read_phase(r, "phase." + std::to_string(k), k, p.step_ratio, p.contact));
+    p.protocol.back().contact = p.contact;
+    for (std::size_t j = 0; j < k; ++j)
+      if (p.protocol[j].name == p.protocol[k].name)
+        r.fail("phase." + std::to_string(k) + ".name", r.find("phase." + std::to_string(k) + ".name"),
+               fmt::format("phase.{} has the same name: each phase needs its own", j));
   }
 }
 
@@ -1016,15 +1083,12 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
 
   p.contact = read_contact(r);
 
-  std::tie(p.damping.model, p.damping.ratio) = damping_model(r, "damping.model", "damping.ratio", p.contact);
-  p.damping.acts_on = damped_motion(r, "damping.acts_on");
-
-  read_default_tables(r, p);
   read_servo(r, p);
-  read_protocol(r, p);
+  read_protocol(r, root, p);
   read_run_settings(r, p);
   r.reject_unknown();
   if (asked) *asked = r.asked();
+  if (!p.phase_list) root.erase("phase");  // the case as written: its own tables
   p.as_written = to_json(root);
   std::ostringstream text;
   text << root;
@@ -1234,8 +1298,6 @@ nlohmann::json to_json(const Params& p) {
     table.push_back({{"shape", to_string(c.shape)},
                      {"semi_axes_m", {c.semi_axes.x(), c.semi_axes.y(), c.semi_axes.z()}},
                      {"count", c.count}});
-  const auto& c = p.compaction;
-  const auto& t = p.triaxial;
   nlohmann::json protocol = nlohmann::json::array();
   for (const Phase& ph : p.protocol) protocol.push_back(to_json(ph));
   nlohmann::json contact = {{"law", p.contact.law}};
@@ -1249,17 +1311,6 @@ nlohmann::json to_json(const Params& p) {
                   {"total_particles", p.sample.total_particles}, {"particles", table}, {"from", p.sample.from}}},
       {"time", {{"step_ratio", p.step_ratio}}},
       {"contact", contact},
-      {"damping", {{"model", p.damping.model}, {"ratio", p.damping.ratio},
-                   {"acts_on", to_string(p.damping.acts_on)}}},
-      {"compaction", {{"friction", c.friction}, {"stress_Pa", c.stress}, {"max_strain_rate", c.max_strain_rate},
-                      {"stress_tolerance", c.stress_tolerance}, {"ufr_tolerance", c.ufr_tolerance},
-                      {"damping_model", c.damping_model}, {"damping_ratio", c.damping_ratio},
-                      {"max_steps", c.max_steps}, {"check_interval", c.check_interval},
-                      {"zero_shear_stress", c.zero_shear_stress}}},
-      {"triaxial", {{"friction", t.friction}, {"confining_stress_Pa", t.confining_stress},
-                    {"strain_rate", t.strain_rate}, {"final_axial_strain", t.final_axial_strain},
-                    {"sample_points", t.sample_points}, {"lateral_rate_factor", t.lateral_rate_factor},
-                    {"zero_shear_stress", t.zero_shear_stress}}},
       {"servo", {{"proportional_gain", p.servo.proportional_gain}, {"integral_gain", p.servo.integral_gain}}},
       {"neighbor", {{"skin_ratio", p.neighbor.skin_ratio}}},
       {"checkpoint", {{"every_sample_points", p.checkpoint.every_sample_points},

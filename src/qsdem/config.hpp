@@ -58,37 +58,6 @@ struct Params {
 
   ContactSettings contact;
 
-  struct Damping {
-    std::string model = "nd";  // a damping model's name (damping/models.hpp)
-    double ratio = 0.005;  // xi_0
-    DampedMotion acts_on = DampedMotion::both;
-  } damping;
-
-  struct Compaction {
-    double friction = 0.2;
-    double stress = 390e3;              // Pa, all three axes
-    double max_strain_rate = 2e-5;      // dimensionless, per t_c
-    double stress_tolerance = 0.01;     // relative
-    double ufr_tolerance = 0.01;
-    std::string damping_model = "nd";
-    double damping_ratio = 0.005;
-    long max_steps = 2'000'000;
-    long check_interval = 200;
-    bool zero_shear_stress = true;      // servo the shear stresses to zero too (servo.hpp)
-    InertiaScaling inertia;             // SPEC 5.6
-  } compaction;
-
-  struct Triaxial {
-    double friction = 0.5;
-    double confining_stress = 390e3;    // Pa
-    double strain_rate = 1e-5;          // eps' (dimensionless, SPEC 8)
-    double final_axial_strain = 0.10;
-    int sample_points = 250;
-    double lateral_rate_factor = 10.0;  // max lateral rate = factor * axial rate
-    bool zero_shear_stress = false;     // hold the shear stresses at zero (a flexible boundary)
-    InertiaScaling inertia;             // SPEC 5.6
-  } triaxial;
-
   struct Servo {
     double proportional_gain = 0.1;
     double integral_gain = 0.002;
@@ -115,9 +84,9 @@ struct Params {
   } limits;
 
   // The phases of the run: the [[phase]] list, or [compaction] then [triaxial] (with [damping])
-  // written as two phases.
+  // written into the case as the two phases they stand for (docs/config.md).
   Protocol protocol;
-  bool phase_list = false;  // the case gives a [[phase]] list
+  bool phase_list = false;  // the case gives a [[phase]] list (else the default protocol's tables)
 
   nlohmann::json as_written;  // the TOML as read, after --set overrides
   std::string case_text;      // the same as TOML text (checkpoints keep it for resume)

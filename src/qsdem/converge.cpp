@@ -51,7 +51,7 @@ void check_options(const LadderOptions& o) {
 
 // The rates of the ladder, fastest first, to 6 significant digits (the run ids' precision).
 std::vector<double> ladder_rates(const LadderOptions& o, const Params& p) {
-  const double start = std::isnan(o.start_rate) ? p.triaxial.strain_rate : o.start_rate;
+  const double start = std::isnan(o.start_rate) ? fastest_strain_rate(p.protocol.back()) : o.start_rate;
   std::vector<double> rates;
   for (int k = 0; k < o.rungs; ++k) rates.push_back(std::stod(fmt::format("{:.6g}", start / std::pow(o.factor, k))));
   return rates;
@@ -120,12 +120,12 @@ void setup(const LadderOptions& o, const std::string& text) {
 std::string ladder_study_text(const LadderOptions& o) {
   check_options(o);
   const Params p = ladder_case(o);
-  if (p.phase_list)
-    throw InputError(fmt::format("{}: a [[phase]] case: the ladder shears with [triaxial] (a study varies "
-                                 "triaxial.strain_rate); write the case with [compaction] and [triaxial]",
-                                 p.source));
-  const std::string model = p.damping.model;
-  const double xi = model == "none" ? 0.0 : p.damping.ratio;
+  if (!(fastest_strain_rate(p.protocol.back()) > 0))
+    throw InputError(fmt::format("{}: the last phase ('{}') has no strain_rate component: the ladder varies that "
+                                 "phase's rate",
+                                 p.source, p.protocol.back().name));
+  const std::string model = p.protocol.back().damping.model;
+  const double xi = model == "none" ? 0.0 : p.protocol.back().damping.ratio;
   toml::table study;
   study.insert("name", "converge");
   toml::array sets;

@@ -13,6 +13,13 @@ bool planned_strain(const Phase& phase, int c) {
          phase.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::strain_rate;
 }
 
+double fastest_strain_rate(const Phase& phase) {
+  double fastest = 0;
+  for (const ComponentControl& c : phase.controls.component)
+    if (c.kind == ControlKind::strain_rate) fastest = std::max(fastest, std::abs(c.value));
+  return fastest;
+}
+
 bool holds_volume(const Phase& phase) {
   return std::any_of(phase.controls.component.begin(), phase.controls.component.end(),
                      [](const ComponentControl& c) { return c.kind == ControlKind::constant_volume; });

@@ -79,10 +79,12 @@ struct PhaseOutput {
   Cadence cadence;
 };
 
-// The case keys of a phase's settings that messages name (e.g. "compaction.max_steps" or
-// "phase.0.stop.max_steps").
+// The case keys of a phase's settings, as the case writes them, that messages and studies name
+// (e.g. "compaction.max_steps" or "phase.0.stop.max_steps"); strain_rate: its first strain-rate
+// component's, or its servo's cap without one.
 struct PhaseKeys {
-  std::string max_steps, damping_ratio, ufr_tolerance, strain_rate, sample_points;
+  std::string max_steps, damping_model, damping_ratio, ufr_tolerance, strain_rate;
+  std::array<std::string, component_count> strain_rates;  // each strain-rate component's, "" for the others
 };
 
 // A quasi-static phase solved by increments (docs/physics.md 5.7): each increment moves the
@@ -124,6 +126,10 @@ bool holds_volume(const Phase& phase);
 
 // Whether a shear component of the phase has a strain rate (simple shear).
 bool shears(const Phase& phase);
+
+// The largest |eps'| of the phase's strain-rate components (0 without one): "the phase's rate",
+// which a study varies with the components' proportions kept.
+double fastest_strain_rate(const Phase& phase);
 
 // Whether the phase ends when the strain of component c reaches a value at a step known in
 // advance: a normal strain-rate component, whose strain grows by exactly c_t eps' per step (SPEC 3.4).

@@ -176,8 +176,12 @@ void write_snapshot(const std::filesystem::path& dir, const Params& params, cons
   }
   std::sort(files.begin(), files.end());
   std::vector<PvdEntry> entries;
-  const double per_row =
-      params.phase_list ? 1.0 : params.triaxial.final_axial_strain / params.triaxial.sample_points;
+  // [triaxial]'s rows by axial strain: sample_points over final_axial_strain (rate_control: every_strain).
+  const Phase& test = params.protocol.back();
+  const Cadence& cadence = test.output.cadence;
+  const double per_row = params.phase_list                          ? 1.0
+                         : cadence.kind == Cadence::Kind::every_strain ? cadence.every_strain
+                                                                       : *test.stop.strain[2] / cadence.points;
   for (const auto& [row, file] : files) entries.push_back({static_cast<double>(row) * per_row, file});
   write_pvd(vtk / "series.pvd", entries);
 }

@@ -34,13 +34,19 @@ struct StudySample {
   // and triaxial.confining_stress, design.compaction_frictions compaction.friction (the density).
   double confining_stress = std::numeric_limits<double>::quiet_NaN();     // Pa
   double compaction_friction = std::numeric_limits<double>::quiet_NaN();
+  // What a run sets, by the keys of the case's last phase as the case writes them (PhaseKeys):
+  // its damping model and ratio, and each strain-rate component's rate, the run's rate times the
+  // component's share of the phase's fastest (the path's proportions kept).
+  std::string model_key, ratio_key;
+  std::vector<std::pair<std::string, double>> rate_keys;  // key, share
+  bool phase_list = false;                                // a [[phase]] case
 };
 
 // One entry of the model axis: a damping model's name ("nd"), or a label with case overrides
 // ({ label = "nd-t", set = ["damping.model=nd", "damping.acts_on=translation"] }).
 struct StudyModel {
   std::string label;              // names the runs' directories and the analysis' groups
-  std::vector<std::string> sets;  // the entry's overrides (a name: none; damping.model is set from it)
+  std::vector<std::string> sets;  // the entry's overrides (a name: none; the model key is set from it)
   bool named = true;              // given as a bare model name
 };
 
@@ -137,8 +143,9 @@ bool same_study_values(const std::string& a, const std::string& b);
 // the study does not hold yet. Throws InputError when two stages of given ratios list one run.
 void add_stage_runs(Study& study, std::size_t stage);
 
-// The triaxial steps a run of the case plans at strain rate `rate`: final_axial_strain / (c_t eps'),
-// at least 1 (the ETA's and `qsdem converge`'s step budget).
+// The steps of the case's last phase at rate `rate` (fastest_strain_rate, the components'
+// proportions kept): its planned strain stop / (c_t eps' share), at least 1 (the ETA's and
+// `qsdem converge`'s step budget).
 double planned_triaxial_steps(const Params& params, double rate);
 
 // FNV-1a 64 of a file's bytes, 16 hex digits (the hashes of study.json).

@@ -15,6 +15,7 @@
 #include <set>
 #include <sstream>
 #include <thread>
+#include <utility>
 
 #define TOML_EXCEPTIONS 1
 #include <toml++/toml.h>
@@ -228,7 +229,6 @@ std::vector<StudyModel> read_models(const StudyReader& r, const toml::table& des
     if (e->is_string()) {
       m.label = *e->value<std::string>();
       check_name(r, key, e, m.label);
-      m.sets = {"damping.model=" + m.label};
     } else if (const toml::table* t = e->as_table()) {
       r.only(*t, key + ".", {"label", "set"});
       m.label = r.text(*t, "label", key + ".label", std::nullopt);
@@ -346,6 +346,22 @@ std::set<std::string> axis_keys(const SampleAxis& stresses, const SampleAxis& fr
   return keys;
 }
 
+// The keys a run of the sample sets, from its case's last phase (StudySample::model_key, ...).
+void run_keys_of(const Params& base, StudySample& smp) {
+  const Phase& test = base.protocol.back();
+  smp.model_key = test.keys.damping_model;
+  smp.ratio_key = test.keys.damping_ratio;
+  smp.phase_list = base.phase_list;
+  const double fastest = fastest_strain_rate(test);
+  for (std::size_t c = 0; c < test.keys.strain_rates.size(); ++c)
+    if (!test.keys.strain_rates[c].empty())
+      smp.rate_keys.emplace_back(test.keys.strain_rates[c], test.controls.component[c].value / fastest);
+  if (smp.rate_keys.empty())
+    throw InputError(fmt::format("sample '{}': the last phase of its case ('{}') has no strain_rate component: a "
+                                 "study varies that phase's rate",
+                                 smp.name, test.name));
+}
+
 // [[sample]]: one StudySample per table, value of each sample axis and seed, each case checked
 // with its overrides.
 void read_samples(const StudyReader& r, const toml::table& root, const std::vector<std::uint64_t>& seeds,
@@ -423,6 +439,7 @@ void read_samples(const StudyReader& r, const toml::table& root, const std::vect
           smp.sets.insert(smp.sets.end(), sample_sets.begin(), sample_sets.end());
           smp.run_sets = sample_sets;
           smp.from = check(smp.sets, fmt::format(" seed {}", seed)).sample.from;
+          run_keys_of(base, smp);
           s.samples.push_back(smp);
         }
       }
@@ -436,6 +453,7 @@ void check_models(const StudyReader& r, const toml::table& design, const Study& 
   for (std::size_t i = 0; i < s.models.size(); ++i)
     for (const StudySample& smp : s.samples) {
       std::vector<std::string> sets = smp.run_sets;
+      if (s.models[i].named) sets.push_back(smp.model_key + "=" + s.models[i].label);
       sets.insert(sets.end(), s.models[i].sets.begin(), s.models[i].sets.end());
       try {
         load_case(smp.case_file.string(), sets);
@@ -800,12 +818,29 @@ bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model,
   run.stage = stage;
   run.dir = "runs/" + run.id;
   run.sets = smp.run_sets;
-  // A named model's damping.model first (the order of the commands before labelled entries), a
-  // labelled entry's overrides last: they win over design.set.
-  if (m.named) run.sets.insert(run.sets.end(), m.sets.begin(), m.sets.end());
-  for (const std::string& set : {"damping.ratio=" + exact(xi), "triaxial.strain_rate=" + exact(rate)})
-    run.sets.push_back(set);
-  if (control.on()) run.sets.push_back("triaxial.rate_control=" + control.table);
+  // A named model's damping model first (the order of the commands before labelled entries), a
+  // labelled entry's overrides last: they win over design.set, but may not set the ratio or rate.
+  if (m.named) run.sets.push_back(smp.model_key + "=" + m.label);
+  run.sets.push_back(smp.ratio_key + "=" + exact(xi));
+  for (const auto& [key, share] : smp.rate_keys) run.sets.push_back(key + "=" + exact(rate * share));
+  if (control.on()) {
+    if (smp.phase_list)
+      throw InputError(fmt::format("{}: run '{}': rate_control drives [triaxial]'s axial rate, and sample '{}' is a "
+                                   "[[phase]] case: give its last phase a controller = {{ kind = \"rate\", ... }} "
+                                   "instead (docs/config.md)",
+                                   s.file.string(), run.id, smp.name));
+    run.sets.push_back("triaxial.rate_control=" + control.table);
+  }
+  for (const std::vector<std::string>* given : {&std::as_const(s.design_sets), &m.sets})
+    for (const std::string& set : *given) {
+      const std::string key = set.substr(0, set.find('='));
+      bool own = key == smp.ratio_key || (m.named && key == smp.model_key);
+      for (const auto& rk : smp.rate_keys) own = own || key == rk.first;
+      if (own)
+        throw InputError(fmt::format("{}: run '{}': the override '{}' sets a key the study sets on every run (the "
+                                     "model, its ratio and the strain rate of the case's last phase)",
+                                     s.file.string(), run.id, set));
+    }
   run.sets.insert(run.sets.end(), s.design_sets.begin(), s.design_sets.end());
   if (!m.named) run.sets.insert(run.sets.end(), m.sets.begin(), m.sets.end());
   Params params;
@@ -814,10 +849,10 @@ bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model,
   } catch (const InputError& e) {
     throw InputError(fmt::format("{}: run '{}': {}", s.file.string(), run.id, e.what()));
   }
-  run.damping_model = to_json(params)["damping"]["model"].get<std::string>();
+  run.damping_model = params.protocol.back().damping.model;
   // A controlled run's rate is unknown in advance: the ETA takes the geometric mean of its start
   // rate and its lower bound.
-  const double eta_rate = control.on() ? std::sqrt(rate * control.min_rate) : params.triaxial.strain_rate;
+  const double eta_rate = control.on() ? std::sqrt(rate * control.min_rate) : fastest_strain_rate(params.protocol.back());
   run.expected_steps = planned_triaxial_steps(params, eta_rate);
   s.runs.push_back(std::move(run));
   return true;
@@ -826,7 +861,15 @@ bool add_run(Study& s, std::size_t stage, std::size_t sample, std::size_t model,
 }  // namespace
 
 double planned_triaxial_steps(const Params& params, double rate) {
-  return std::max(1.0, std::round(params.triaxial.final_axial_strain / (params.step_ratio * rate)));
+  // The last phase's planned strain stop, its component at `rate` times its share of the fastest.
+  const Phase& test = params.protocol.back();
+  for (int c = 0; c < component_count; ++c)
+    if (planned_strain(test, c)) {
+      const auto k = static_cast<std::size_t>(c);
+      const double share = std::abs(test.controls.component[k].value) / fastest_strain_rate(test);
+      return std::max(1.0, std::round(std::abs(*test.stop.strain[k]) / (params.step_ratio * rate * share)));
+    }
+  return std::max(1.0, static_cast<double>(test.stop.steps));  // a phase of given steps; else unknown: 1
 }
 
 namespace {

@@ -123,6 +123,15 @@ const std::vector<double>* controller_end(const RunProgress& run, std::size_t p)
   return p < run.controller_end.size() ? &run.controller_end[p] : nullptr;
 }
 
+// What a run's steps cover, by the phases' names: "compaction + triaxial", "compaction" (a
+// prepared sample) or "triaxial of a prepared sample".
+std::string steps_cover(const Protocol& protocol, const RunProgress& run) {
+  const std::size_t first = run.first_step == 0 ? 0 : 1, last = run.prepare_only ? 1 : protocol.size();
+  std::string names;
+  for (std::size_t p = first; p < last; ++p) names += (names.empty() ? "" : " + ") + protocol[p].name;
+  return first == 0 ? names : names + " of a prepared sample";
+}
+
 }  // namespace
 
 nlohmann::json run_summary(const Params& params, const State& st, const RunProgress& run, double wall,
@@ -149,8 +158,8 @@ nlohmann::json run_summary(const Params& params, const State& st, const RunProgr
                   {"threads", omp_get_max_threads()}};
   if (params.sample.from.empty() && !params.sample.grading.empty())
     s["derived"]["grading"] = grading_json(params.sample.grading, params.sample.total_particles, params.sample.seed);
-  if (!params.phase_list)
-    s["derived"]["triaxial_strain_rate_per_s"] = params.triaxial.strain_rate / t_c;
+  if (const double rate = fastest_strain_rate(params.protocol.back()); rate > 0)
+    s["derived"]["triaxial_strain_rate_per_s"] = rate / t_c;
   if (!note.empty()) s["note"] = note;
   if (!run.changes.empty()) {
     nlohmann::json changes = nlohmann::json::array();
@@ -182,12 +191,7 @@ nlohmann::json run_summary(const Params& params, const State& st, const RunProgr
       s[key] = last[key];
   }
   s["steps"] = own_steps;
-  if (!params.phase_list)
-    s["steps_cover"] = run.first_step == 0 ? (run.prepare_only ? "compaction" : "compaction + triaxial")
-                                            : "triaxial of a prepared sample";
-  else
-    s["steps_cover"] = run.first_step == 0 ? (run.prepare_only ? "the first phase" : "every phase")
-                                            : "the phases after the first, of a prepared sample";
+  s["steps_cover"] = steps_cover(params.protocol, run);
   s["wall_s"] = wall;
   s["particle_steps_per_s"] = particle_steps / std::max(wall, 1e-9);
   s["neighbor_builds"] = st.neighbor.builds;

@@ -63,7 +63,7 @@ def test_case_arguments():
     with pytest.raises(TypeError, match="key=value"):
         qsdem.check_case(TINY, set=["damping.model"])
     assert qsdem.check_case(None)["name"] == "spheres-A-small"
-    assert qsdem.check_case(TINY, damping__ratio="1 %")["damping"]["ratio"] == pytest.approx(0.01)
+    assert qsdem.check_case(TINY, damping__ratio="1 %")["protocol"][1]["damping"]["ratio"] == pytest.approx(0.01)
 
 
 def test_threads():

@@ -69,7 +69,8 @@ def collect_runs(name, run_dirs):
     for rd in run_dirs:
         cfg = json.load(open(os.path.join(rd, "summary.json")))["config"]["resolved_si"]
         sample = json.load(open(os.path.join(rd, "summary.json")))["case"]
-        model, xi, rate = cfg["damping"]["model"], cfg["damping"]["ratio"], cfg["triaxial"]["strain_rate"]
+        test = cfg["protocol"][-1]  # the sheared phase (older summaries also hold "damping" and "triaxial")
+        model, xi, rate = test["damping"]["model"], test["damping"]["ratio"], test["control"]["33"]["strain_rate"]
         rid = "%s-seed%d/%s/xi-%.3g%%/rate-%.0e" % (sample, cfg["sample"]["seed"], model, 100 * xi, rate)
         runs.append({"id": rid, "sample": sample, "seed": cfg["sample"]["seed"], "model": model, "xi": xi,
                      "rate": rate, "dir": "runs/" + rid})
