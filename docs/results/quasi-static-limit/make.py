@@ -60,7 +60,10 @@ def collect(study):
         os.makedirs(d)
         for f in ("summary.json", "series.csv"):
             shutil.copy(os.path.join(root, f), d)
-        gz(os.path.join(root, "classes.csv"), os.path.join(d, "classes.csv.gz"))
+        if os.path.exists(os.path.join(root, "classes.csv")):
+            gz(os.path.join(root, "classes.csv"), os.path.join(d, "classes.csv.gz"))
+        else:  # a run kept from a committed study (study.md: continuing from what a repository keeps)
+            shutil.copy(os.path.join(root, "classes.csv.gz"), d)
 
 
 def fines(run_dir):
