@@ -25,7 +25,6 @@
 #include "qsdem/controller.hpp"
 #include "qsdem/damping/models.hpp"
 #include "qsdem/files.hpp"
-#include "qsdem/rate_control.hpp"
 #include "qsdem/toml_reader.hpp"
 #include "qsdem/units.hpp"
 
@@ -162,8 +161,7 @@ class Reader : public TomlSource {
   // Throws InputError naming the key the case wrote (with its node, for its line).
   [[noreturn]] void fail(const std::string& path, const toml::node* n, const std::string& why) const {
     const std::string w = written(path);
-    const toml::node* at = w == path ? n : find(w);
-    TomlSource::fail(w, at ? at : n, why);
+    TomlSource::fail(w, written_node(path, w, n), why);
   }
 
   using Check = std::function<bool(double)>;
@@ -318,14 +316,19 @@ class Reader : public TomlSource {
           visit_unknown(v, path);
         } else if (!used_.count(path)) {
           const std::string w = written(path);  // a key of a written phase: the case's own
-          const toml::node* at = w == path ? &v : find(w);
           throw InputError(fmt::format("{}: unknown key '{}' (see docs/config.md for the keys)",
-                                       where(at ? at : &v), w));
+                                       where(written_node(path, w, &v)), w));
         }
       }
     } else if (const auto* arr = node.as_array()) {
       for (std::size_t i = 0; i < arr->size(); ++i) visit_unknown(*arr->get(i), prefix + "." + std::to_string(i));
     }
+  }
+
+  // The node of `w` = written(path), for its line: n itself, or the written key's when there is one.
+  const toml::node* written_node(const std::string& path, const std::string& w, const toml::node* n) const {
+    const toml::node* at = w == path ? n : find(w);
+    return at ? at : n;
   }
 
   const toml::table& root_;
@@ -809,16 +812,13 @@ Phase read_phase(Reader& r, const std::string& k, std::size_t index, double step
   read_phase_output(r, k, ph, end);
   read_phase_controller(r, k, ph, step_ratio);
   // The keys messages and studies name: those the case wrote (Reader::written).
-  std::string rate = k + ".servo.max_strain_rate";
-  for (int c = component_count - 1; c >= 0; --c)
-    if (ph.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::strain_rate)
-      rate = k + ".strain_rate." + component_names[static_cast<std::size_t>(c)];
-  ph.keys = {r.written(k + ".stop.max_steps"), r.written(k + ".damping.model"), r.written(k + ".damping.ratio"),
-             r.written(k + ".stop.equilibrium.ufr"), r.written(rate), {}};
-  for (int c = 0; c < component_count; ++c)
-    if (ph.controls.component[static_cast<std::size_t>(c)].kind == ControlKind::strain_rate)
-      ph.keys.strain_rates[static_cast<std::size_t>(c)] =
-          r.written(k + ".strain_rate." + component_names[static_cast<std::size_t>(c)]);
+  PhaseKeys& keys = ph.keys;
+  keys = {r.written(k + ".stop.max_steps"), r.written(k + ".damping.model"), r.written(k + ".damping.ratio"),
+          r.written(k + ".stop.equilibrium.ufr"), {}, {}};
+  for (std::size_t c = component_count; c-- > 0;)
+    if (ph.controls.component[c].kind == ControlKind::strain_rate)
+      keys.strain_rate = keys.strain_rates[c] = r.written(k + ".strain_rate." + component_names[c]);
+  if (keys.strain_rate.empty()) keys.strain_rate = r.written(k + ".servo.max_strain_rate");
   return ph;
 }
 

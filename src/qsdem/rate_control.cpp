@@ -105,17 +105,15 @@ double rate_control_index(const Measures& m, RateControlSettings::Index index) {
   return m.imom;
 }
 
-RateControlSettings read_rate_control_settings(ControllerKeys& keys, const Phase& phase, int component,
-                                               double step_ratio) {
+namespace {
+
+RateControlSettings read_rate_control_settings(ControllerKeys& keys, const Phase& phase, double step_ratio) {
   RateControlSettings s;
   s.step_ratio = step_ratio;
-  if (component < 0) {
-    const std::vector<std::string> names(component_names.begin(), component_names.end());
-    const std::string name = keys.text("component", names);
-    component = static_cast<int>(std::find(names.begin(), names.end(), name) - names.begin());
-  }
-  s.component = component;
-  const ComponentControl& control = phase.controls.component[static_cast<std::size_t>(component)];
+  const std::vector<std::string> names(component_names.begin(), component_names.end());
+  const std::string name = keys.text("component", names);
+  s.component = static_cast<int>(std::find(names.begin(), names.end(), name) - names.begin());
+  const ComponentControl& control = phase.controls.component[static_cast<std::size_t>(s.component)];
   if (control.kind != ControlKind::strain_rate)
     keys.fail("component", "the component must be strain-rate controlled (give it a strain_rate: the start rate)");
   const std::string index = keys.text_or("index", "imom", {"imom", "ufr", "iuf"});
@@ -140,12 +138,10 @@ RateControlSettings read_rate_control_settings(ControllerKeys& keys, const Phase
   return s;
 }
 
-ControllerFactory rate_control_factory(const RateControlSettings& settings) {
-  return [settings] { return std::make_unique<RateControl>(settings); };
-}
+}  // namespace
 
 ControllerFactory read_rate_control(ControllerKeys& keys, const Phase& phase, double step_ratio) {
-  const RateControlSettings s = read_rate_control_settings(keys, phase, -1, step_ratio);
+  const RateControlSettings s = read_rate_control_settings(keys, phase, step_ratio);
   // Rows at equal strain increments of the component, so that a mean over the rows (summary.json)
   // is strain-weighted and a row does not stand for more strain when the rate rises.
   const Cadence& c = phase.output.cadence;
@@ -153,7 +149,7 @@ ControllerFactory read_rate_control(ControllerKeys& keys, const Phase& phase, do
     keys.fail("component", fmt::format("give the phase output.every_strain.{} (rows at equal increments of the "
                                        "strain of the component whose rate the controller changes)",
                                        component_names[static_cast<std::size_t>(s.component)]));
-  return rate_control_factory(s);
+  return [s] { return std::make_unique<RateControl>(s); };
 }
 
 }  // namespace qsdem

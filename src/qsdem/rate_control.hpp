@@ -22,11 +22,8 @@ struct RateControlSettings {
 // The index of m that `index` names.
 double rate_control_index(const Measures& m, RateControlSettings::Index index);
 
-// Reads the keys of a [phase.controller] table of kind "rate" (also [triaxial.rate_control]);
-// `component`: the component's name when the table has no `component` key (-1: the key is required).
-RateControlSettings read_rate_control_settings(ControllerKeys& keys, const Phase& phase, int component,
-                                               double step_ratio);
-ControllerFactory rate_control_factory(const RateControlSettings& settings);
+// Reads the keys of a [phase.controller] table of kind "rate" ([triaxial.rate_control] is written
+// as one, config.cpp).
 ControllerFactory read_rate_control(ControllerKeys& keys, const Phase& phase, double step_ratio);
 
 }  // namespace qsdem
