@@ -14,8 +14,8 @@
 #include <random>
 #include <vector>
 
-#include "qsdem/contact/geometry.hpp"
-#include "qsdem/ellipsoid_contact.hpp"
+#include "qsdem/engine/contact/geometry.hpp"
+#include "qsdem/engine/ellipsoid_contact.hpp"
 
 using namespace qsdem;
 

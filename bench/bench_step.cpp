@@ -9,14 +9,14 @@
 #include <optional>
 #include <utility>
 
-#include "qsdem/config.hpp"
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/integrator.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/integrator.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/packing_io.hpp"
+#include "qsdem/run/protocol.hpp"
 
 using namespace qsdem;
 

@@ -4,7 +4,7 @@
 #include <sstream>
 #include <string>
 
-#include "qsdem/packing_io.hpp"
+#include "qsdem/run/packing_io.hpp"
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   std::istringstream in(std::string(reinterpret_cast<const char*>(data), size));

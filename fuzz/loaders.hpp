@@ -9,9 +9,9 @@
 #include <cstdint>
 #include <string_view>
 
-#include "qsdem/checkpoint.hpp"
-#include "qsdem/neighbor.hpp"
-#include "qsdem/protocol.hpp"
+#include "qsdem/engine/neighbor.hpp"
+#include "qsdem/run/checkpoint.hpp"
+#include "qsdem/run/protocol.hpp"
 
 namespace qsdem_fuzz {
 

@@ -10,13 +10,13 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
 #include "qsdem/default_case.hpp"
-#include "qsdem/files.hpp"
-#include "qsdem/plot.hpp"
-#include "qsdem/run.hpp"
-#include "qsdem/study.hpp"
-#include "qsdem/study_analysis.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/files.hpp"
+#include "qsdem/run/plot.hpp"
+#include "qsdem/run/run.hpp"
+#include "qsdem/study/study.hpp"
+#include "qsdem/study/study_analysis.hpp"
 #include "qsdem/version.hpp"
 #include "simulation.hpp"
 

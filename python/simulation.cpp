@@ -14,11 +14,11 @@
 #include <memory>
 #include <utility>
 
-#include "qsdem/damping/models.hpp"
+#include "qsdem/engine/damping/models.hpp"
 
-#include "qsdem/checkpoint.hpp"
-#include "qsdem/controller.hpp"
-#include "qsdem/run.hpp"
+#include "qsdem/run/checkpoint.hpp"
+#include "qsdem/run/controller.hpp"
+#include "qsdem/run/run.hpp"
 
 namespace qsdem::python {
 

@@ -9,10 +9,10 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/progress.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/state.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/progress.hpp"
+#include "qsdem/run/protocol.hpp"
 
 namespace qsdem::python {
 

@@ -7,11 +7,11 @@
 #include <cmath>
 #include <numeric>
 
-#include "qsdem/contact/geometry.hpp"
-#include "qsdem/controller.hpp"
-#include "qsdem/ellipsoid_contact.hpp"
-#include "qsdem/forces.hpp"
-#include "qsdem/measures.hpp"
+#include "qsdem/engine/contact/geometry.hpp"
+#include "qsdem/engine/ellipsoid_contact.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/run/controller.hpp"
 #include "simulation.hpp"
 
 namespace qsdem::python {

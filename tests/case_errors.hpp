@@ -7,7 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
+#include "qsdem/run/config.hpp"
 
 namespace qsdem_test {
 

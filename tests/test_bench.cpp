@@ -5,13 +5,13 @@
 
 #include <filesystem>
 
-#include "qsdem/checkpoint.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/bench.hpp"
-#include "qsdem/run_directory.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/bench.hpp"
+#include "qsdem/run/checkpoint.hpp"
+#include "qsdem/run/packing_io.hpp"
+#include "qsdem/run/protocol.hpp"
+#include "qsdem/run/run_directory.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -8,13 +8,13 @@
 #include <cmath>
 #include <vector>
 
-#include "qsdem/cell.hpp"
-#include "qsdem/forces.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/particles.hpp"
-#include "qsdem/state.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/cell.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/generate.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -24,16 +24,16 @@
 #include <thread>
 #include <vector>
 
-#include "qsdem/checkpoint.hpp"
-#include "qsdem/config.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/neighbor.hpp"
-#include "qsdem/output.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/run.hpp"
-#include "qsdem/run_directory.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/neighbor.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/checkpoint.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/output.hpp"
+#include "qsdem/run/protocol.hpp"
+#include "qsdem/run/run.hpp"
+#include "qsdem/run/run_directory.hpp"
 #include "qsdem/version.hpp"
 #include "test_support.hpp"
 

@@ -5,11 +5,11 @@
 #include <cmath>
 #include <vector>
 
-#include "qsdem/forces.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/state.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/engine/step.hpp"
 
 using namespace qsdem;
 

@@ -1,4 +1,4 @@
-// The case file (docs/config.md, src/qsdem/config.cpp): shipped examples, --set overrides, the
+// The case file (docs/config.md, src/qsdem/run/config.cpp): shipped examples, --set overrides, the
 // error messages of bad input (SPEC 1: values carry units, nothing is silently SI or mm), and the
 // rescaling of the size table (SPEC 9: the mass fractions of the grading are kept).
 #include <gtest/gtest.h>
@@ -13,10 +13,10 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/particles.hpp"
 #include "case_errors.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
 
 using namespace qsdem;
 using qsdem_test::error_of;

@@ -6,12 +6,12 @@
 #include <cmath>
 #include <string>
 
-#include "qsdem/config.hpp"
-#include "qsdem/contact/laws.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/step.hpp"
 #include "case_errors.hpp"
 #include "collision.hpp"
+#include "qsdem/engine/contact/laws.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -12,12 +12,12 @@
 #include <limits>
 #include <vector>
 
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/forces.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/particles.hpp"
-#include "qsdem/state.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/engine/step.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -8,9 +8,9 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/contact/laws.hpp"
 #include "case_errors.hpp"
+#include "qsdem/engine/contact/laws.hpp"
+#include "qsdem/run/config.hpp"
 
 using namespace qsdem;
 

@@ -8,7 +8,7 @@
 #include <stdexcept>
 #include <vector>
 
-#include "qsdem/convergence.hpp"
+#include "qsdem/study/convergence.hpp"
 
 using namespace qsdem;
 

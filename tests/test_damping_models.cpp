@@ -9,13 +9,13 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/integrator.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/step.hpp"
 #include "case_errors.hpp"
 #include "collision.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/integrator.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -9,6 +9,7 @@
 
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -20,8 +21,8 @@
 #include <string_view>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/contact/laws.hpp"
+#include "qsdem/engine/contact/laws.hpp"
+#include "qsdem/run/config.hpp"
 
 namespace fs = std::filesystem;
 
@@ -286,32 +287,42 @@ TEST(Docs, EveryRelativeLinkPointsToAFile) {
   EXPECT_GE(checked, 10u);
 }
 
-// The README's layout table names the units of src/qsdem/ as they are: each name in backticks is a
-// source file (`name.hpp`, `name.cpp` or `name.hpp.in`) or a folder (`name/`), and every source
-// unit is named.
+// The README's layout table names the units of each layer's folder (src/qsdem/engine/, run/,
+// study/, cli/) as they are: each name in backticks is a source file (`name.hpp`, `name.cpp` or
+// `name.hpp.in`) or a folder (`name/`) of that layer, every source unit is named, and src/qsdem/
+// holds the layers' folders only.
 TEST(Docs, LayoutTableNamesTheLibrarysUnits) {
-  std::string row;
-  for (const std::string& line : lines_of(read_text(source_dir / "README.md")))
-    if (line.rfind("| `src/qsdem/` |", 0) == 0) row = line.substr(std::string("| `src/qsdem/` |").size());
-  ASSERT_FALSE(row.empty()) << "README.md has no layout row for src/qsdem/";
-  const fs::path lib = source_dir / "src/qsdem";
-  std::set<std::string> named;
-  const std::regex name(R"(`([a-z_]+/?)`)");
-  for (std::sregex_iterator it(row.begin(), row.end(), name), end; it != end; ++it) {
-    const std::string n = (*it)[1];
-    named.insert(n);
-    const bool exists = n.back() == '/' ? fs::is_directory(lib / n)
-                                        : fs::exists(lib / (n + ".hpp")) || fs::exists(lib / (n + ".cpp"));
-    EXPECT_TRUE(exists) << "README.md names src/qsdem/" << n << ", which does not exist";
+  const std::vector<std::string> layers = {"engine", "run", "study", "cli"};
+  const std::vector<std::string> readme = lines_of(read_text(source_dir / "README.md"));
+  for (const std::string& layer : layers) {
+    const std::string head = "| `src/qsdem/" + layer + "/` |";
+    std::string row;
+    for (const std::string& line : readme)
+      if (line.rfind(head, 0) == 0) row = line.substr(head.size());
+    ASSERT_FALSE(row.empty()) << "README.md has no layout row for src/qsdem/" << layer << "/";
+    const fs::path dir = source_dir / "src/qsdem" / layer;
+    std::set<std::string> named;
+    const std::regex name(R"(`([a-z_]+/?)`)");
+    for (std::sregex_iterator it(row.begin(), row.end(), name), end; it != end; ++it) {
+      const std::string n = (*it)[1];
+      if (n == "qsdem_" + layer) continue;  // the layer's library
+      named.insert(n);
+      const bool exists = n.back() == '/' ? fs::is_directory(dir / n)
+                                          : fs::exists(dir / (n + ".hpp")) || fs::exists(dir / (n + ".cpp"));
+      EXPECT_TRUE(exists) << "README.md names src/qsdem/" << layer << "/" << n << ", which does not exist";
+    }
+    std::set<std::string> units;
+    for (const auto& e : fs::directory_iterator(dir)) {
+      const std::string n = e.path().filename().string();
+      units.insert(e.is_directory() ? n + "/" : n.substr(0, n.find('.')));
+    }
+    units.erase("default_case");  // generated from the annotated example at build time
+    for (const std::string& n : units)
+      EXPECT_TRUE(named.count(n)) << "README.md's layout table does not name src/qsdem/" << layer << "/" << n;
   }
-  std::set<std::string> units;
-  for (const auto& e : fs::directory_iterator(lib)) {
-    const std::string n = e.path().filename().string();
-    units.insert(e.is_directory() ? n + "/" : n.substr(0, n.find('.')));
-  }
-  units.erase("default_case");  // generated from the annotated example at build time
-  for (const std::string& n : units)
-    EXPECT_TRUE(named.count(n)) << "README.md's layout table does not name src/qsdem/" << n;
+  for (const auto& e : fs::directory_iterator(source_dir / "src/qsdem"))
+    EXPECT_TRUE(e.is_directory() && std::count(layers.begin(), layers.end(), e.path().filename().string()))
+        << "src/qsdem/ holds a file or folder that is not a layer's: " << e.path().filename().string();
 }
 
 // The [[phase]] list of docs/config.md that writes the default protocol as phases reads as the

@@ -11,7 +11,7 @@
 // sampling of the sphere then Riemannian Newton with the analytic Hessian. The reference
 // curvature comes from the Hessian of the support function (the radii-of-curvature tensor),
 // not from the implicit-surface formula the code uses.
-#include "qsdem/ellipsoid_contact.hpp"
+#include "qsdem/engine/ellipsoid_contact.hpp"
 
 #include <gtest/gtest.h>
 
@@ -22,7 +22,7 @@
 #include <random>
 #include <vector>
 
-#include "qsdem/contact/geometry.hpp"
+#include "qsdem/engine/contact/geometry.hpp"
 
 using namespace qsdem;
 

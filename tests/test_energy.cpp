@@ -7,11 +7,11 @@
 #include <cmath>
 #include <cstdio>
 
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/step.hpp"
 #include "collision.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

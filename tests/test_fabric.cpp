@@ -9,11 +9,11 @@
 #include <cmath>
 #include <vector>
 
-#include "qsdem/forces.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/generate.hpp"
 
 using namespace qsdem;
 

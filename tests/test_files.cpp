@@ -18,11 +18,11 @@
 #include <thread>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/files.hpp"
-#include "qsdem/output.hpp"
-#include "qsdem/run.hpp"
-#include "qsdem/run_directory.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/files.hpp"
+#include "qsdem/run/output.hpp"
+#include "qsdem/run/run.hpp"
+#include "qsdem/run/run_directory.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

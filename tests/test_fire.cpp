@@ -8,13 +8,13 @@
 #include <cmath>
 #include <random>
 
-#include "qsdem/config.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/fire.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/phase.hpp"
-#include "qsdem/phase_model.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/fire.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/phase.hpp"
+#include "qsdem/run/phase_model.hpp"
 
 using namespace qsdem;
 

@@ -1,4 +1,4 @@
-// Gradings from a sieve curve (docs/physics.md 8.6, src/qsdem/grading.cpp): D_x, Cu and Cc of a
+// Gradings from a sieve curve (docs/physics.md 8.6, src/qsdem/run/grading.cpp): D_x, Cu and Cc of a
 // known curve exactly, the drawn mass fractions per interval within a bound derived from N, the
 // number distribution, determinism under the seed, and each bad curve refused with its message.
 #include <gtest/gtest.h>
@@ -8,11 +8,11 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/grading.hpp"
-#include "qsdem/particles.hpp"
 #include "case_errors.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/grading.hpp"
 
 using namespace qsdem;
 using qsdem_test::error_of;

@@ -8,13 +8,13 @@
 #include <algorithm>
 #include <cmath>
 
-#include "qsdem/config.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/phase.hpp"
-#include "qsdem/phase_model.hpp"
-#include "qsdem/step.hpp"
 #include "collision.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/phase.hpp"
+#include "qsdem/run/phase_model.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

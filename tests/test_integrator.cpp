@@ -20,11 +20,11 @@
 #include <cmath>
 #include <vector>
 
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/integrator.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/particles.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/integrator.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/engine/step.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -10,12 +10,12 @@
 
 #include <vector>
 
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/forces.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/generate.hpp"
 
 using namespace qsdem;
 

@@ -16,16 +16,16 @@
 
 #include <fmt/format.h>
 
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/cell.hpp"
-#include "qsdem/ellipsoid_contact.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/neighbor.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/particles.hpp"
-#include "qsdem/state.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/cell.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/ellipsoid_contact.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/neighbor.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/packing_io.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

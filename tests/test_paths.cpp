@@ -19,11 +19,11 @@
 #include <thread>
 #include <vector>
 
-#include "qsdem/cell.hpp"
-#include "qsdem/config.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/servo.hpp"
-#include "qsdem/state.hpp"
+#include "qsdem/engine/cell.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/servo.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/run/config.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -13,10 +13,10 @@
 #include <thread>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/types.hpp"
+#include "qsdem/engine/types.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/protocol.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

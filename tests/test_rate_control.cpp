@@ -18,8 +18,8 @@
 #include <utility>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/types.hpp"
+#include "qsdem/engine/types.hpp"
+#include "qsdem/run/config.hpp"
 #include <fmt/format.h>
 #include <iostream>
 #include "test_support.hpp"

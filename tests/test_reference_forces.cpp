@@ -12,8 +12,8 @@
 #include <map>
 #include <random>
 
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/forces.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/forces.hpp"
 #include "reference_forces.hpp"
 
 using namespace qsdem;

@@ -9,11 +9,11 @@
 #include <map>
 #include <tuple>
 
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/reorder.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/reorder.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/generate.hpp"
 
 using namespace qsdem;
 

@@ -20,11 +20,11 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/cell.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/integrator.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/particles.hpp"
+#include "qsdem/engine/cell.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/integrator.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/particles.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

@@ -19,15 +19,15 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/forces.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/grading.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/run.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/grading.hpp"
+#include "qsdem/run/protocol.hpp"
+#include "qsdem/run/run.hpp"
 #include "qsdem/version.hpp"
 #include "test_support.hpp"
 

@@ -21,12 +21,12 @@
 #include <thread>
 #include <vector>
 
-#include "qsdem/checkpoint.hpp"
-#include "qsdem/config.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/run.hpp"
-#include "qsdem/run_directory.hpp"
+#include "qsdem/run/checkpoint.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/packing_io.hpp"
+#include "qsdem/run/run.hpp"
+#include "qsdem/run/run_directory.hpp"
 #include "qsdem/version.hpp"
 #include "test_support.hpp"
 

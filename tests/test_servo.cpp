@@ -14,16 +14,16 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/generate.hpp"
-#include "qsdem/measures.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/output.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/progress.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/servo.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/measures.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/servo.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/generate.hpp"
+#include "qsdem/run/output.hpp"
+#include "qsdem/run/packing_io.hpp"
+#include "qsdem/run/progress.hpp"
+#include "qsdem/run/protocol.hpp"
 #include "test_support.hpp"
 
 using namespace qsdem;

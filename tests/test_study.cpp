@@ -26,9 +26,9 @@
 
 #include <fmt/format.h>
 
-#include "qsdem/study.hpp"
-#include "qsdem/study_analysis.hpp"
-#include "qsdem/types.hpp"
+#include "qsdem/engine/types.hpp"
+#include "qsdem/study/study.hpp"
+#include "qsdem/study/study_analysis.hpp"
 #include "qsdem/version.hpp"
 #include "test_support.hpp"
 

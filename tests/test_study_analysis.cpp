@@ -1,7 +1,7 @@
 // Analysis of a study (SPEC 9): the optimum-damping fit, the power law of IMom against eps', and
 // the whole pipeline (tables, gnuplot figures, HTML report rendered by headless Chromium) on a
 // synthetic study whose answers are known in closed form.
-#include "qsdem/study_analysis.hpp"
+#include "qsdem/study/study_analysis.hpp"
 #include "test_support.hpp"
 
 #include <gtest/gtest.h>

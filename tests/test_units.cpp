@@ -1,8 +1,8 @@
 // Quantities with units (SPEC 1).
 #include <gtest/gtest.h>
 
-#include "qsdem/types.hpp"
-#include "qsdem/units.hpp"
+#include "qsdem/engine/types.hpp"
+#include "qsdem/run/units.hpp"
 
 using namespace qsdem;
 

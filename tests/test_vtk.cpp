@@ -17,10 +17,10 @@
 #include <string>
 #include <vector>
 
-#include "qsdem/model.hpp"
-#include "qsdem/state.hpp"
-#include "qsdem/step.hpp"
-#include "qsdem/vtk.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/vtk.hpp"
 
 using namespace qsdem;
 namespace fs = std::filesystem;

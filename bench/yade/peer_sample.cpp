@@ -18,10 +18,10 @@
 #include <string>
 
 #include "peer_state.hpp"
-#include "qsdem/checkpoint.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/phase_model.hpp"
-#include "qsdem/run_directory.hpp"
+#include "qsdem/run/checkpoint.hpp"
+#include "qsdem/run/packing_io.hpp"
+#include "qsdem/run/phase_model.hpp"
+#include "qsdem/run/run_directory.hpp"
 
 using namespace qsdem;
 

@@ -13,13 +13,13 @@
 #include <tuple>
 #include <vector>
 
-#include "qsdem/cell.hpp"
-#include "qsdem/config.hpp"
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/neighbor.hpp"
-#include "qsdem/particles.hpp"
-#include "qsdem/state.hpp"
+#include "qsdem/engine/cell.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/neighbor.hpp"
+#include "qsdem/engine/particles.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/run/config.hpp"
 
 namespace peer {
 using namespace qsdem;

@@ -25,15 +25,15 @@
 #include <variant>
 #include <vector>
 
-#include "qsdem/config.hpp"
-#include "qsdem/contact/hertz_mindlin.hpp"
-#include "qsdem/damping/stage.hpp"
-#include "qsdem/forces.hpp"
-#include "qsdem/neighbor.hpp"
-#include "qsdem/packing_io.hpp"
-#include "qsdem/protocol.hpp"
-#include "qsdem/step.hpp"
 #include "peer_state.hpp"
+#include "qsdem/engine/contact/hertz_mindlin.hpp"
+#include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/forces.hpp"
+#include "qsdem/engine/neighbor.hpp"
+#include "qsdem/engine/step.hpp"
+#include "qsdem/run/config.hpp"
+#include "qsdem/run/packing_io.hpp"
+#include "qsdem/run/protocol.hpp"
 
 using namespace qsdem;
 

@@ -1,9 +1,9 @@
 // A two-particle collision stepped to its end, as the contact-law, damping, energy and inertia tests
 // drive it. Header-only, tests only.
 #pragma once
-#include "qsdem/model.hpp"
-#include "qsdem/state.hpp"
-#include "qsdem/step.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/state.hpp"
+#include "qsdem/engine/step.hpp"
 
 namespace qsdem_test {
 

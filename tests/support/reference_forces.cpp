@@ -3,8 +3,8 @@
 #include <cmath>
 #include <variant>
 
-#include "qsdem/contact/laws.hpp"
-#include "qsdem/ellipsoid_contact.hpp"
+#include "qsdem/engine/contact/laws.hpp"
+#include "qsdem/engine/ellipsoid_contact.hpp"
 
 namespace qsdem {
 namespace {

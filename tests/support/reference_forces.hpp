@@ -7,9 +7,9 @@
 #pragma once
 #include <vector>
 
-#include "qsdem/contact/law.hpp"
-#include "qsdem/model.hpp"
-#include "qsdem/state.hpp"
+#include "qsdem/engine/contact/law.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/state.hpp"
 
 namespace qsdem {
 

@@ -1,0 +1,59 @@
+// Time integration (SPEC 5) with the particle damping of SPEC 6.
+#pragma once
+#include <cstdint>
+#include <span>
+
+#include "qsdem/engine/cell.hpp"
+#include "qsdem/engine/model.hpp"
+#include "qsdem/engine/particles.hpp"
+
+namespace qsdem {
+
+// Central-difference velocity update with viscous damping factor A (paper Eq. 10):
+//   v(t+dt/2) = [(1 - A dt/2) v(t-dt/2) + dt F/m] / (1 + A dt/2) = keep v + gain F/m,
+// the two factors computed once (no division per particle).
+struct DampedKick {
+  double keep, gain;
+  DampedKick(double a, double dt) {
+    const double c = 1 / (1 + 0.5 * a * dt);
+    keep = (1 - 0.5 * a * dt) * c;
+    gain = dt * c;
+  }
+  Vec3 operator()(const Vec3& v, const Vec3& rate) const { return keep * v + gain * rate; }
+};
+
+inline Vec3 damped_kick(const Vec3& v, const Vec3& force_over_mass, double a, double dt) {
+  return DampedKick(a, dt)(v, force_over_mass);
+}
+
+// Where the kick writes, per particle, the energy the damping took in it and the kinetic energy
+// after it (J): State::kick_dissipation, kick_kinetic (Model::track_energy), or none (null).
+struct KickEnergy {
+  double* dissipated = nullptr;
+  double* kinetic = nullptr;
+};
+
+// Velocities and angular momenta to t + dt/2 (SPEC 5) with the damping stage's factors
+// (Particles::damping_translation, damping_rotation); angular velocity from the body inertia.
+// Particles [lo, hi), on the calling thread (the step runs it on each thread's range, step.cpp).
+// Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX,
+                            KickEnergy energy = {});
+
+// Free rotation of a rigid body over dt at constant world angular momentum L (the drift half of
+// the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and
+// symplectic, gyroscopic motion included (omega follows the body as it turns). Exact for bodies
+// with two equal principal moments (spheroids); NO_SQUISH splitting otherwise (integrator.cpp).
+Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt);
+
+// Positions and orientations to t + dt in the already deformed cell: s += dt h^-1 v (the affine
+// part moves with h, SPEC 3); ellipsoids turn by free_rotation at the angular momentum
+// L(t+dt/2) and leave omega = R I^-1 R^T L at the new orientation (what the next contact forces
+// read). Spheres: orientation and omega = L / I untouched.
+// surface_path (one per particle, or empty): adds how far each particle's surface can have moved
+// in this step, dt |v| + 2 a |q_new - q_old| (NeighborState::surface_path).
+// Particles [lo, hi), on the calling thread, as integrate_velocities.
+void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {},
+                       std::size_t lo = 0, std::size_t hi = SIZE_MAX);
+
+}  // namespace qsdem

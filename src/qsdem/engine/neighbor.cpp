@@ -1,0 +1,349 @@
+#include "qsdem/engine/neighbor.hpp"
+
+#include <fmt/format.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+#include <tuple>
+
+namespace qsdem {
+namespace {
+
+struct Candidate {
+  std::uint32_t i, j;
+  Vec3i image;
+};
+
+bool key_less(std::uint32_t ai, std::uint32_t aj, const Vec3i& ak, std::uint32_t bi, std::uint32_t bj,
+              const Vec3i& bk) {
+  return std::tie(ai, aj, ak.x(), ak.y(), ak.z()) < std::tie(bi, bj, bk.x(), bk.y(), bk.z());
+}
+
+int floor_div(int a, int n) { return (a >= 0) ? a / n : -((-a + n - 1) / n); }
+
+// One linked-cell grid over the fractional cell for the particles of one size class.
+struct Grid {
+  Eigen::Vector3i n = Eigen::Vector3i::Ones();   // bins per axis
+  double r_max = 0;                              // largest bounding radius in the class
+  std::vector<std::uint32_t> start, members;     // CSR: bin -> particles
+
+  std::size_t bins() const { return std::size_t(n.x()) * std::size_t(n.y()) * std::size_t(n.z()); }
+  std::size_t bin_index(const Eigen::Vector3i& b) const {
+    return (std::size_t(b.z()) * std::size_t(n.y()) + std::size_t(b.y())) * std::size_t(n.x()) + std::size_t(b.x());
+  }
+};
+
+// Bins per axis of a class's grid: at least 2 r_max + skin wide, so that a bin's neighbours hold
+// every partner, and no more than one per member of the class, so that a few small particles
+// among large ones (a wide grading) cost one bin each, not (cell / r_max)^3 bins in all. Coarser
+// bins only put more members in each.
+Eigen::Vector3i grid_bins(const Vec3& w, double r_max, double skin, std::size_t members) {
+  const double per_length = std::cbrt(static_cast<double>(members) / (w.x() * w.y() * w.z()));
+  Eigen::Vector3i n;
+  for (int k = 0; k < 3; ++k) {
+    const double fine = w[k] / (2 * r_max + skin), sparse = w[k] * per_length;
+    n[k] = static_cast<int>(std::clamp(std::floor(std::min(fine, sparse)), 1.0, double(std::numeric_limits<int>::max())));
+  }
+  // An axis raised to one bin in a flat cell may leave more bins than members: coarsen the others.
+  const auto bins = [&] { return std::size_t(n.x()) * std::size_t(n.y()) * std::size_t(n.z()); };
+  while (bins() > std::max<std::size_t>(members, 1)) {
+    int k = 0;
+    n.maxCoeff(&k);
+    n[k] = std::max(1, n[k] / 2);
+  }
+  return n;
+}
+
+// Size classes: greedy groups of bounding radii within a factor 2, smallest first.
+std::vector<int> size_classes(const Particles& p, std::vector<double>& class_rmax) {
+  std::vector<double> radii = p.bound_radius;
+  std::sort(radii.begin(), radii.end());
+  radii.erase(std::unique(radii.begin(), radii.end()), radii.end());
+  std::vector<double> lower;  // lower bound of each class
+  for (double r : radii)
+    if (lower.empty() || r > 2 * lower.back()) lower.push_back(r);
+  class_rmax.assign(lower.size(), 0.0);
+  std::vector<int> cls(p.size());
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const double r = p.bound_radius[i];
+    const int c = static_cast<int>(std::upper_bound(lower.begin(), lower.end(), r) - lower.begin()) - 1;
+    cls[i] = c;
+    class_rmax[c] = std::max(class_rmax[c], r);
+  }
+  return cls;
+}
+
+}  // namespace
+
+void check_cell_size(const Particles& p, const Cell& cell, double skin) {
+  double rmax = 0;
+  for (double r : p.bound_radius) rmax = std::max(rmax, r);
+  const double wmin = cell.widths().minCoeff();
+  // A particle must stay smaller than half the cell (SPEC 3); the skin keeps the list exact.
+  if (2 * rmax + skin >= 0.5 * wmin)
+    throw CellTooSmall(fmt::format("the largest particle (diameter {:.4g} mm, plus skin {:.3g} mm) is not smaller "
+                                   "than half the smallest cell width ({:.4g} mm)",
+                                   2e3 * rmax, 1e3 * skin, 1e3 * wmin),
+                       "use more particles (sample.total_particles) or smaller ones");
+}
+
+void NeighborState::restart_motion(const Particles& p) {
+  if (p.has_ellipsoids())
+    surface_path.assign(p.size(), 0.0);
+  else
+    surface_path.clear();
+  fluctuation_path = 0;
+  strain_path = 0;
+  checked_displacement = checked_fluctuation = checked_strain = 0;
+}
+
+// Stretch of any listed branch by the cell deformation F = h h0^-1 (Frobenius bounds the 2-norm).
+static double branch_stretch(const NeighborState& ns, const Cell& cell) {
+  const double strain = (cell.h * ns.h_at_build.inverse() - Mat3::Identity()).norm();
+  return strain * (2 * ns.max_bound_radius + ns.skin);
+}
+
+// Since the last pass over the particles (or the build), which measured twice the
+// largest displacement D_c, no particle has moved by more than sum dt max|v| = (fluctuation_path
+// - checked_fluctuation) / 2 in the frame of its step, which the cell has since turned and
+// stretched by at most exp(strain_path - checked_strain) (h_n h_m^-1 = prod (I + dt L)); D_c too.
+// So twice the displacement is below exp(strain since) (D_c + fluctuation since). The margins
+// cover the round-off of the positions.
+static bool bound_rules_out_rebuild(const NeighborState& ns, double stretch) {
+  const double moved = ns.checked_displacement + (ns.fluctuation_path - ns.checked_fluctuation);
+  return ns.valid &&
+         std::exp(ns.strain_path - ns.checked_strain) * moved * (1 + 1e-6) + stretch < ns.skin * (1 - 1e-6);
+}
+
+bool motion_bound_rules_out_rebuild(const NeighborState& ns, const Cell& cell) {
+  return bound_rules_out_rebuild(ns, branch_stretch(ns, cell));
+}
+
+bool needs_rebuild(NeighborState& ns, const Particles& p, const Cell& cell, bool use_motion_bound) {
+  if (!ns.valid) return true;
+  const double stretch = branch_stretch(ns, cell);
+  if (use_motion_bound && bound_rules_out_rebuild(ns, stretch)) return false;  // no pass over particles
+  double d2max = 0;
+  const std::size_t n = p.size();
+#pragma omp parallel for reduction(max : d2max) schedule(static) if (n > parallel_threshold)
+  for (std::size_t i = 0; i < n; ++i) d2max = std::max(d2max, (cell.h * (p.s[i] - ns.s_at_build[i])).squaredNorm());
+  const double displacement = 2 * std::sqrt(d2max);
+  if (use_motion_bound) {  // the bound restarts from here (the paths are kept by step())
+    ns.checked_displacement = displacement;
+    ns.checked_fluctuation = ns.fluctuation_path;
+    ns.checked_strain = ns.strain_path;
+  }
+  return displacement + stretch > ns.skin;
+}
+
+void build_incidence(PairList& pairs, std::size_t n) {
+  const std::size_t np = pairs.size();
+  pairs.first_i.assign(n + 1, 0);
+  for (std::size_t k = 0; k < np; ++k) ++pairs.first_i[pairs.i[k] + 1];
+  std::partial_sum(pairs.first_i.begin(), pairs.first_i.end(), pairs.first_i.begin());
+  // Blocks of whole particles (as i) holding at least pairs_per_block pairs: each block owns the
+  // i-side sums of its particles, and the blocks depend on the list only, not on the threads.
+  pairs.block_first.assign(1, 0);
+  for (std::size_t a = 0; a < n; ++a)
+    if (pairs.first_i[a + 1] - pairs.first_i[pairs.block_first.back()] >= pairs_per_block)
+      pairs.block_first.push_back(static_cast<std::uint32_t>(a + 1));
+  if (pairs.block_first.back() != n) pairs.block_first.push_back(static_cast<std::uint32_t>(n));
+}
+
+namespace {
+
+// Fractional positions wrapped into [0, 1)^3 and their integer offsets: s = wrapped + wrap.
+struct WrappedPositions {
+  std::vector<Vec3> s;
+  std::vector<Vec3i> wrap;
+};
+WrappedPositions wrap_positions(const Particles& p) {
+  const std::size_t n = p.size();
+  WrappedPositions w{std::vector<Vec3>(n), std::vector<Vec3i>(n)};
+  constexpr double reach = std::numeric_limits<int>::max();
+  for (std::size_t i = 0; i < n; ++i) {
+    const Vec3 f = p.s[i].array().floor();
+    // An image count beyond int (or NaN) is a blown-up state, not a position: stop before the cast.
+    if (!(f.array().abs() < reach).all())
+      throw RunError(fmt::format("particle id {} is at ({}, {}, {}) in cell coordinates: the state has blown up "
+                                 "and cannot be stepped",
+                                 p.id[i], p.s[i].x(), p.s[i].y(), p.s[i].z()));
+    w.wrap[i] = f.cast<int>();
+    w.s[i] = p.s[i] - f;
+  }
+  return w;
+}
+
+// One grid per size class (size_classes), bins as grid_bins sizes them.
+std::vector<Grid> make_grids(const Particles& p, const std::vector<Vec3>& sw, const std::vector<int>& cls,
+                             const std::vector<double>& class_rmax, const Vec3& w, double skin) {
+  const std::size_t n = p.size();
+  const int nclass = static_cast<int>(class_rmax.size());
+  std::vector<Grid> grids(nclass);
+  std::vector<std::size_t> members(nclass, 0);
+  for (std::size_t i = 0; i < n; ++i) ++members[cls[i]];
+  std::vector<Eigen::Vector3i> bin_of(n);
+  for (int c = 0; c < nclass; ++c) {
+    Grid& g = grids[c];
+    g.r_max = class_rmax[c];
+    g.n = grid_bins(w, g.r_max, skin, members[c]);
+    g.start.assign(g.bins() + 1, 0);
+    for (std::size_t i = 0; i < n; ++i) {
+      if (cls[i] != c) continue;
+      Eigen::Vector3i b;
+      for (int k = 0; k < 3; ++k) b[k] = std::min(g.n[k] - 1, static_cast<int>(sw[i][k] * g.n[k]));
+      bin_of[i] = b;
+      ++g.start[g.bin_index(b) + 1];
+    }
+    std::partial_sum(g.start.begin(), g.start.end(), g.start.begin());
+    g.members.resize(g.start.back());
+    std::vector<std::uint32_t> fill(g.start.begin(), g.start.end() - 1);
+    for (std::size_t i = 0; i < n; ++i)
+      if (cls[i] == c) g.members[fill[g.bin_index(bin_of[i])]++] = static_cast<std::uint32_t>(i);
+  }
+  return grids;
+}
+
+// Every pair whose bounding spheres are closer than the skin, sorted by key. Each particle searches
+// its own class (partners of higher index) and every smaller class, so that each pair is found
+// once, from the side of the larger particle. `checked` counts the distances computed.
+std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, double skin, const WrappedPositions& wp,
+                                       const std::vector<int>& cls, const std::vector<Grid>& grids, long& checked) {
+  const std::size_t n = p.size();
+  const Vec3 w = cell.widths();
+  const std::vector<Vec3>& sw = wp.s;
+  std::vector<std::vector<Candidate>> found(static_cast<std::size_t>(omp_get_max_threads()));
+  long count = 0;
+#pragma omp parallel if (n > parallel_threshold) reduction(+ : count)
+  {
+    auto& out = found[static_cast<std::size_t>(omp_get_thread_num())];
+#pragma omp for schedule(dynamic, 256)
+    for (std::size_t i = 0; i < n; ++i) {
+      const double ri = p.bound_radius[i];
+      for (int c = 0; c <= cls[i]; ++c) {
+        const Grid& g = grids[c];
+        const double reach = ri + g.r_max + skin;
+        Eigen::Vector3i lo, hi;
+        for (int k = 0; k < 3; ++k) {
+          lo[k] = static_cast<int>(std::floor((sw[i][k] - reach / w[k]) * g.n[k]));
+          hi[k] = static_cast<int>(std::floor((sw[i][k] + reach / w[k]) * g.n[k]));
+        }
+        for (int uz = lo.z(); uz <= hi.z(); ++uz)
+          for (int uy = lo.y(); uy <= hi.y(); ++uy)
+            for (int ux = lo.x(); ux <= hi.x(); ++ux) {
+              const Eigen::Vector3i u(ux, uy, uz);
+              Eigen::Vector3i bin, img;
+              for (int k = 0; k < 3; ++k) {
+                img[k] = floor_div(u[k], g.n[k]);
+                bin[k] = u[k] - img[k] * g.n[k];
+              }
+              const std::size_t b = g.bin_index(bin);
+              for (std::uint32_t m = g.start[b]; m < g.start[b + 1]; ++m) {
+                const std::uint32_t j = g.members[m];
+                if (c == cls[i] && j <= i) continue;
+                ++count;
+                const Vec3 l = cell.h * (sw[j] + img.cast<double>() - sw[i]);
+                const double cut = ri + p.bound_radius[j] + skin;
+                if (l.squaredNorm() >= cut * cut) continue;
+                const Vec3i k = img + wp.wrap[i] - wp.wrap[j];  // image in unwrapped coordinates
+                if (i < j)
+                  out.push_back({static_cast<std::uint32_t>(i), j, k});
+                else
+                  out.push_back({j, static_cast<std::uint32_t>(i), Vec3i(-k)});
+              }
+            }
+      }
+    }
+  }
+  checked = count;
+  std::vector<Candidate> all;
+  for (auto& f : found) all.insert(all.end(), f.begin(), f.end());
+  std::sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {
+    return key_less(a.i, a.j, a.image, b.i, b.j, b.image);
+  });
+  return all;
+}
+
+// The list of the candidates (sorted by key), with the history of the pairs that `pairs` lists
+// under the same key (both sorted): each per-pair array of the registry copied for those pairs
+// when it is kept, else released.
+PairList list_with_history(const std::vector<Candidate>& all, const PairList& pairs) {
+  PairList next;
+  const std::size_t np = all.size();
+  next.i.resize(np);
+  next.j.resize(np);
+  next.image.resize(np);
+  next.history.layout = pairs.history.layout;
+  for_each_pair_field([&](const HistoryLayout& layout, PairField, std::vector<double>& values) {
+    values = released_values(layout, np);
+  }, next);
+  // The old pair of each new pair that was listed before (or none).
+  constexpr std::size_t none = SIZE_MAX;
+  std::vector<std::size_t> before(np, none);
+  std::size_t o = 0;
+  for (std::size_t k = 0; k < np; ++k) {
+    const Candidate& c = all[k];
+    next.i[k] = c.i;
+    next.j[k] = c.j;
+    next.image[k] = c.image;
+    while (o < pairs.size() && key_less(pairs.i[o], pairs.j[o], pairs.image[o], c.i, c.j, c.image)) ++o;
+    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) before[k] = o;
+  }
+  for_each_pair_field(
+      [&](const HistoryLayout& layout, PairField field, std::vector<double>& values, const std::vector<double>& old) {
+        const std::size_t w = static_cast<std::size_t>(layout.width);
+        if (!field.kept || old.size() != pairs.size() * w) return;  // not sized on the old list: none to keep
+        for (std::size_t k = 0; k < np; ++k)
+          if (before[k] != none) std::copy_n(old.data() + w * before[k], w, values.data() + w * k);
+      },
+      next, pairs);
+  next.overlap_known = pairs.overlap_known && pairs.overlap.size() == pairs.size();
+  return next;
+}
+
+}  // namespace
+
+std::vector<double> released_values(const HistoryLayout& layout, std::size_t np) {
+  const std::size_t w = static_cast<std::size_t>(layout.width);
+  std::vector<double> values(w * np);
+  for (std::size_t k = 0; k < np; ++k) std::copy_n(layout.released.begin(), w, values.begin() + w * k);
+  return values;
+}
+
+void adopt_history(PairList& pairs, const HistoryLayout& layout) {
+  PairHistory& h = pairs.history;
+  const bool same = h.layout->name == layout.name && h.layout->width == layout.width;
+  if (!same || h.values.size() != pairs.size() * static_cast<std::size_t>(layout.width))
+    h.values = released_values(layout, pairs.size());
+  h.layout = &layout;
+}
+
+void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pairs, NeighborState& ns) {
+  check_cell_size(p, cell, skin);
+  const WrappedPositions wp = wrap_positions(p);
+  std::vector<double> class_rmax;
+  const std::vector<int> cls = size_classes(p, class_rmax);
+  const std::vector<Grid> grids = make_grids(p, wp.s, cls, class_rmax, cell.widths(), skin);
+  std::size_t bins = 0;
+  for (const Grid& g : grids) bins += g.bins();
+  long checked = 0;
+  const std::vector<Candidate> all = find_candidates(p, cell, skin, wp, cls, grids, checked);
+  PairList next = list_with_history(all, pairs);
+  build_incidence(next, p.size());
+  pairs = std::move(next);
+
+  ns.s_at_build = p.s;
+  ns.h_at_build = cell.h;
+  ns.skin = skin;
+  ns.max_bound_radius = *std::max_element(p.bound_radius.begin(), p.bound_radius.end());
+  ns.restart_motion(p);
+  ns.valid = true;
+  ns.distance_checks = checked;
+  ns.grid_bins = static_cast<long>(bins);
+  ++ns.builds;
+}
+
+}  // namespace qsdem

@@ -1,0 +1,106 @@
+#include "qsdem/engine/schedule.hpp"
+
+#include <algorithm>
+
+namespace qsdem {
+
+bool Schedule::has_owners_of(const State& state) const {
+  return owner_first.size() >= 2 && owner_first.back() == state.particles.size() &&
+         contact_owner_first.size() == state.blocks.size() * (owners() + 1);
+}
+
+void share_blocks(Schedule& s, const PairList& pairs, long builds, int nthreads) {
+  const std::size_t nblocks = pairs.block_first.size() - 1;
+  s.timed = s.timed_build == builds && s.block_weight.size() == nblocks;
+  s.block_seconds.resize(nblocks);
+  s.block_weight.resize(nblocks);
+  std::vector<std::size_t>& cut = s.block_cut;
+  cut.assign(static_cast<std::size_t>(nthreads) + 1, nblocks);
+  cut[0] = 0;
+  if (nthreads == 1) return;
+  const auto cost = [&](std::size_t b) {
+    return s.timed ? s.block_weight[b]
+                   : static_cast<double>(pairs.first_i[pairs.block_first[b + 1]] - pairs.first_i[pairs.block_first[b]]);
+  };
+  double total = 0;
+  for (std::size_t b = 0; b < nblocks; ++b) total += cost(b);
+  double before = 0;  // cost of blocks [0, b)
+  int t = 1;
+  for (std::size_t b = 0; b < nblocks && t < nthreads; ++b) {
+    const double c = cost(b);
+    while (t < nthreads && before + 0.5 * c >= total * t / nthreads) cut[t++] = b;  // b's middle is past the share
+    before += c;
+  }
+}
+
+void assign_owners(Schedule& s, const PairList& pairs, std::size_t n, std::size_t owners, int nthreads) {
+  s.owner_first.resize(owners + 1);
+  for (std::size_t t = 0; t <= owners; ++t)
+    s.owner_first[t] = t == 0        ? 0
+                       : t == owners ? n
+                       : owners == static_cast<std::size_t>(nthreads)
+                           ? std::min<std::size_t>(n, pairs.block_first[s.block_cut[t]])
+                           : n * t / owners;
+  s.contact_owner_first.resize((pairs.block_first.size() - 1) * (owners + 1));
+}
+
+void assign_single_owner(Schedule& s, const State& state) {
+  s.owner_first = {0, state.particles.size()};
+  s.contact_owner_first.resize(2 * state.blocks.size());
+  for (std::size_t b = 0; b < state.blocks.size(); ++b) {
+    s.contact_owner_first[2 * b] = state.blocks[b].first_contact;
+    s.contact_owner_first[2 * b + 1] = state.blocks[b].first_contact + state.blocks[b].contacts;
+  }
+}
+
+void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first, std::uint32_t count) {
+  const std::size_t owners = s.owners();
+  std::uint32_t* const row = s.contact_owner_first.data() + b * (owners + 1);
+  if (owners == 1) {  // one thread: one group, in place
+    row[0] = first, row[1] = first + count;
+    return;
+  }
+  const auto owner = [&](std::uint32_t j) {  // the last t with owner_first[t] <= j
+    std::size_t t = 0;
+    while (t + 1 < owners && s.owner_first[t + 1] <= j) ++t;
+    return t;
+  };
+  std::fill(row, row + owners + 1, 0u);
+  for (std::uint32_t m = first; m < first + count; ++m) ++row[owner(pairs.contact_j[m]) + 1];
+  row[0] = first;
+  for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
+  if (row[1] == first + count) return;  // all in the first group: already in place
+  // Each contact's new slot (row[t] serves as group t's next slot and ends at group t + 1's
+  // start: shifted back after), then the four arrays moved through a copy. The copies are the
+  // thread's own, kept from block to block (no allocation once grown).
+  thread_local std::vector<std::uint32_t> slot, copy_u32;
+  thread_local std::vector<Vec3> copy_vec;
+  slot.resize(count);
+  for (std::uint32_t c = 0; c < count; ++c) slot[c] = row[owner(pairs.contact_j[first + c])]++;
+  for (std::size_t t = owners; t > 0; --t) row[t] = row[t - 1];
+  row[0] = first;
+  const auto move = [&](auto& array, auto& copy) {
+    copy.assign(array.begin() + first, array.begin() + first + count);
+    for (std::uint32_t c = 0; c < count; ++c) array[slot[c]] = copy[c];
+  };
+  move(pairs.contact_pairs, copy_u32);
+  move(pairs.contact_j, copy_u32);
+  move(pairs.contact_force, copy_vec);
+  move(pairs.contact_torque_j, copy_vec);
+  if (!pairs.contact_stiffness_j.empty()) {
+    thread_local std::vector<std::array<double, 2>> copy_stiffness;
+    move(pairs.contact_stiffness_j, copy_stiffness);
+  }
+}
+
+void record_thread_balance(const Schedule& s, StageTimers& timers) {
+  double busiest = 0, sum = 0;
+  for (const double busy : s.thread_busy) {
+    busiest = std::max(busiest, busy);
+    sum += busy;
+  }
+  timers.force_thread_mean += sum / static_cast<double>(s.thread_busy.size());
+  timers.force_thread_max += busiest;
+}
+
+}  // namespace qsdem

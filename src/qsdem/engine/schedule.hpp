@@ -1,0 +1,98 @@
+// How the threads share the step's work: the force stage's blocks and the particle update's
+// ranges. Scheduling only: every thread count and every cut gives the same bits (the sums run in
+// block order and, per particle, in pair order). The force stage fills a Schedule, the update
+// stage reads its owners; the caller keeps it from step to step (the blocks' times of the last
+// steps set the next cut).
+#pragma once
+#include <omp.h>
+
+#include <atomic>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include "qsdem/engine/state.hpp"
+
+namespace qsdem {
+
+struct Schedule {
+  // Per force block (PairList::block_first): its time in the last step, and its recent times
+  // smoothed (what the threads share in the next step).
+  std::vector<double> block_seconds, block_weight;
+  long timed_build = -1;  // NeighborState::builds of the list whose blocks were timed
+  bool timed = false;     // this step's blocks are those timed (share_blocks)
+  std::vector<std::size_t> block_cut;       // thread t starts with blocks [cut[t], cut[t + 1])
+  std::vector<std::uint8_t> block_claimed;  // 1 once a thread has taken the block this step
+  std::vector<double> thread_busy;          // each thread's seconds in its blocks this step
+  // The update region's particles: thread t owns [owner_first[t], owner_first[t + 1]).
+  // contact_owner_first, (owners + 1) per block: block b's contacts whose j end thread t owns are
+  // the slots [row[t], row[t + 1]) of PairList::contact_pairs / contact_j, row =
+  // contact_owner_first + b (owners + 1).
+  std::vector<std::size_t> owner_first;
+  std::vector<std::uint32_t> contact_owner_first;
+
+  std::size_t owners() const { return owner_first.size() - 1; }
+  // True when the owners describe the contacts of `state`'s last force evaluation.
+  bool has_owners_of(const State& state) const;
+};
+
+// Cuts the blocks into contiguous ranges of equal cost for the threads (block_cut): the blocks'
+// smoothed times of the last steps when they are the same blocks (timed_build == builds, then
+// `timed` is set), else (right after a list build) their pair counts.
+void share_blocks(Schedule& s, const PairList& pairs, long builds, int nthreads);
+
+// The update region's ranges of n particles for `owners` threads: with as many owners as the
+// force stage's threads, thread t owns the particles of its blocks (their i-side sums are in its
+// cache); else an even split. Sizes contact_owner_first for the blocks.
+void assign_owners(Schedule& s, const PairList& pairs, std::size_t n, std::size_t owners, int nthreads);
+
+// One owner for all: every particle and, per block, all its contacts (ForceBlock::first_contact,
+// contacts) of `state`'s last force evaluation. The update stage's split when the force stage
+// has not set the owners.
+void assign_single_owner(Schedule& s, const State& state);
+
+// Groups block b's contacts, slots [first, first + count), by the thread that owns their j end,
+// keeping the pair order within each group (a counting sort of the four contact arrays), and
+// writes the block's row of contact_owner_first.
+void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first, std::uint32_t count);
+
+// Block b took `seconds` this step: its time and smoothed weight.
+inline void record_block_time(Schedule& s, std::size_t b, double seconds) {
+  s.block_seconds[b] = seconds;
+  // Smoothed: one step's times carry the machine's noise.
+  s.block_weight[b] = s.timed ? 0.8 * s.block_weight[b] + 0.2 * seconds : seconds;
+}
+
+// Runs every block once on nthreads threads: run(b) returns its seconds. Each thread starts with
+// its range (block_cut), from the front; a thread done with it takes the blocks left at the end
+// of the others' ranges, one at a time, from the back: the owner and the thief meet where the
+// range's work is shared as it happens (the smoothed cut misses by the noise of the last steps).
+// A block is claimed once, by an atomic exchange
+// of its flag; the owner stops at the first block a thief has claimed, and a thief at the first
+// one claimed by anyone, so each range is a prefix of its owner's and a suffix of one thief's.
+template <class Run>
+void run_blocks(Schedule& s, std::size_t nblocks, int nthreads, Run&& run) {
+  s.block_claimed.assign(nblocks, 0);
+  s.thread_busy.assign(static_cast<std::size_t>(nthreads), 0.0);
+  const std::vector<std::size_t>& cut = s.block_cut;
+  const auto claim = [&](std::size_t b) {
+    return std::atomic_ref<std::uint8_t>(s.block_claimed[b]).exchange(1, std::memory_order_relaxed) == 0;
+  };
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
+  {
+    const int team = omp_get_num_threads(), me = omp_get_thread_num();
+    double busy = 0;
+    for (int r = me; r < nthreads; r += team)
+      for (std::size_t b = cut[r]; b < cut[r + 1] && claim(b); ++b) busy += run(b);
+    for (int d = 1; d < nthreads; ++d) {
+      const int r = (me + d) % nthreads;
+      for (std::size_t b = cut[r + 1]; b-- > cut[r] && claim(b);) busy += run(b);
+    }
+    s.thread_busy[static_cast<std::size_t>(me)] = busy;
+  }
+}
+
+// Adds this step's mean and largest thread time in the force stage to the timers (balance).
+void record_thread_balance(const Schedule& s, StageTimers& timers);
+
+}  // namespace qsdem
