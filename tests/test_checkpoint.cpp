@@ -815,6 +815,54 @@ TEST(CheckpointFile, PhaseRecordsAreWrittenFieldByField) {
   }
 }
 
+// The phases' records are saved by name (format 13 on, for_each_record_value): every value comes
+// back bit for bit, the registry covers PhaseRecord's bytes, and a checkpoint that holds a value
+// under a name this build does not know (a measure of another build) loads, with that value
+// skipped and the member this build expected at its default.
+TEST(CheckpointFile, PhaseRecordsAreSavedByName) {
+  std::size_t bytes = 0;
+  const PhaseRecord blank;
+  for_each_record_value(blank, [&](std::string_view, auto& v) { bytes += sizeof(v); });
+  EXPECT_EQ(bytes, sizeof(PhaseRecord)) << "a member of PhaseRecord is not in for_each_record_value";
+
+  const State st = generate_loose_sample(parse_case(small_case, "small.toml"));
+  RunProgress run;
+  run.phase = 1;
+  run.phases.resize(2);
+  double next = 1;
+  for (PhaseRecord& r : run.phases) {
+    for_each_record_value(r, [&](std::string_view, auto& v) { v = static_cast<std::remove_reference_t<decltype(v)>>(next++); });
+    r.h0 = Mat3::Identity() * (0.01 * next++);  // what the load checks: a cell, at most a row a step
+    r.rows = r.steps / 2;
+  }
+  run.phases[1].final.z_mech = 0.125;
+  const fs::path f = scratch("records-by-name.qsck");
+  save_checkpoint(f, "", "", st, run, checkpoint_format_version);
+  const Checkpoint c = load_checkpoint(f);
+  ASSERT_EQ(c.run.phases.size(), 2u);
+  for (std::size_t p = 0; p < 2; ++p) {
+    std::vector<double> saved, loaded;
+    for_each_record_value(run.phases[p], [&](std::string_view, auto& v) { saved.push_back(static_cast<double>(v)); });
+    for_each_record_value(c.run.phases[p], [&](std::string_view, auto& v) { loaded.push_back(static_cast<double>(v)); });
+    EXPECT_EQ(loaded, saved) << "phase " << p;
+  }
+
+  // The name final.z_mech becomes final.zzmech (same length), and the file is resealed.
+  std::string bytes_of = read(f);
+  const std::string name = "final.z_mech";
+  const std::size_t at = bytes_of.find(name);
+  ASSERT_NE(at, std::string::npos);
+  bytes_of.replace(at, name.size(), "final.zzmech");
+  constexpr std::size_t header = 32;
+  const std::uint64_t sum = fnv1a64(bytes_of.data() + header, bytes_of.size() - header);
+  std::memcpy(bytes_of.data() + 24, &sum, 8);
+  std::ofstream(f, std::ios::binary | std::ios::trunc) << bytes_of;
+  const Checkpoint renamed = load_checkpoint(f);
+  EXPECT_TRUE(std::isnan(renamed.run.phases[1].final.z_mech)) << "not in the file: its default (undefined)";
+  EXPECT_EQ(renamed.run.phases[1].final.void_ratio, c.run.phases[1].final.void_ratio);
+  EXPECT_EQ(renamed.run.phases[1].energy_end.kinetic, c.run.phases[1].energy_end.kinetic);
+}
+
 // A FIRE phase (docs/physics.md 5.7) stopped by SIGTERM between increments and resumed writes the
 // same bits as the uninterrupted run; every increment is relaxed to its tolerances (UFR, the
 // lateral stresses), and the last one ends exactly at the strain stop.

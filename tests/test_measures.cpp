@@ -8,6 +8,8 @@
 #include <array>
 #include <cmath>
 #include <stdexcept>
+#include <string>
+#include <string_view>
 #include <vector>
 
 #include "qsdem/engine/forces.hpp"
@@ -456,4 +458,21 @@ TEST(Measures, ContactForcesByPairAreTheLastEvaluationsContacts) {
     EXPECT_LE((resultant[a] - st.particles.force[a]).norm(), 1e-14 * scale) << "particle " << a;
   build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
   EXPECT_THROW(contact_forces_by_pair(st), std::logic_error);
+}
+
+// The registry of Measures' numbers (for_each_measure) names every member once: its values cover
+// the struct's bytes (every member is 8 bytes wide, so there is no padding), and no name repeats.
+TEST(MeasuresRegistry, NamesEveryMemberOnce) {
+  Measures m;
+  std::size_t bytes = 0;
+  std::vector<std::string> names;
+  for_each_measure(m, [&](std::string_view name, auto& v) {
+    bytes += sizeof(v);
+    names.emplace_back(name);
+  });
+  EXPECT_EQ(bytes, sizeof(Measures)) << "a member of Measures is not in for_each_measure";
+  std::sort(names.begin(), names.end());
+  EXPECT_EQ(std::adjacent_find(names.begin(), names.end()), names.end()) << "a name repeats";
+  EXPECT_TRUE(std::binary_search(names.begin(), names.end(), "stress_23"));
+  EXPECT_TRUE(std::binary_search(names.begin(), names.end(), "z_mech"));
 }

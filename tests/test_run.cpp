@@ -194,7 +194,7 @@ TEST(Run, ThreadCountDoesNotChangeTheEnergyLedger) {
   const State s1 = run(1, model), s2 = run(2, model), untracked = run(2, plain);
   const auto bits = [](const EnergyLedger& e) {
     std::vector<double> v;
-    for (const auto field : energy_ledger_fields) v.push_back(e.*field);
+    for (const EnergyTerm& term : energy_ledger_terms) v.push_back(e.*term.field);
     return v;
   };
   EXPECT_EQ(bits(s1.energy), bits(s2.energy));

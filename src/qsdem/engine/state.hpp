@@ -48,10 +48,19 @@ struct EnergyLedger {
   double elastic = 0;          // stored in the contacts at the last force evaluation (J)
   double kinetic = 0;          // of the fluctuations after the last kick, translation and rotation (J)
 };
-// Its fields in one order, for code that stores a ledger as numbers (a controller's saved state).
-inline constexpr std::array<double EnergyLedger::*, 7> energy_ledger_fields{
-    &EnergyLedger::boundary_work, &EnergyLedger::friction, &EnergyLedger::contact_damping, &EnergyLedger::damping,
-    &EnergyLedger::stiffness_change, &EnergyLedger::elastic, &EnergyLedger::kinetic};
+// Its terms in one order, with their names, for code that stores a ledger as numbers (a
+// controller's saved state, a checkpoint's phase records).
+struct EnergyTerm {
+  const char* name;
+  double EnergyLedger::* field;
+};
+inline constexpr std::array<EnergyTerm, 7> energy_ledger_terms{{{"boundary_work", &EnergyLedger::boundary_work},
+                                                                 {"friction", &EnergyLedger::friction},
+                                                                 {"contact_damping", &EnergyLedger::contact_damping},
+                                                                 {"damping", &EnergyLedger::damping},
+                                                                 {"stiffness_change", &EnergyLedger::stiffness_change},
+                                                                 {"elastic", &EnergyLedger::elastic},
+                                                                 {"kinetic", &EnergyLedger::kinetic}}};
 
 struct State {
   Particles particles;

@@ -268,7 +268,7 @@ LegacyRun to_legacy(const RunProgress& r) {
   return l;
 }
 
-// Format 7: any protocol. Every field on its own (no struct's raw bytes, so no padding).
+// Formats 7 to 12: any protocol. Every field on its own (no struct's raw bytes, so no padding).
 template <class IO, class P>
 void io_record(IO& io, P& p) {
   io.pod(p.h0);
@@ -287,6 +287,45 @@ void io_record(IO& io, P& p) {
   io.pod(p.final_e1);
   io.pod(p.final_ev);
   io_measures(io, p.final, 7);
+}
+
+// Format 13 on: the records by name (for_each_record_value, run_progress.hpp), the names once and
+// then each record's values in their order, as doubles (a count is exact below 2^53). A name this
+// build does not know is skipped, and a value the file does not hold keeps its default, so a new
+// measure or ledger term needs no new format.
+void io_records_by_name(BinaryWriter& w, const std::vector<PhaseRecord>& records) {
+  std::vector<std::string> names;
+  const PhaseRecord blank;
+  for_each_record_value(blank, [&](std::string_view name, const auto&) { names.emplace_back(name); });
+  w.pod(static_cast<std::uint64_t>(names.size()));
+  for (const std::string& n : names) w.str(n);
+  for (const PhaseRecord& r : records)
+    for_each_record_value(r, [&](std::string_view, const auto& v) { w.pod(static_cast<double>(v)); });
+}
+
+void io_records_by_name(BinaryReader& in, std::vector<PhaseRecord>& records) {
+  std::uint64_t count = 0;
+  in.pod(count);
+  if (count > 100000) in.damaged("a phase record holds more values than a record can");
+  std::vector<std::string> names(count);
+  for (std::string& n : names) in.str(n);
+  std::vector<double> values(count);
+  for (PhaseRecord& r : records) {
+    for (double& v : values) in.pod(v);
+    for_each_record_value(r, [&](std::string_view name, auto& v) {
+      const auto at = std::find(names.begin(), names.end(), name);
+      if (at == names.end()) return;
+      const double x = values[static_cast<std::size_t>(at - names.begin())];
+      if constexpr (std::is_integral_v<std::remove_reference_t<decltype(v)>>) {
+        // A count: whole and within the range of the checks that follow (no cast of NaN or 1e300).
+        if (!(std::abs(x) <= 1e15) || x != std::floor(x))
+          in.damaged(fmt::format("a phase record's {} is {}, not a count", name, x));
+        v = static_cast<long>(x);
+      } else {
+        v = x;
+      }
+    });
+  }
 }
 
 template <class IO, class S>
@@ -317,7 +356,10 @@ void io_run(BinaryWriter& w, const RunProgress& r, std::uint32_t version) {
   w.pod(r.phase_started);
   io_phase_state(w, r.state);
   w.pod(static_cast<std::uint64_t>(r.phases.size()));
-  for (const PhaseRecord& p : r.phases) io_record(w, p);
+  if (version >= 13)
+    io_records_by_name(w, r.phases);
+  else
+    for (const PhaseRecord& p : r.phases) io_record(w, p);
   w.pod(r.wall_s);
   w.pod(r.first_step);
   w.pod(r.prepare_only);
@@ -326,7 +368,7 @@ void io_run(BinaryWriter& w, const RunProgress& r, std::uint32_t version) {
     w.pod(static_cast<std::uint64_t>(r.controller_end.size()));
     for (const auto& c : r.controller_end) w.vec(c);
   }
-  if (version >= 9)  // each phase's energy ledger at its start and last row
+  if (version >= 9 && version < 13)  // each phase's energy ledger at its start and last row
     for (const PhaseRecord& p : r.phases) w.pod(p.energy_start), w.pod(p.energy_end);
   if (version >= 10) {  // the digests of the run directory's files
     w.pod(r.case_digest.has_value());
@@ -354,7 +396,10 @@ void io_run(BinaryReader& in, RunProgress& r, std::uint32_t version) {
   in.pod(n);
   if (n > 1000) in.damaged("more phases than a case can hold");
   r.phases.resize(n);
-  for (PhaseRecord& p : r.phases) io_record(in, p);
+  if (version >= 13)
+    io_records_by_name(in, r.phases);
+  else
+    for (PhaseRecord& p : r.phases) io_record(in, p);
   in.pod(r.wall_s);
   in.pod(r.first_step);
   in.pod(r.prepare_only);
@@ -366,7 +411,7 @@ void io_run(BinaryReader& in, RunProgress& r, std::uint32_t version) {
     r.controller_end.resize(m);
     for (auto& c : r.controller_end) in.vec(c);
   }
-  if (version >= 9)
+  if (version >= 9 && version < 13)
     for (PhaseRecord& p : r.phases) in.pod(p.energy_start), in.pod(p.energy_end);
   if (version >= 10) {
     bool known = false;
@@ -606,8 +651,8 @@ void check_record(const ContentCheck& c, const PhaseRecord& r, std::size_t p, bo
   c.require(m.stress.allFinite() && m.principal.allFinite() && r.wall_s >= 0 && m.contacts >= 0,
             "phase {}'s record holds a stress that is not finite, or a negative count or time", p);
   for (const EnergyLedger* e : {&r.energy_start, &r.energy_end})
-    for (const auto field : energy_ledger_fields)
-      c.require(std::isfinite(e->*field), "phase {}'s energy ledger is not finite", p);
+    for (const EnergyTerm& term : energy_ledger_terms)
+      c.require(std::isfinite(e->*term.field), "phase {}'s energy ledger is not finite", p);
 }
 
 void check_run(const ContentCheck& c, const RunProgress& r, const State& st, std::uint32_t version) {
@@ -665,7 +710,7 @@ void check_contents(const Checkpoint& ck, std::uint32_t version, const BinaryRea
             st.stress_volume);
   c.cell_matrix(st.stress_h, "the cell matrix of the last force evaluation");
   for (const double t : st.timers.seconds) c.require(std::isfinite(t) && t >= 0, "a stage's time is not finite and >= 0");
-  for (const auto field : energy_ledger_fields) c.require(std::isfinite(st.energy.*field), "the energy ledger is not finite");
+  for (const EnergyTerm& term : energy_ledger_terms) c.require(std::isfinite(st.energy.*term.field), "the energy ledger is not finite");
   check_run(c, ck.run, st, version);
 }
 

@@ -20,8 +20,9 @@ namespace qsdem {
 // default protocol's two phases); 8: a controller's state at its phase's end (summary.json figures);
 // 9: the energy ledger (State::energy, and each phase's at its start and last row); 10: the digests
 // of the run directory's case.toml and of the rows counted (RunProgress::case_digest, files); 11: the
-// particles' inertia scale; 12: the builds that ran the run (RunProgress::builds)
-inline constexpr std::uint32_t checkpoint_format_version = 12;
+// particles' inertia scale; 12: the builds that ran the run (RunProgress::builds); 13: the phases'
+// records by name (for_each_record_value), so that a new measure or ledger term needs no new format
+inline constexpr std::uint32_t checkpoint_format_version = 13;
 
 struct Checkpoint {
   std::string case_text;    // the case as TOML, after --set overrides

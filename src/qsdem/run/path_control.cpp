@@ -72,20 +72,20 @@ class Cyclic final : public Controller {
     std::vector<double> v{seen_ ? 3.0 : 2.0, turning_ ? 1.0 : 0.0, q_last_, e1_last_, work_};
     for (const Corner& c : corners_) {
       v.insert(v.end(), {c.q, c.e1, c.ev, c.work});
-      for (const auto field : energy_ledger_fields) v.push_back(c.energy.*field);
+      for (const EnergyTerm& term : energy_ledger_terms) v.push_back(c.energy.*term.field);
     }
     return v;
   }
   void restore(const std::vector<double>& v) override {
     const bool ledger = !v.empty() && v[0] >= 2;
-    const std::size_t width = ledger ? 4 + energy_ledger_fields.size() : 4;
+    const std::size_t width = ledger ? 4 + energy_ledger_terms.size() : 4;
     if (v.size() < 5 || (v.size() - 5) % width != 0) return;
     seen_ = v[0] == 1 || v[0] == 3, turning_ = v[1] != 0, q_last_ = v[2], e1_last_ = v[3], work_ = v[4];
     corners_.clear();
     for (std::size_t k = 5; k < v.size(); k += width) {
       Corner c{v[k], v[k + 1], v[k + 2], v[k + 3], {}};
       if (ledger)
-        for (std::size_t m = 0; m < energy_ledger_fields.size(); ++m) c.energy.*energy_ledger_fields[m] = v[k + 4 + m];
+        for (std::size_t m = 0; m < energy_ledger_terms.size(); ++m) c.energy.*energy_ledger_terms[m].field = v[k + 4 + m];
       corners_.push_back(c);
     }
   }

@@ -2,9 +2,11 @@
 // own; everything a run needs to continue exactly, which checkpoints save with the State.
 #pragma once
 #include <array>
+#include <concepts>
 #include <cstdint>
 #include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "qsdem/engine/measures.hpp"
@@ -33,6 +35,38 @@ struct PhaseRecord {
   // The run's energy ledger at the phase's start and at its last row (output.energy).
   EnergyLedger energy_start, energy_end;
 };
+
+// Every number of a PhaseRecord by name, in one order: f(name, value), value a double& or a long&;
+// h0's components as h0_11 ... h0_33, the last row's measures as final.<measure>
+// (for_each_measure), the ledgers' terms as energy_start.<term> and energy_end.<term>. Checkpoints
+// save the records by name through it (format 13 on): a new member, measure or ledger term costs
+// no new format, and a checkpoint without it leaves it at its default.
+template <class R, class F>
+  requires std::same_as<std::remove_const_t<R>, PhaseRecord>
+void for_each_record_value(R& r, F&& f) {
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      f(std::string("h0_") + static_cast<char>('1' + i) + static_cast<char>('1' + j), r.h0(i, j));
+  f("v0", r.v0);
+  f("steps", r.steps);
+  f("rows", r.rows);
+  f("wall_s", r.wall_s);
+  f("ufr", r.ufr);
+  f("iuf", r.iuf);
+  f("imom", r.imom);
+  f("stress_error", r.stress_error);
+  f("max_stress_error", r.max_stress_error);
+  f("max_shear_stress", r.max_shear_stress);
+  f("peak_phi_deg", r.peak_phi_deg);
+  f("peak_phi_e1", r.peak_phi_e1);
+  f("final_e1", r.final_e1);
+  f("final_ev", r.final_ev);
+  for_each_measure(r.final, [&](std::string_view name, auto& v) { f("final." + std::string(name), v); });
+  for (const EnergyTerm& term : energy_ledger_terms) {
+    f(std::string("energy_start.") + term.name, r.energy_start.*term.field);
+    f(std::string("energy_end.") + term.name, r.energy_end.*term.field);
+  }
+}
 
 // The current phase's own state besides its record: what it needs to continue exactly.
 struct PhaseState {
