@@ -273,139 +273,170 @@ struct PoolResult {
 
 // Runs `jobs` with at most `parallel` children at once; finished jobs are skipped. Stops
 // launching on SIGINT/SIGTERM, forwards the signal to the running children and waits for them.
-PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int parallel, const Launcher& launcher,
-                    StudyProgress& progress) {
+class Pool {
+ public:
+  Pool(const std::vector<Job>& jobs, std::string what, int parallel, const Launcher& launcher, StudyProgress& progress)
+      : jobs_(jobs), what_(std::move(what)), parallel_(std::size_t(parallel)), launcher_(launcher),
+        progress_(progress), done_before_(jobs.size(), 0) {}
+
+  PoolResult run() {
+    for (std::size_t k = 0; k < jobs_.size(); ++k)
+      if (finished(jobs_[k])) {
+        done_before_[k] = 1;
+        ++done_;
+        record_cost(jobs_[k]);
+      }
+    for (;;) {
+      if (StopSignals::received() != 0 && !forwarded_) {
+        for (const auto& r : running_) ::kill(r.pid, StopSignals::received());
+        forwarded_ = true;
+      }
+      launch();
+      if (running_.empty() && (StopSignals::received() != 0 || (next_ == jobs_.size() && again_.empty()))) break;
+      show();
+      ::usleep(100'000);  // a signal cuts the nap short
+      reap();
+    }
+    show();
+    progress_.end_line();
+    result_.signal = StopSignals::received();
+    return result_;
+  }
+
+ private:
   using clock = std::chrono::steady_clock;
   struct Running {
     std::size_t job;
     pid_t pid;
     clock::time_point start;
   };
-  PoolResult result;
-  std::vector<Running> running;
-  std::map<std::size_t, std::pair<double, double>> cost;  // group -> (wall s, steps) of finished runs
-  std::size_t next = 0, done = 0;
-  bool forwarded = false;
   // Children killed by a signal the study did not send (the OOM killer, a kill by hand) are
-  // continued from their checkpoints, at most max_restarts times each: an incomplete sweep would
+  // continued from their checkpoints, at most this many times each: an incomplete sweep would
   // make the next stage's pick.
-  constexpr int max_restarts = 3;
-  std::vector<std::size_t> again;
-  std::map<std::size_t, int> restarts;
-  const auto t0 = clock::now();
-  std::vector<char> done_before(jobs.size(), 0);  // finished before this pool: counted, timed, skipped
+  static constexpr int max_restarts = 3;
 
-  const auto record_cost = [&](const Job& j) {
-    if (j.kind != Job::Kind::run) return;
-    if (const auto c = run_cost(j.dir)) {
-      cost[j.group].first += c->first;
-      cost[j.group].second += c->second;
-    }
-  };
-  const auto fail = [&](const Job& j, const std::string& why, int code) {
-    nlohmann::json f = {{"id", j.id}, {"dir", j.rel_dir}, {"log", j.rel_dir + "/" + log_of(j).filename().string()},
-                        {"exit_code", code}, {"message", why}};
-    result.failures.push_back(f);
-    progress.message(fmt::format("{} {} failed ({}): {}", j.kind == Job::Kind::prepare ? "sample" : "run", j.id,
-                                 code >= 0 ? fmt::format("exit code {}", code) : "not started", why));
-  };
-  // Seconds left: remaining steps at each sample's measured time per step, over the processes.
-  const auto eta = [&]() -> std::string {
-    double all_wall = 0, all_steps = 0;
-    for (const auto& [g, c] : cost) all_wall += c.first, all_steps += c.second;
-    if (all_steps <= 0) return "";
-    const auto per_step = [&](std::size_t g) {
-      const auto it = cost.find(g);
-      return it != cost.end() && it->second.second > 0 ? it->second.first / it->second.second : all_wall / all_steps;
-    };
-    double left = 0;
-    std::size_t waiting = 0;
-    for (std::size_t k = next; k < jobs.size(); ++k)
-      if (!done_before[k]) left += jobs[k].expected_steps * per_step(jobs[k].group), ++waiting;
-    const auto now = clock::now();
-    for (const auto& r : running) {
-      const double elapsed = std::chrono::duration<double>(now - r.start).count();
-      left += std::max(0.0, jobs[r.job].expected_steps * per_step(jobs[r.job].group) - elapsed);
-    }
-    const double width = double(std::min<std::size_t>(std::size_t(parallel), running.size() + waiting));
-    return fmt::format(", ETA {}", format_duration(left / std::max(1.0, width)));
-  };
-  const auto show = [&]() {
-    const double elapsed = std::chrono::duration<double>(clock::now() - t0).count();
-    std::string counts = fmt::format("{} {}/{} done, {} running", what, done, jobs.size(), running.size());
-    if (!result.failures.empty()) counts += fmt::format(", {} failed", result.failures.size());
-    const bool runs = !jobs.empty() && jobs.front().kind == Job::Kind::run;
-    progress.show(counts, fmt::format(", {} elapsed", format_duration(elapsed)) + (runs ? eta() : ""));
-  };
-
-  for (std::size_t k = 0; k < jobs.size(); ++k)
-    if (finished(jobs[k])) {
-      done_before[k] = 1;
-      ++done;
-      record_cost(jobs[k]);
-    }
-  for (;;) {
-    if (StopSignals::received() != 0 && !forwarded) {
-      for (const auto& r : running) ::kill(r.pid, StopSignals::received());
-      forwarded = true;
-    }
-    while (StopSignals::received() == 0 && running.size() < std::size_t(parallel) && (!again.empty() || next < jobs.size())) {
+  // Starts jobs (those to continue first) while there is room and no stop signal.
+  void launch() {
+    while (StopSignals::received() == 0 && running_.size() < parallel_ && (!again_.empty() || next_ < jobs_.size())) {
       std::size_t k = 0;
-      if (!again.empty()) {
-        k = again.front();
-        again.erase(again.begin());
+      if (!again_.empty()) {
+        k = again_.front();
+        again_.erase(again_.begin());
       } else {
-        k = next++;
-        if (done_before[k]) continue;
+        k = next_++;
+        if (done_before_[k]) continue;
       }
-      const Job& j = jobs[k];
+      const Job& j = jobs_[k];
       if (!j.needs.empty() && !fs::exists(j.needs / prepared_sample_file)) {
         fail(j, fmt::format("its sample {} was not prepared", j.needs.filename().string()), -1);
         continue;
       }
       try {
         make_directories(j.study_dir, j.rel_dir);
-        running.push_back({k, spawn_child(launcher, command(j), log_of(j)), clock::now()});
+        running_.push_back({k, spawn_child(launcher_, command(j), log_of(j)), clock::now()});
       } catch (const std::exception& e) {
         fail(j, e.what(), -1);
       }
     }
-    if (running.empty() && (StopSignals::received() != 0 || (next == jobs.size() && again.empty()))) break;
-    show();
-    ::usleep(100'000);  // a signal cuts the nap short
-    for (std::size_t r = 0; r < running.size();) {
+  }
+
+  // Collects the children that ended: done, stopped as asked, continued, or failed.
+  void reap() {
+    for (std::size_t r = 0; r < running_.size();) {
       int status = 0;
-      if (::waitpid(running[r].pid, &status, WNOHANG) != running[r].pid) {
+      if (::waitpid(running_[r].pid, &status, WNOHANG) != running_[r].pid) {
         ++r;
         continue;
       }
-      const std::size_t k = running[r].job;
-      const Job& j = jobs[k];
-      running.erase(running.begin() + std::ptrdiff_t(r));
+      const std::size_t k = running_[r].job;
+      const Job& j = jobs_[k];
+      running_.erase(running_.begin() + std::ptrdiff_t(r));
       const int code = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
       const bool by_signal = WIFSIGNALED(status) || code == 130 || code == 143;  // killed, or stopped at a checkpoint
       if (code == 0 && finished(j)) {
-        ++done;
+        ++done_;
         record_cost(j);
       } else if (StopSignals::received() != 0 && (code == 130 || code == 143)) {
         // interrupted as asked: its checkpoint continues it next time
-      } else if (StopSignals::received() == 0 && by_signal && restarts[k] < max_restarts) {
-        ++restarts[k];
-        again.push_back(k);
-        progress.message(fmt::format("{} {} was stopped by signal {} (not by the study): continued from its {} ({} of {})",
-                                     j.kind == Job::Kind::prepare ? "sample" : "run", j.id,
-                                     WIFSIGNALED(status) ? WTERMSIG(status) : code - 128,
-                                     j.kind == Job::Kind::run && holds_checkpoint(j.dir) ? "checkpoint" : "start",
-                                     restarts[k], max_restarts));
+      } else if (StopSignals::received() == 0 && by_signal && restarts_[k] < max_restarts) {
+        ++restarts_[k];
+        again_.push_back(k);
+        progress_.message(fmt::format("{} {} was stopped by signal {} (not by the study): continued from its {} ({} of {})",
+                                      j.kind == Job::Kind::prepare ? "sample" : "run", j.id,
+                                      WIFSIGNALED(status) ? WTERMSIG(status) : code - 128,
+                                      j.kind == Job::Kind::run && holds_checkpoint(j.dir) ? "checkpoint" : "start",
+                                      restarts_[k], max_restarts));
       } else {
         fail(j, log_tail(log_of(j), 3), code);
       }
     }
   }
-  show();
-  progress.end_line();
-  result.signal = StopSignals::received();
-  return result;
+
+  void record_cost(const Job& j) {
+    if (j.kind != Job::Kind::run) return;
+    if (const auto c = run_cost(j.dir)) {
+      cost_[j.group].first += c->first;
+      cost_[j.group].second += c->second;
+    }
+  }
+
+  void fail(const Job& j, const std::string& why, int code) {
+    nlohmann::json f = {{"id", j.id}, {"dir", j.rel_dir}, {"log", j.rel_dir + "/" + log_of(j).filename().string()},
+                        {"exit_code", code}, {"message", why}};
+    result_.failures.push_back(f);
+    progress_.message(fmt::format("{} {} failed ({}): {}", j.kind == Job::Kind::prepare ? "sample" : "run", j.id,
+                                  code >= 0 ? fmt::format("exit code {}", code) : "not started", why));
+  }
+
+  // Seconds left: remaining steps at each sample's measured time per step, over the processes.
+  std::string eta() const {
+    double all_wall = 0, all_steps = 0;
+    for (const auto& [g, c] : cost_) all_wall += c.first, all_steps += c.second;
+    if (all_steps <= 0) return "";
+    const auto per_step = [&](std::size_t g) {
+      const auto it = cost_.find(g);
+      return it != cost_.end() && it->second.second > 0 ? it->second.first / it->second.second : all_wall / all_steps;
+    };
+    double left = 0;
+    std::size_t waiting = 0;
+    for (std::size_t k = next_; k < jobs_.size(); ++k)
+      if (!done_before_[k]) left += jobs_[k].expected_steps * per_step(jobs_[k].group), ++waiting;
+    const auto now = clock::now();
+    for (const auto& r : running_) {
+      const double elapsed = std::chrono::duration<double>(now - r.start).count();
+      left += std::max(0.0, jobs_[r.job].expected_steps * per_step(jobs_[r.job].group) - elapsed);
+    }
+    const double width = double(std::min<std::size_t>(parallel_, running_.size() + waiting));
+    return fmt::format(", ETA {}", format_duration(left / std::max(1.0, width)));
+  }
+
+  void show() {
+    const double elapsed = std::chrono::duration<double>(clock::now() - t0_).count();
+    std::string counts = fmt::format("{} {}/{} done, {} running", what_, done_, jobs_.size(), running_.size());
+    if (!result_.failures.empty()) counts += fmt::format(", {} failed", result_.failures.size());
+    const bool runs = !jobs_.empty() && jobs_.front().kind == Job::Kind::run;
+    progress_.show(counts, fmt::format(", {} elapsed", format_duration(elapsed)) + (runs ? eta() : ""));
+  }
+
+  const std::vector<Job>& jobs_;
+  const std::string what_;
+  const std::size_t parallel_;
+  const Launcher& launcher_;
+  StudyProgress& progress_;
+  PoolResult result_;
+  std::vector<Running> running_;
+  std::map<std::size_t, std::pair<double, double>> cost_;  // group -> (wall s, steps) of finished runs
+  std::size_t next_ = 0, done_ = 0;
+  bool forwarded_ = false;
+  std::vector<std::size_t> again_;  // jobs to continue (stopped by a signal the study did not send)
+  std::map<std::size_t, int> restarts_;
+  const clock::time_point t0_ = clock::now();
+  std::vector<char> done_before_;  // finished before this pool: counted, timed, skipped
+};
+
+PoolResult run_pool(const std::vector<Job>& jobs, const std::string& what, int parallel, const Launcher& launcher,
+                    StudyProgress& progress) {
+  return Pool(jobs, what, parallel, launcher, progress).run();
 }
 
 // ---------------------------------------------------------------------------------------------
