@@ -527,6 +527,47 @@ void run_force_blocks(const ForceInputs<Law>& in, State& state, std::size_t nblo
   });
 }
 
+// The step's stress, affine stiffnesses and viscosities (SPEC 7) and energy sums from the force
+// blocks' partial sums, added in block order (no result depends on the thread count).
+void sum_force_blocks(const Model& model, State& state) {
+  EnergySums energy;
+  Mat3 sum = Mat3::Zero();
+  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero(), viscosity = Vec3::Zero(), shear_viscosity = Vec3::Zero();
+  state.max_overlap = 0;
+  state.narrow_tests = 0;
+  state.pw_iterations = 0;
+  for (const ForceBlock& b : state.blocks) {
+    sum += b.stress_sum;
+    stiff += b.stiffness_sum;
+    shear_stiff += b.shear_stiffness_sum;
+    viscosity += b.viscosity_sum;
+    shear_viscosity += b.shear_viscosity_sum;
+    energy.elastic += b.elastic_energy, energy.slip += b.slip_work, energy.viscous += b.viscous_work;
+    energy.stiffness += b.stiffness_work;
+    state.narrow_tests += b.narrow_tests;
+    state.pw_iterations += b.pw_iterations;
+    if (b.max_overlap > state.max_overlap) {
+      state.max_overlap = b.max_overlap;
+      state.max_overlap_pair = b.max_overlap_pair;
+    }
+  }
+  const Cell& cell = state.cell;
+  const double v = cell.volume;
+  state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive
+  state.affine_stiffness = stiff / v;
+  state.shear_stiffness = shear_stiff / v;
+  state.affine_viscosity = viscosity / v;
+  state.shear_viscosity = shear_viscosity / v;
+  state.stress_volume = v;
+  state.stress_h = cell.h;
+  if (model.track_energy) {
+    state.energy.elastic = energy.elastic;
+    state.energy.friction += energy.slip;
+    state.energy.contact_damping += energy.viscous;
+    state.energy.stiffness_change += energy.stiffness;
+  }
+}
+
 }  // namespace
 
 void compute_contact_forces(const Model& model, State& state, Schedule& schedule) {
@@ -601,42 +642,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   pairs.overlap_known = true;
   if (nthreads > 1) record_thread_balance(schedule, state.timers);
 
-  EnergySums energy;
-  Mat3 sum = Mat3::Zero();
-  Vec3 stiff = Vec3::Zero(), shear_stiff = Vec3::Zero(), viscosity = Vec3::Zero(), shear_viscosity = Vec3::Zero();
-  state.max_overlap = 0;
-  state.narrow_tests = 0;
-  state.pw_iterations = 0;
-  for (const ForceBlock& b : state.blocks) {
-    sum += b.stress_sum;
-    stiff += b.stiffness_sum;
-    shear_stiff += b.shear_stiffness_sum;
-    viscosity += b.viscosity_sum;
-    shear_viscosity += b.shear_viscosity_sum;
-    energy.elastic += b.elastic_energy, energy.slip += b.slip_work, energy.viscous += b.viscous_work;
-    energy.stiffness += b.stiffness_work;
-    state.narrow_tests += b.narrow_tests;
-    state.pw_iterations += b.pw_iterations;
-    if (b.max_overlap > state.max_overlap) {
-      state.max_overlap = b.max_overlap;
-      state.max_overlap_pair = b.max_overlap_pair;
-    }
-  }
-  const Cell& cell = state.cell;
-  const double v = cell.volume;
-  state.stress = 0.5 * (sum + sum.transpose()) / v;  // f on j and l from i to j: compression positive
-  state.affine_stiffness = stiff / v;
-  state.shear_stiffness = shear_stiff / v;
-  state.affine_viscosity = viscosity / v;
-  state.shear_viscosity = shear_viscosity / v;
-  state.stress_volume = v;
-  state.stress_h = cell.h;
-  if (model.track_energy) {
-    state.energy.elastic = energy.elastic;
-    state.energy.friction += energy.slip;
-    state.energy.contact_damping += energy.viscous;
-    state.energy.stiffness_change += energy.stiffness;
-  }
+  sum_force_blocks(model, state);
 }
 
 void gather_resultants(const PairList& pairs, const Schedule& schedule, Particles& p, std::size_t t) {
