@@ -6,6 +6,8 @@
 #include <array>
 #include <cmath>
 #include <numeric>
+#include <string_view>
+#include <type_traits>
 
 #include "qsdem/engine/contact/geometry.hpp"
 #include "qsdem/engine/ellipsoid_contact.hpp"
@@ -62,25 +64,20 @@ py::array_t<double> matrix(const Mat3& a) {
   return out;
 }
 
+// Every member of Measures (for_each_measure): a tensor as a 3x3 array, a vector as a list of
+// three, fabric values NaN where undefined (SPEC 7.1).
 py::dict measures_dict(const Measures& m) {
   py::dict d;
-  d["stress"] = matrix(m.stress);
-  d["principal"] = std::vector<double>{m.principal[0], m.principal[1], m.principal[2]};
-  d["mean_stress"] = m.mean_stress, d["deviator"] = m.deviator, d["octahedral"] = m.octahedral;
-  d["friction_angle_deg"] = m.friction_angle_deg, d["friction_angle_al_deg"] = m.friction_angle_al_deg;
-  d["principal_tilt_deg"] = m.principal_tilt_deg;
-  d["ufr"] = m.ufr, d["iuf"] = m.iuf, d["imom"] = m.imom;
-  d["contacts"] = m.contacts, d["coordination"] = m.coordination;
-  d["ekin_trans"] = m.ekin_trans, d["ekin_rot"] = m.ekin_rot;
-  d["volume"] = m.volume, d["solid_volume"] = m.solid_volume, d["void_ratio"] = m.void_ratio;
-  // Fabric (SPEC 7.1), NaN where undefined.
-  d["fabric"] = matrix(m.fabric);
-  d["fabric_major"] = m.fabric_major, d["fabric_tilt_deg"] = m.fabric_tilt_deg, d["fabric_dev"] = m.fabric_dev;
-  d["fabric_strong_33"] = m.fabric_strong_33, d["fabric_strong_dev"] = m.fabric_strong_dev;
-  d["fabric_weak_33"] = m.fabric_weak_33, d["fabric_weak_dev"] = m.fabric_weak_dev;
-  d["strong_fraction"] = m.strong_fraction;
-  d["fabric_force_33"] = m.fabric_force_33, d["fabric_force_dev"] = m.fabric_force_dev;
-  d["orient_33"] = m.orient_33, d["orient_dev"] = m.orient_dev, d["z_mech"] = m.z_mech;
+  for_each_measure(m, [&](std::string_view name, const auto& v) {
+    using V = std::remove_cvref_t<decltype(v)>;
+    const py::str key(name.data(), name.size());
+    if constexpr (std::is_same_v<V, Mat3>)
+      d[key] = matrix(v);
+    else if constexpr (std::is_same_v<V, Vec3>)
+      d[key] = std::vector<double>{v[0], v[1], v[2]};
+    else
+      d[key] = v;
+  });
   return d;
 }
 

@@ -2,8 +2,6 @@
 #pragma once
 #include <concepts>
 #include <limits>
-#include <string>
-#include <string_view>
 
 #include "qsdem/engine/model.hpp"
 #include "qsdem/engine/state.hpp"
@@ -45,23 +43,15 @@ struct Measures {
 
 Measures measure(const State& state);
 
-// Every number of Measures by name, in declaration order: f(name, value), value a double& or the
-// long& of `contacts`; a tensor's components as stress_11 ... stress_33, a vector's as
-// principal_1 ... principal_3. A phase's record is saved by name through it (run_progress.hpp), so
-// a new member costs one line here and no checkpoint format; a test checks that it covers Measures.
+// Every member of Measures by name, in declaration order: f(name, value), value a Mat3&, Vec3&,
+// double& or the long& of `contacts`. The one list of them: a checkpoint saves a phase's last
+// measures by name through it (run_progress.hpp), and the Python module's measures dict is made
+// from it, so a new member costs one line here; a test checks that it covers Measures.
 template <class M, class F>
   requires std::same_as<std::remove_const_t<M>, Measures>
 void for_each_measure(M& m, F&& f) {
-  const auto component = [](std::string_view name, int i, int j) {
-    std::string n(name);
-    n += '_';
-    n += static_cast<char>('1' + i);
-    if (j >= 0) n += static_cast<char>('1' + j);
-    return n;
-  };
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) f(component("stress", i, j), m.stress(i, j));
-  for (int i = 0; i < 3; ++i) f(component("principal", i, -1), m.principal(i));
+  f("stress", m.stress);
+  f("principal", m.principal);
   f("mean_stress", m.mean_stress);
   f("deviator", m.deviator);
   f("octahedral", m.octahedral);
@@ -78,8 +68,7 @@ void for_each_measure(M& m, F&& f) {
   f("volume", m.volume);
   f("solid_volume", m.solid_volume);
   f("void_ratio", m.void_ratio);
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) f(component("fabric", i, j), m.fabric(i, j));
+  f("fabric", m.fabric);
   f("fabric_major", m.fabric_major);
   f("fabric_tilt_deg", m.fabric_tilt_deg);
   f("fabric_dev", m.fabric_dev);

@@ -7,6 +7,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <type_traits>
 #include <vector>
 
 #include "qsdem/engine/measures.hpp"
@@ -36,17 +37,32 @@ struct PhaseRecord {
   EnergyLedger energy_start, energy_end;
 };
 
+// f(name, value) for a number, and for each component of a Mat3 (name_11 ... name_33) or a Vec3
+// (name_1 ... name_3).
+template <class F, class V>
+void for_each_number(const std::string& name, V& value, F&& f) {
+  if constexpr (std::is_arithmetic_v<std::remove_const_t<V>>) {
+    f(std::string_view(name), value);
+  } else {
+    for (Eigen::Index i = 0; i < value.rows(); ++i)
+      for (Eigen::Index j = 0; j < value.cols(); ++j) {
+        std::string n = name + '_' + static_cast<char>('1' + i);
+        if (value.cols() > 1) n += static_cast<char>('1' + j);
+        f(std::string_view(n), value(i, j));
+      }
+  }
+}
+
 // Every number of a PhaseRecord by name, in one order: f(name, value), value a double& or a long&;
 // h0's components as h0_11 ... h0_33, the last row's measures as final.<measure>
-// (for_each_measure), the ledgers' terms as energy_start.<term> and energy_end.<term>. Checkpoints
-// save the records by name through it (format 13 on): a new member, measure or ledger term costs
-// no new format, and a checkpoint without it leaves it at its default.
+// (for_each_measure: final.stress_11, final.void_ratio, ...), the ledgers' terms as
+// energy_start.<term> and energy_end.<term>. Checkpoints save the records by name through it
+// (format 13 on): a new member, measure or ledger term costs no new format, and a checkpoint
+// without it leaves it at its default.
 template <class R, class F>
   requires std::same_as<std::remove_const_t<R>, PhaseRecord>
 void for_each_record_value(R& r, F&& f) {
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j)
-      f(std::string("h0_") + static_cast<char>('1' + i) + static_cast<char>('1' + j), r.h0(i, j));
+  for_each_number("h0", r.h0, f);
   f("v0", r.v0);
   f("steps", r.steps);
   f("rows", r.rows);
@@ -61,7 +77,7 @@ void for_each_record_value(R& r, F&& f) {
   f("peak_phi_e1", r.peak_phi_e1);
   f("final_e1", r.final_e1);
   f("final_ev", r.final_ev);
-  for_each_measure(r.final, [&](std::string_view name, auto& v) { f("final." + std::string(name), v); });
+  for_each_measure(r.final, [&](std::string_view name, auto& v) { for_each_number("final." + std::string(name), v, f); });
   for (const EnergyTerm& term : energy_ledger_terms) {
     f(std::string("energy_start.") + term.name, r.energy_start.*term.field);
     f(std::string("energy_end.") + term.name, r.energy_end.*term.field);
