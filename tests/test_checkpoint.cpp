@@ -470,6 +470,8 @@ TEST(CheckpointFile, InconsistentContentsAreRefused) {
       {"row count", [](Checkpoint& c) { c.run.phases[0].rows = -3; }, "row count is -3"},
       {"rows beyond steps", [](Checkpoint& c) { c.run.phases[0].rows = c.run.phases[0].steps + 1; }, "rows in"},
       {"first step", [](Checkpoint& c) { c.run.first_step = c.state.step + 1; }, "first step"},
+      {"record value", [](Checkpoint& c) { c.run.phases[0].final.void_ratio = std::nan(""); }, "final.void_ratio = nan"},
+      {"record fabric", [](Checkpoint& c) { c.run.phases[0].final.fabric_dev = HUGE_VAL; }, "final.fabric_dev = inf"},
       {"phase count", [](Checkpoint& c) { c.run.phases.resize(3); }, "it holds 3 phases, the case has 2"},
       {"control value", [](Checkpoint& c) { c.run.state.controls.component[0].value *= 2; },
        "controlled by other values than its case's"},
