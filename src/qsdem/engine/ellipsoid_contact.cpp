@@ -262,13 +262,49 @@ struct PwLanes {
 // 2. PW iterations (2. in the header comment), one per pass for all iterating lanes, in one loop
 // without branches (selects); the lanes that are done leave the working set (compacted), those
 // with mu^2 < 1 straight into 3.'s slots.
-[[gnu::always_inline]] inline void iterate_lanes(EllipsoidContactBatch& b, PwLanes& pw) {
-  constexpr int cap = PwLanes::cap;
-  // The lanes' outcome (flags as doubles: the compiler keeps the loop in vector lanes only when
-  // every value it stores has the doubles' width).
-  constexpr double iterate = 0, separated = 1, converged = 2;
+// One PW pass's outcome per lane (flags as doubles: the compiler keeps the pass in vector lanes
+// only when every value it stores has the doubles' width).
+struct PwOutcome {
+  static constexpr int cap = PwLanes::cap;
+  static constexpr double iterate = 0, separated = 1, converged = 2;  // status
   alignas(64) double Fo[cap], lam_out[cap], next[cap], isx[cap], isy[cap], isz[cap];
   alignas(64) double status[cap], bisected[cap], exhausted[cap];
+};
+
+// The lanes that are done after a pass leave (separated: the bound of their gap; converged or out
+// of iterations: 3.'s slots); the others move down with their next lambda.
+[[gnu::always_inline]] inline void retire_lanes(EllipsoidContactBatch& b, PwLanes& pw, const PwOutcome& o) {
+  int m = 0;
+  for (int a = 0; a < pw.na; ++a) {
+    const int k = pw.lane[a];
+    EllipsoidContactStats& st = b.stats[k];
+    ++st.iterations;
+    st.bisections += o.bisected[a] != 0 ? 1 : 0;
+    if (o.status[a] == PwOutcome::separated) {
+      st.early_exit = true;
+      st.mu2 = pw.l2s[a] * o.Fo[a];
+      st.gap_bound = contact_function_gap(st.mu2, *b.shape_i[k], *b.shape_j[k]);
+      b.lambda[k] = pw.lams[a];
+    } else if (o.status[a] == PwOutcome::converged || o.exhausted[a] != 0 || st.iterations >= kMaxIterations) {
+      b.lambda[k] = o.lam_out[a];
+      finish_lane(b, pw, k, o.lam_out[a], o.isx[a], o.isy[a], o.isz[a], o.Fo[a], pw.l2s[a]);
+    } else {
+      pw.lane[m] = k;
+      pw.ex[m] = pw.ex[a], pw.ey[m] = pw.ey[a], pw.ez[m] = pw.ez[a], pw.l2s[m] = pw.l2s[a];
+      pw.lams[m] = o.next[a], pw.los[m] = pw.los[a], pw.his[m] = pw.his[a];
+      pw.qxx[m] = pw.qxx[a], pw.qyy[m] = pw.qyy[a], pw.qzz[m] = pw.qzz[a];
+      pw.qxy[m] = pw.qxy[a], pw.qxz[m] = pw.qxz[a], pw.qyz[m] = pw.qyz[a];
+      pw.dxx[m] = pw.dxx[a], pw.dyy[m] = pw.dyy[a], pw.dzz[m] = pw.dzz[a];
+      pw.dxy[m] = pw.dxy[a], pw.dxz[m] = pw.dxz[a], pw.dyz[m] = pw.dyz[a];
+      ++m;
+    }
+  }
+  pw.na = m;
+}
+
+[[gnu::always_inline]] inline void iterate_lanes(EllipsoidContactBatch& b, PwLanes& pw) {
+  constexpr double iterate = PwOutcome::iterate, separated = PwOutcome::separated, converged = PwOutcome::converged;
+  PwOutcome o;
   while (pw.na > 0) {
 #pragma omp simd
     for (int a = 0; a < pw.na; ++a) {
@@ -329,43 +365,17 @@ struct PwLanes {
       // A converged step is taken by Taylor series (2. in the header comment).
       const bool take = conv * (1 - apart) != 0;
       const double hh = h * h;
-      lam_out[a] = take ? lam + h : lam;
-      isx[a] = take ? s_x - h * v_x + hh * z_x : s_x;
-      isy[a] = take ? s_y - h * v_y + hh * z_y : s_y;
-      isz[a] = take ? s_z - h * v_z + hh * z_z : s_z;
-      Fo[a] = take ? F + h * (Fp + h * (0.5 * Fpp + h * (Fppp / 6))) : F;
-      status[a] = apart != 0 ? separated : conv != 0 ? converged : iterate;
-      bisected[a] = (1 - apart) * (1 - conv) * (1 - inside);
-      exhausted[a] = hi - lo <= 4 * std::numeric_limits<double>::epsilon() ? 1.0 : 0.0;
-      pw.los[a] = lo, pw.his[a] = hi, next[a] = step;
+      o.lam_out[a] = take ? lam + h : lam;
+      o.isx[a] = take ? s_x - h * v_x + hh * z_x : s_x;
+      o.isy[a] = take ? s_y - h * v_y + hh * z_y : s_y;
+      o.isz[a] = take ? s_z - h * v_z + hh * z_z : s_z;
+      o.Fo[a] = take ? F + h * (Fp + h * (0.5 * Fpp + h * (Fppp / 6))) : F;
+      o.status[a] = apart != 0 ? separated : conv != 0 ? converged : iterate;
+      o.bisected[a] = (1 - apart) * (1 - conv) * (1 - inside);
+      o.exhausted[a] = hi - lo <= 4 * std::numeric_limits<double>::epsilon() ? 1.0 : 0.0;
+      pw.los[a] = lo, pw.his[a] = hi, o.next[a] = step;
     }
-    // The lanes that are done leave; the others move down with their next lambda.
-    int m = 0;
-    for (int a = 0; a < pw.na; ++a) {
-      const int k = pw.lane[a];
-      EllipsoidContactStats& st = b.stats[k];
-      ++st.iterations;
-      st.bisections += bisected[a] != 0 ? 1 : 0;
-      if (status[a] == separated) {
-        st.early_exit = true;
-        st.mu2 = pw.l2s[a] * Fo[a];
-        st.gap_bound = contact_function_gap(st.mu2, *b.shape_i[k], *b.shape_j[k]);
-        b.lambda[k] = pw.lams[a];
-      } else if (status[a] == converged || exhausted[a] != 0 || st.iterations >= kMaxIterations) {
-        b.lambda[k] = lam_out[a];
-        finish_lane(b, pw, k, lam_out[a], isx[a], isy[a], isz[a], Fo[a], pw.l2s[a]);
-      } else {
-        pw.lane[m] = k;
-        pw.ex[m] = pw.ex[a], pw.ey[m] = pw.ey[a], pw.ez[m] = pw.ez[a], pw.l2s[m] = pw.l2s[a];
-        pw.lams[m] = next[a], pw.los[m] = pw.los[a], pw.his[m] = pw.his[a];
-        pw.qxx[m] = pw.qxx[a], pw.qyy[m] = pw.qyy[a], pw.qzz[m] = pw.qzz[a];
-        pw.qxy[m] = pw.qxy[a], pw.qxz[m] = pw.qxz[a], pw.qyz[m] = pw.qyz[a];
-        pw.dxx[m] = pw.dxx[a], pw.dyy[m] = pw.dyy[a], pw.dzz[m] = pw.dzz[a];
-        pw.dxy[m] = pw.dxy[a], pw.dxz[m] = pw.dxz[a], pw.dyz[m] = pw.dyz[a];
-        ++m;
-      }
-    }
-    pw.na = m;
+    retire_lanes(b, pw, o);
   }
 }
 
