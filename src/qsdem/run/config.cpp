@@ -977,7 +977,7 @@ toml::table triaxial_phase(Reader& r, const ContactSettings& contact, double ste
            fmt::format("the test would take {:.3g} steps (final_axial_strain / (time.step_ratio strain_rate)), more "
                        "than the {:.0e} allowed: raise the rate",
                        steps, max_planned_steps));
-  if (points > steps)
+  if (static_cast<double>(points) > steps)
     r.fail("triaxial.sample_points", r.find("triaxial.sample_points"),
            fmt::format("more sample points than the {:.0f} steps of the test (final_axial_strain / (step_ratio "
                        "strain_rate)): lower it or lower triaxial.strain_rate",
@@ -1096,17 +1096,10 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   return p;
 }
 
-}  // namespace
-
-Params parse_case(const std::string& toml_text, const std::string& source,
-                  const std::vector<std::string>& overrides, const std::filesystem::path& base_dir) {
-  return parse(toml_text, source, overrides, base_dir, nullptr);
-}
-
-std::vector<std::string> case_keys() {
-  // A case with one size-table row of each shape, and one with a phase list that names each
-  // optional table: the parser then asks for every key it knows.
-  static const char* const every_shape = R"(
+// Cases that between them make the parser ask for every key it knows (case_keys).
+constexpr const char* key_probe_cases[] = {
+    // One size-table row of each shape.
+    R"(
     material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
     [[sample.particles]]
     shape = "sphere"
@@ -1121,80 +1114,9 @@ std::vector<std::string> case_keys() {
     shape = "ellipsoid"
     semi_axes = ["1 m", "1 m", "1 m"]
     count = 1
-  )";
-  static const char* const every_phase_key = R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
-    [[phase]]
-    friction = 0.2
-    stress = { 11 = "1 Pa", 22 = "1 Pa", 33 = "1 Pa" }
-    stop = { equilibrium = { ufr = 0.01 } }
-    controller = { kind = "schedule", component = "11", at_sample = [1], values = ["2 Pa"] }
-  )";
-  // The rate controller's keys, of a phase and of the default triaxial test.
-  static const char* const every_rate_key = R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
-    [[phase]]
-    friction = 0.2
-    stress = { 11 = "1 Pa", 22 = "1 Pa" }
-    strain_rate = { 33 = 1e-5 }
-    stop = { strain = { 33 = 0.01 } }
-    output = { every_strain = { 33 = 0.001 } }
-    controller = { kind = "rate", component = "33", target = 0.01, min_rate = 1e-6, max_rate = 1e-4 }
-  )";
-  static const char* const every_triaxial_rate_key = R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
-    [triaxial.rate_control]
-    target = 0.01
-    min_rate = 1e-6
-    max_rate = 1e-4
-  )";
-  // The path controllers' keys (path_control.hpp): cyclic by q, cyclic by strain, true triaxial.
-  static const char* const every_path_key[] = {
-      R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
-    [[phase]]
-    friction = 0.2
-    stress = { 11 = "1 Pa", 22 = "1 Pa" }
-    strain_rate = { 33 = 1e-5 }
-    controller = { kind = "cyclic", q_mean = "1 Pa", q_amplitude = "1 Pa", cycles = 2 }
   )",
-      R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
-    [[phase]]
-    friction = 0.2
-    stress = { 11 = "1 Pa", 22 = "1 Pa" }
-    strain_rate = { 33 = 1e-5 }
-    controller = { kind = "cyclic", strain_mean = 0.001, strain_amplitude = 0.001 }
-  )",
-      R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
-    [[phase]]
-    friction = 0.2
-    stress = { 11 = "1 Pa", 22 = "1 Pa" }
-    strain_rate = { 33 = 1e-5 }
-    stop = { strain = { 33 = 0.01 } }
-    controller = { kind = "true_triaxial", p = "1 Pa", b = 0.5, intermediate = "11" }
-  )"};
-  // A sieve curve with a shape for the whole curve and one for an interval.
-  static const char* const every_grading_key = R"(
+    // A sieve curve with a shape for the whole curve and one for an interval.
+    R"(
     material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
     [sample]
     total_particles = 10
@@ -1208,11 +1130,90 @@ std::vector<std::string> case_keys() {
     passing = 1
     shape = "spheroid"
     aspect_ratio = 1.5
-  )";
+  )",
+    // A phase list that names each optional table.
+    R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa", 33 = "1 Pa" }
+    stop = { equilibrium = { ufr = 0.01 } }
+    controller = { kind = "schedule", component = "11", at_sample = [1], values = ["2 Pa"] }
+  )",
+    // The rate controller's keys, of a phase and of the default triaxial test.
+    R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    stop = { strain = { 33 = 0.01 } }
+    output = { every_strain = { 33 = 0.001 } }
+    controller = { kind = "rate", component = "33", target = 0.01, min_rate = 1e-6, max_rate = 1e-4 }
+  )",
+    R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [triaxial.rate_control]
+    target = 0.01
+    min_rate = 1e-6
+    max_rate = 1e-4
+  )",
+    // The path controllers' keys (path_control.hpp): cyclic by q, cyclic by strain, true triaxial.
+    R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    controller = { kind = "cyclic", q_mean = "1 Pa", q_amplitude = "1 Pa", cycles = 2 }
+  )",
+    R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    controller = { kind = "cyclic", strain_mean = 0.001, strain_amplitude = 0.001 }
+  )",
+    R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+    [[phase]]
+    friction = 0.2
+    stress = { 11 = "1 Pa", 22 = "1 Pa" }
+    strain_rate = { 33 = 1e-5 }
+    stop = { strain = { 33 = 0.01 } }
+    controller = { kind = "true_triaxial", p = "1 Pa", b = 0.5, intermediate = "11" }
+  )",
+};
+
+}  // namespace
+
+Params parse_case(const std::string& toml_text, const std::string& source,
+                  const std::vector<std::string>& overrides, const std::filesystem::path& base_dir) {
+  return parse(toml_text, source, overrides, base_dir, nullptr);
+}
+
+std::vector<std::string> case_keys() {
   std::set<std::string> asked;
-  parse(every_shape, "<case_keys>", {}, {}, &asked);
-  for (const char* text : {every_grading_key, every_phase_key, every_rate_key, every_triaxial_rate_key, every_path_key[0],
-                           every_path_key[1], every_path_key[2]}) {
+  for (const char* text : key_probe_cases) {
     std::set<std::string> more;
     parse(text, "<case_keys>", {}, {}, &more);
     asked.insert(more.begin(), more.end());
