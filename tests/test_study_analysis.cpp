@@ -745,12 +745,12 @@ TEST(StudyAnalysisResults, CommittedFullStudyReanalysesFromItsRuns) {
 }
 
 // The committed quasi-static-limit studies (docs/results/quasi-static-limit/: the Sample A study
-// `small`, its Sample B control `small-B` with its six-seed continuation `small-B-seeds`, and the default case's `qsdem converge` ladder
-// `default-case`) hold every run's summary.json and series.csv: `qsdem analyze` of a copy gives
+// `small`, its Sample B control `small-B` with its six-seed continuation `small-B-seeds`, and the
+// default case's `qsdem converge` ladders `default-case` and `default-case-6`) hold every run's summary.json and series.csv: `qsdem analyze` of a copy gives
 // its certificate (convergence.csv),
 // per_run.csv and tables byte for byte, so docs/results/quasi-static-limit.md comes from those files.
 TEST(StudyAnalysisResults, CommittedQuasiStaticLimitStudiesReanalyseFromTheirRuns) {
-  for (const char* name : {"small", "small-B", "small-B-seeds", "default-case"}) {
+  for (const char* name : {"small", "small-B", "small-B-seeds", "default-case", "default-case-6"}) {
     SCOPED_TRACE(name);
     const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "quasi-static-limit" / name;
     ASSERT_TRUE(fs::exists(results / "analysis" / "convergence.csv"));
