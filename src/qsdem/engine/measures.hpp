@@ -84,7 +84,6 @@ void for_each_measure(M& m, F&& f) {
   f("z_mech", m.z_mech);
 }
 
-
 // The deviatoric invariant sqrt(3/2 phi'_ij phi'_ij), phi' = phi - tr(phi)/3 I, of a fabric tensor
 // (SPEC 7.1): phi_1 - phi_3 when two principal values are equal, as q of the stress.
 double fabric_deviator(const Mat3& phi);

@@ -289,14 +289,31 @@ void io_record(IO& io, P& p) {
   io_measures(io, p.final, 7);
 }
 
+// A phase record's values in for_each_record_value's order: their names, and which may be
+// undefined (NaN by default: a fabric measure without contacts). Made once.
+struct RecordSlots {
+  std::vector<std::string> names;
+  std::vector<char> may_be_undefined;
+};
+const RecordSlots& record_slots() {
+  static const RecordSlots slots = [] {
+    RecordSlots s;
+    const PhaseRecord blank;
+    for_each_record_value(blank, [&](std::string_view name, const auto& v) {
+      s.names.emplace_back(name);
+      s.may_be_undefined.push_back(std::isnan(static_cast<double>(v)) ? 1 : 0);
+    });
+    return s;
+  }();
+  return slots;
+}
+
 // Format 13 on: the records by name (for_each_record_value, run_progress.hpp), the names once and
 // then each record's values in their order, as doubles (a count is exact below 2^53). A name this
 // build does not know is skipped, and a value the file does not hold keeps its default, so a new
 // measure or ledger term needs no new format.
 void io_records_by_name(BinaryWriter& w, const std::vector<PhaseRecord>& records) {
-  std::vector<std::string> names;
-  const PhaseRecord blank;
-  for_each_record_value(blank, [&](std::string_view name, const auto&) { names.emplace_back(name); });
+  const std::vector<std::string>& names = record_slots().names;
   w.pod(static_cast<std::uint64_t>(names.size()));
   for (const std::string& n : names) w.str(n);
   for (const PhaseRecord& r : records)
@@ -309,13 +326,18 @@ void io_records_by_name(BinaryReader& in, std::vector<PhaseRecord>& records) {
   if (count > 100000) in.damaged("a phase record holds more values than a record can");
   std::vector<std::string> names(count);
   for (std::string& n : names) in.str(n);
+  // Where each of this build's values is in the file's list (count: not there), found once.
+  std::vector<std::size_t> at;
+  for (const std::string& n : record_slots().names)
+    at.push_back(static_cast<std::size_t>(std::find(names.begin(), names.end(), n) - names.begin()));
   std::vector<double> values(count);
   for (PhaseRecord& r : records) {
     for (double& v : values) in.pod(v);
+    std::size_t k = 0;
     for_each_record_value(r, [&](std::string_view name, auto& v) {
-      const auto at = std::find(names.begin(), names.end(), name);
-      if (at == names.end()) return;
-      const double x = values[static_cast<std::size_t>(at - names.begin())];
+      const std::size_t from = at[k++];
+      if (from == count) return;
+      const double x = values[from];
       if constexpr (std::is_integral_v<std::remove_reference_t<decltype(v)>>) {
         // A count: whole and within the range of the checks that follow (no cast of NaN or 1e300).
         if (!(std::abs(x) <= 1e15) || x != std::floor(x))
@@ -643,11 +665,7 @@ void check_record(const ContentCheck& c, const PhaseRecord& r, std::size_t p, bo
   }
   // Every number finite; one whose default is undefined (NaN: a fabric measure without contacts)
   // may be undefined.
-  const PhaseRecord blank;
-  std::vector<char> may_be_undefined;
-  for_each_record_value(blank, [&](std::string_view, const auto& v) {
-    may_be_undefined.push_back(std::isnan(static_cast<double>(v)) ? 1 : 0);
-  });
+  const std::vector<char>& may_be_undefined = record_slots().may_be_undefined;
   std::size_t k = 0;
   for_each_record_value(r, [&](std::string_view name, const auto& v) {
     const double x = static_cast<double>(v);
