@@ -1096,11 +1096,19 @@ Params parse(const std::string& toml_text, const std::string& source, const std:
   return p;
 }
 
-// Cases that between them make the parser ask for every key it knows (case_keys).
-constexpr const char* key_probe_cases[] = {
+// Cases that between them make the parser ask for every key it knows (case_keys): each is the
+// material and either a sample of its own or the one-sphere sample and a protocol.
+constexpr const char* key_probe_material = R"(
+    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
+  )";
+constexpr const char* key_probe_one_sphere = R"(
+    [[sample.particles]]
+    diameter = "1 m"
+    count = 1
+  )";
+constexpr const char* key_probe_samples[] = {
     // One size-table row of each shape.
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
     [[sample.particles]]
     shape = "sphere"
     diameter = "1 m"
@@ -1117,7 +1125,6 @@ constexpr const char* key_probe_cases[] = {
   )",
     // A sieve curve with a shape for the whole curve and one for an interval.
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
     [sample]
     total_particles = 10
     grading_shape = "spheroid"
@@ -1131,12 +1138,10 @@ constexpr const char* key_probe_cases[] = {
     shape = "spheroid"
     aspect_ratio = 1.5
   )",
+};
+constexpr const char* key_probe_protocols[] = {
     // A phase list that names each optional table.
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
     [[phase]]
     friction = 0.2
     stress = { 11 = "1 Pa", 22 = "1 Pa", 33 = "1 Pa" }
@@ -1145,10 +1150,6 @@ constexpr const char* key_probe_cases[] = {
   )",
     // The rate controller's keys, of a phase and of the default triaxial test.
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
     [[phase]]
     friction = 0.2
     stress = { 11 = "1 Pa", 22 = "1 Pa" }
@@ -1158,10 +1159,6 @@ constexpr const char* key_probe_cases[] = {
     controller = { kind = "rate", component = "33", target = 0.01, min_rate = 1e-6, max_rate = 1e-4 }
   )",
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
     [triaxial.rate_control]
     target = 0.01
     min_rate = 1e-6
@@ -1169,10 +1166,6 @@ constexpr const char* key_probe_cases[] = {
   )",
     // The path controllers' keys (path_control.hpp): cyclic by q, cyclic by strain, true triaxial.
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
     [[phase]]
     friction = 0.2
     stress = { 11 = "1 Pa", 22 = "1 Pa" }
@@ -1180,10 +1173,6 @@ constexpr const char* key_probe_cases[] = {
     controller = { kind = "cyclic", q_mean = "1 Pa", q_amplitude = "1 Pa", cycles = 2 }
   )",
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
     [[phase]]
     friction = 0.2
     stress = { 11 = "1 Pa", 22 = "1 Pa" }
@@ -1191,10 +1180,6 @@ constexpr const char* key_probe_cases[] = {
     controller = { kind = "cyclic", strain_mean = 0.001, strain_amplitude = 0.001 }
   )",
     R"(
-    material = { density = "1 kg/m^3", young_modulus = "1 Pa", poisson_ratio = 0 }
-    [[sample.particles]]
-    diameter = "1 m"
-    count = 1
     [[phase]]
     friction = 0.2
     stress = { 11 = "1 Pa", 22 = "1 Pa" }
@@ -1212,8 +1197,12 @@ Params parse_case(const std::string& toml_text, const std::string& source,
 }
 
 std::vector<std::string> case_keys() {
+  std::vector<std::string> cases;
+  for (const char* sample : key_probe_samples) cases.push_back(std::string(key_probe_material) + sample);
+  for (const char* protocol : key_probe_protocols)
+    cases.push_back(std::string(key_probe_material) + key_probe_one_sphere + protocol);
   std::set<std::string> asked;
-  for (const char* text : key_probe_cases) {
+  for (const std::string& text : cases) {
     std::set<std::string> more;
     parse(text, "<case_keys>", {}, {}, &more);
     asked.insert(more.begin(), more.end());
