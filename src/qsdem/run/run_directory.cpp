@@ -181,7 +181,7 @@ void write_snapshot(const std::filesystem::path& dir, const Params& params, cons
   const Cadence& cadence = test.output.cadence;
   const double per_row = params.phase_list                          ? 1.0
                          : cadence.kind == Cadence::Kind::every_strain ? cadence.every_strain
-                                                                       : *test.stop.strain[2] / cadence.points;
+                                                                       : *test.stop.strain[2] / static_cast<double>(cadence.points);
   for (const auto& [row, file] : files) entries.push_back({static_cast<double>(row) * per_row, file});
   write_pvd(vtk / "series.pvd", entries);
 }
