@@ -398,6 +398,60 @@ TEST(PreparedSample, ShearingAPreparedSampleEqualsTheFullRun) {
   EXPECT_NE(read(bad.string() + ".err").find("prepared with"), std::string::npos);
 }
 
+// A [[phase]] case whose compaction writes into series.csv too: a run of its prepared sample holds
+// the shear's rows only (the compaction's are in the sample's directory), the full run's rows of
+// that phase bit for bit.
+TEST(PreparedSample, APhaseListSharingItsFileShearsThePreparedSample) {
+  const std::string text = qsdem_test::sample_200("prepared-phases") + R"([[phase]]
+name = "compaction"
+friction = 0.2
+stress = { 11 = "200 kPa", 22 = "200 kPa", 33 = "200 kPa" }
+servo = { max_strain_rate = 1e-4 }
+stop = { equilibrium = { ufr = "1 %" } }
+[[phase]]
+name = "triaxial"
+friction = 0.5
+strain_rate = { 33 = 1e-4 }
+stress = { 11 = "200 kPa", 22 = "200 kPa" }
+stop = { strain = { 33 = "0.5 %" } }
+output = { points = 10 }
+)";
+  const fs::path f = scratch("prepared-phases-case") / "case.toml";
+  fs::create_directories(f.parent_path());
+  std::ofstream(f) << text;
+  const fs::path full = scratch("prepared-phases-full"), p = scratch("prepared-phases-sample"),
+                 r = scratch("prepared-phases-shear");
+  ASSERT_EQ(run_cli({"run", f.string(), "--out", full.string(), "--threads", "1", "--quiet"}, full.string()), 0)
+      << read(full.string() + ".err");
+  ASSERT_EQ(run_cli({"prepare", f.string(), "--out", p.string(), "--threads", "1", "--quiet"}, p.string()), 0)
+      << read(p.string() + ".err");
+  ASSERT_EQ(run_cli({"run", f.string(), "--out", r.string(), "--threads", "1", "--quiet", "--set",
+                     "sample.from=" + p.string()},
+                    r.string()),
+            0)
+      << read(r.string() + ".err");
+  std::istringstream in(read(full / "series.csv"));
+  std::string line, header, shear;
+  std::getline(in, header);
+  const auto phase_col = [&] {
+    std::istringstream h(header);
+    std::size_t k = 0;
+    for (std::string field; std::getline(h, field, ','); ++k)
+      if (field == "phase") return k;
+    return std::string::npos;
+  }();
+  ASSERT_NE(phase_col, std::string::npos) << "a file of two phases has the phase column";
+  long rows = 0;
+  while (std::getline(in, line)) {
+    std::istringstream row(line);
+    std::string field;
+    for (std::size_t k = 0; k <= phase_col; ++k) std::getline(row, field, ',');
+    if (field == "triaxial") shear += line + "\n", ++rows;
+  }
+  EXPECT_EQ(rows, 10) << "0.5 % in rows of 0.05 %";
+  EXPECT_EQ(read(r / "series.csv"), header + "\n" + shear);
+}
+
 namespace {
 
 // A run stopped in its compaction (compaction.max_steps): checkpoints, compaction.csv.partial and

@@ -115,10 +115,13 @@ class Execution {
     const Phase& phase = params_.protocol[static_cast<std::size_t>(p)];
     const PhaseFile& file = file_of(files_, params_.protocol, p);
     // The rows its file holds: those of the phases before that write to it, and this one's so far.
+    // A run of a prepared sample did not run its first phase: those rows are in the sample's directory.
+    const auto ran_here = [&](int q) { return q > 0 || run_.first_step == 0; };
     long held = 0;
+    bool begun = run_.phase_started;
     for (int q : file.phases)
-      if (q < p || (q == p && run_.phase_started)) held += run_.phases[static_cast<std::size_t>(q)].rows;
-    const bool begun = file.phases.front() < p || run_.phase_started;
+      if (ran_here(q) && (q < p || (q == p && run_.phase_started)))
+        held += run_.phases[static_cast<std::size_t>(q)].rows, begun = begun || q < p;
     SeriesColumns columns;
     columns.phase = file.phases.size() > 1;
     columns.energy = params_.output.energy;
