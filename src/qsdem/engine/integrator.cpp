@@ -12,11 +12,12 @@ namespace {
 
 // Cundall's local damping of one vector (SPEC 6 `local`): each component f_k of a force (or moment)
 // becomes f_k - alpha |f_k| sign(v_k) = f_k (1 - alpha sign(f_k) sign(v_k)), as YADE's NewtonIntegrator.
-// The signs are selects of constants, so that the loops of local_kick run in vector lanes (their
-// product is the integer sign product's, converted: the same bits).
-[[gnu::always_inline]] inline double sign_of(double x) { return (x > 0 ? 1.0 : 0.0) - (x < 0 ? 1.0 : 0.0); }
+// The factor is 1 - alpha for equal signs, 1 + alpha for opposite ones and 1 where f or v is zero,
+// chosen by selects (vector lanes, the bits of the product of signs): (1 - alpha (-1)) = 1 + alpha
+// and 1 - alpha 0 = 1 exactly. Where f or v is NaN the velocity is NaN either way.
 [[gnu::always_inline]] inline double cundall_damped(double f, double v, double alpha) {
-  return f * (1 - alpha * (sign_of(f) * sign_of(v)));
+  const bool moving = (f != 0) & (v != 0), opposite = (f < 0) != (v < 0);
+  return f * (moving ? (opposite ? 1 + alpha : 1 - alpha) : 1.0);
 }
 [[gnu::always_inline]] inline Vec3 cundall_damped(const Vec3& f, const Vec3& v, double alpha) {
   return {cundall_damped(f.x(), v.x(), alpha), cundall_damped(f.y(), v.y(), alpha), cundall_damped(f.z(), v.z(), alpha)};
