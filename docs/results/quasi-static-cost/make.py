@@ -1,0 +1,316 @@
+#!/usr/bin/env python3
+"""The tables of docs/results/quasi-static-cost.md, from committed files.
+
+  python3 docs/results/quasi-static-cost/make.py collect runs/qs-cost
+      copies each finished run's summary.json and series.csv (and each sample's summary.json and
+      compaction.csv) of run.sh's directory to docs/results/quasi-static-cost/runs/;
+  python3 docs/results/quasi-static-cost/make.py
+      reads that copy and the references in ../quasi-static-limit/small-B-seeds/runs/, checks
+      that the reference ladder's certificate is reproduced (convergence.csv), and writes
+      tables.md and cost.csv.
+
+The error of a method against a reference is docs/analysis.md 11's change between two rungs, with
+the method in place of the faster rung (src/qsdem/study/convergence.cpp, `change`, computed the
+same way here). Python 3 standard library only.
+"""
+import csv
+import json
+import math
+import os
+import shutil
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RUNS = os.path.join(HERE, "runs")
+LIMIT = os.path.join(HERE, "..", "quasi-static-limit", "small-B-seeds")
+SEEDS = [1, 2, 3, 4, 5, 6]
+PHI_TOL, EV_TOL = 0.5, 0.001  # the certificate's tolerances (analysis.md 11), fixed before the runs
+SLACK = 1e-9  # a strain this close to a curve's end is on it (study_analysis.cpp)
+PAPER_STEPS_KEY = "nd 0.40 % at 1e-6"
+
+
+def collect(src):
+    if os.path.exists(RUNS):
+        shutil.rmtree(RUNS)
+    for label in sorted(os.listdir(src)):
+        top = os.path.join(src, label)
+        if not os.path.isdir(top):
+            continue
+        for seed_dir in sorted(os.listdir(top)):
+            d = os.path.join(top, seed_dir)
+            keep = ("summary.json", "compaction.csv") if label == "samples" else ("summary.json", "series.csv")
+            if not os.path.exists(os.path.join(d, "summary.json")):
+                continue
+            os.makedirs(os.path.join(RUNS, label, seed_dir))
+            for f in keep:
+                if os.path.exists(os.path.join(d, f)):
+                    shutil.copy(os.path.join(d, f), os.path.join(RUNS, label, seed_dir, f))
+
+
+def curve(directory):
+    """(e1, phi_deg, ev) of a run's series.csv, sorted by e1 (stable, as sorted_curve)."""
+    with open(os.path.join(directory, "series.csv")) as f:
+        rows = list(csv.DictReader(f))
+    pts = sorted(((float(r["e1"]), float(r["phi_deg"]), float(r["ev"])) for r in rows), key=lambda p: p[0])
+    return pts
+
+
+def interpolate(c, x):
+    """Linear interpolation of [(x, y)] at x; NaN outside (with SLACK), as study_analysis.cpp."""
+    if not c or x < c[0][0] - SLACK or x > c[-1][0] + SLACK:
+        return math.nan
+    x = min(max(x, c[0][0]), c[-1][0])
+    lo_i, hi_i = 0, len(c)
+    while lo_i < hi_i:  # lower_bound
+        mid = (lo_i + hi_i) // 2
+        if c[mid][0] < x:
+            lo_i = mid + 1
+        else:
+            hi_i = mid
+    hi = lo_i
+    if hi == 0:
+        return c[0][1]
+    lo = hi - 1
+    if c[hi][0] == x or c[hi][0] == c[lo][0]:
+        return c[hi][1]
+    return c[lo][1] + (c[hi][1] - c[lo][1]) * (x - c[lo][0]) / (c[hi][0] - c[lo][0])
+
+
+def change(runs, refs, k, grid):
+    """Seed-paired change of measure k (1 phi, 2 ev), runs minus refs: (rms, error, excess)."""
+    n = len(runs)
+    d = []
+    for a, b in zip(runs, refs):
+        ca = [(p[0], p[k]) for p in a]
+        cb = [(p[0], p[k]) for p in b]
+        d.append([interpolate(ca, x) - interpolate(cb, x) for x in grid])
+    total = total_error = 0.0
+    points = 0
+    for j in range(len(grid)):
+        col = [d[s][j] for s in range(n)]
+        if not all(math.isfinite(v) for v in col):
+            continue
+        mean = sum(col) / n
+        var = sum((v - mean) ** 2 for v in col)
+        total += mean * mean
+        total_error += var / (n - 1) / n if n > 1 else 0.0
+        points += 1
+    if points == 0:
+        return math.nan, math.nan, math.nan
+    return (math.sqrt(total / points), math.sqrt(total_error / points),
+            math.sqrt(max(0.0, (total - total_error) / points)))
+
+
+def mean_se(values):
+    n = len(values)
+    m = sum(values) / n
+    se = math.sqrt(sum((v - m) ** 2 for v in values) / (n - 1) / n) if n > 1 else 0.0
+    return m, se
+
+
+def at(c, x, k):
+    return interpolate([(p[0], p[k]) for p in c], x)
+
+
+def summary(directory):
+    with open(os.path.join(directory, "summary.json")) as f:
+        return json.load(f)
+
+
+def ladder_dir(seed, model, xi, rate):
+    return os.path.join(LIMIT, "runs", f"B-small-seed{seed}", model, xi, f"rate-{rate}")
+
+
+def methods():
+    """(label, description, [run directory per seed]) in the design's order."""
+    m = []
+    for rate in ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"):
+        m.append((f"nd-{rate}", f"nd 0.40 % at {float(rate):.3g}", [ladder_dir(s, "nd", "xi-0.4%", rate) for s in SEEDS]))
+    for rate in ("1e-05", "3.16228e-06", "1e-06"):
+        m.append((f"none-{rate}", f"undamped at {float(rate):.3g}", [ladder_dir(s, "none", "xi-0%", rate) for s in SEEDS]))
+    new = [("nd-scaled-1e-06", "nd, inertia scaled, at 1e-6"),
+           ("nd-scaled-3.16e-06", "nd, inertia scaled, at 3.16e-6"),
+           ("none-scaled-1e-05", "undamped, inertia scaled, at 1e-5"),
+           ("nd-control-imom-1%", "nd, rate controller, IMom 1 %"),
+           ("nd-control-imom-0.3%", "nd, rate controller, IMom 0.3 %"),
+           ("fire-0.1%", "FIRE, increments of 0.1 %"),
+           ("fire-0.05%", "FIRE, increments of 0.05 %"),
+           ("fire-0.02%", "FIRE, increments of 0.02 %"),
+           ("fire-0.05%-scaled", "FIRE 0.05 %, inertia scaled")]
+    for label, text in new:
+        m.append((label, text, [os.path.join(RUNS, label, f"B-small-seed{s}") for s in SEEDS]))
+    return m
+
+
+def check_reference_certificate(nd_runs, nd_ref, grid):
+    """The nd ladder's change 1e-6 -> 3.16e-7 must equal convergence.csv's (this script's change
+    against the engine's)."""
+    with open(os.path.join(LIMIT, "analysis", "convergence.csv")) as f:
+        row = next(r for r in csv.DictReader(f) if r["model"] == "nd" and r["rate"] == "1e-06")
+    phi = change(nd_runs, nd_ref, 1, grid)
+    ev = change(nd_runs, nd_ref, 2, grid)
+    want = [float(row[k]) for k in ("phi_to_slowest_deg", "phi_to_slowest_error_deg", "phi_to_slowest_excess_deg",
+                                    "ev_to_slowest", "ev_to_slowest_error", "ev_to_slowest_excess")]
+    got = list(phi) + list(ev)
+    for g, w in zip(got, want):
+        if abs(g - w) > 1e-8 * max(1.0, abs(w)):
+            sys.exit(f"make.py: this change {got} is not convergence.csv's {want}")
+    return got
+
+
+def check_run_start():
+    """check-nd-1e-05: the committed rung run again from this study's samples, byte for byte."""
+    same = []
+    for s in SEEDS:
+        a = os.path.join(RUNS, "check-nd-1e-05", f"B-small-seed{s}", "series.csv")
+        b = os.path.join(ladder_dir(s, "nd", "xi-0.4%", "1e-05"), "series.csv")
+        if os.path.exists(a):
+            same.append(open(a, "rb").read() == open(b, "rb").read())
+    return same
+
+
+def fmt(x, digits=2):
+    return "—" if not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def main():
+    refs = {"L_nd": [curve(ladder_dir(s, "nd", "xi-0.4%", "3.16228e-07")) for s in SEEDS],
+            "L_c": [curve(ladder_dir(s, "none", "xi-0%", "1e-06")) for s in SEEDS]}
+    grids = {k: [p[0] for p in v[0]] for k, v in refs.items()}
+    checked = check_reference_certificate([curve(ladder_dir(s, "nd", "xi-0.4%", "1e-06")) for s in SEEDS],
+                                          refs["L_nd"], grids["L_nd"])
+    same = check_run_start()
+    rows = []
+    for label, text, dirs in methods():
+        if not all(os.path.exists(os.path.join(d, "summary.json")) for d in dirs):
+            rows.append({"label": label, "method": text, "finished": sum(os.path.exists(os.path.join(d, "summary.json")) for d in dirs)})
+            continue
+        curves = [curve(d) for d in dirs]
+        sums = [summary(d) for d in dirs]
+        steps = [s["steps"] for s in sums]
+        walls = [s["wall_s"] for s in sums]
+        builds = sorted({s["build"]["version"] + ("" if s["build"]["tree_clean"] else " (dirty)") for s in sums})
+        row = {"label": label, "method": text, "finished": len(dirs), "steps": sum(steps) / len(steps),
+               "wall_s": sum(walls) / len(walls), "builds": ", ".join(builds)}
+        for name, ref in refs.items():
+            phi = change(curves, ref, 1, grids[name])
+            ev = change(curves, ref, 2, grids[name])
+            end = mean_se([at(c, min(c[-1][0], r[-1][0]), 2) - at(r, min(c[-1][0], r[-1][0]), 2) for c, r in zip(curves, ref)])
+            within = phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
+            row[name] = {"phi": phi, "ev": ev, "ev_end": end, "within": within}
+        peak = mean_se([max(p[1] for p in c) for c in curves])
+        row["peak_phi"] = peak
+        row["ev_end"] = mean_se([c[-1][2] for c in curves])
+        rows.append(row)
+
+    paper = next(r for r in rows if r["label"] == "nd-1e-06")["steps"]
+    out = ["<!-- written by docs/results/quasi-static-cost/make.py from the committed runs; do not edit -->", ""]
+    out.append("Check of this script against the engine: the nd ladder's change 1e-6 → 3.16e-7, "
+               f"φ {checked[0]:.4f}° (standard error {checked[1]:.4f}°, beyond the noise {checked[2]:.4f}°), "
+               f"εv {100 * checked[3]:.4f} % ({100 * checked[4]:.4f} %, {100 * checked[5]:.4f} %): "
+               "convergence.csv's to 1e-8.")
+    out.append("")
+    out.append("Wall times: one thread a run, two runs at a time. The rows of the committed ladders (nd and undamped "
+               "at constant rate) come from the small-B-seeds study (energy ledger on, another load of the machine); "
+               "compare their steps, not their wall times, with the other rows.")
+    out.append("")
+    out.append(f"Start check: `check-nd-1e-05` equals the committed rung byte for byte on {sum(same)} of {len(same)} seeds.")
+    out.append("")
+    for name, title in (("L_nd", "against L_nd (nd 0.40 % at 3.16e-7)"), ("L_c", "against L_c (undamped at 1e-6)")):
+        out.append(f"### Error {title}")
+        out.append("")
+        out.append("| method | force evaluations per run | / paper's method | wall per run (s) | Δφ beyond the noise ± s.e. (°) | Δεv beyond the noise ± s.e. (%) | Δεv at 10 % (%) | within |")
+        out.append("| --- | ---: | ---: | ---: | --- | --- | --- | --- |")
+        for r in rows:
+            if "steps" not in r:
+                out.append(f"| {r['method']} | {r['finished']} of 6 seeds finished | | | | | | |")
+                continue
+            e = r[name]
+            out.append(f"| {r['method']} | {r['steps']:,.0f} | {paper / r['steps']:.2f}× fewer | {r['wall_s']:.1f} | "
+                       f"{fmt(e['phi'][2])} ± {fmt(e['phi'][1])} | {fmt(100 * e['ev'][2], 3)} ± {fmt(100 * e['ev'][1], 3)} | "
+                       f"{100 * e['ev_end'][0]:+.2f} ± {100 * e['ev_end'][1]:.2f} | {'**yes**' if e['within'] else 'no'} |")
+        out.append("")
+    out.append("### The nd runs against the constant-rate curve of the same cost (L_nd)")
+    out.append("")
+    out.append("The constant-rate nd ladder's error beyond the noise, interpolated linearly in log(steps) "
+               "between its rungs at each method's steps, beside the method's own.")
+    out.append("")
+    out.append("| method | force evaluations | Δφ (°): method, constant rate | Δεv (%): method, constant rate |")
+    out.append("| --- | ---: | --- | --- |")
+    ladder = sorted((r["steps"], r["L_nd"]["phi"][2], r["L_nd"]["ev"][2]) for r in rows
+                    if r["label"] in ("nd-1e-05", "nd-3.16228e-06", "nd-1e-06"))
+
+    def on_ladder(steps, k):
+        for (s0, *y0), (s1, *y1) in zip(ladder, ladder[1:]):
+            if s0 <= steps <= s1:
+                t = math.log(steps / s0) / math.log(s1 / s0)
+                return y0[k] + t * (y1[k] - y0[k])
+        return math.nan
+
+    for r in rows:
+        if r["label"].startswith("nd-") and "steps" in r and r["label"] not in ("nd-1e-05", "nd-3.16228e-06", "nd-1e-06", "nd-3.16228e-07"):
+            e = r["L_nd"]
+            out.append(f"| {r['method']} | {r['steps']:,.0f} | {fmt(e['phi'][2])}, {fmt(on_ladder(r['steps'], 0))} | "
+                       f"{fmt(100 * e['ev'][2], 3)}, {fmt(100 * on_ladder(r['steps'], 1), 3)} |")
+    out.append("")
+    out.append("### FIRE against itself: the change between increments")
+    out.append("")
+    out.append("Seed-paired change, the finer increment's run as the reference (its first seed's strains as the grid).")
+    out.append("")
+    out.append("| increments | Δφ beyond the noise ± s.e. (°) | Δεv beyond the noise ± s.e. (%) |")
+    out.append("| --- | --- | --- |")
+    fire = {r["label"]: [curve(d) for d in dirs] for r, (_, _, dirs) in zip(rows, methods())
+            if r["label"].startswith("fire-") and "steps" in r}
+    for a, b in (("fire-0.1%", "fire-0.05%"), ("fire-0.05%", "fire-0.02%"), ("fire-0.1%", "fire-0.02%")):
+        if a in fire and b in fire:
+            g = [p[0] for p in fire[b][0]]
+            phi, ev = change(fire[a], fire[b], 1, g), change(fire[a], fire[b], 2, g)
+            out.append(f"| {a[5:]} → {b[5:]} | {fmt(phi[2])} ± {fmt(phi[1])} | {fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} |")
+    out.append("")
+    out.append("### Where along the strain the rate acts (nd, against L_nd)")
+    out.append("")
+    out.append("The change of the constant-rate nd runs from L_nd over windows of axial strain (the same "
+               "computation on the grid points in each window): beyond the noise ± standard error.")
+    out.append("")
+    windows = [(0, 0.005), (0.005, 0.01), (0.01, 0.02), (0.02, 0.04), (0.04, 0.07), (0.07, 0.1 + SLACK)]
+    out.append("| rate | " + " | ".join(f"ε1 {100 * lo:g}-{100 * min(hi, 0.1):g} %: Δφ (°), Δεv (%)" for lo, hi in windows) + " |")
+    out.append("| --- |" + " --- |" * len(windows))
+    for rate in ("1e-05", "3.16228e-06", "1e-06"):
+        runs = [curve(ladder_dir(s, "nd", "xi-0.4%", rate)) for s in SEEDS]
+        cells = []
+        for lo, hi in windows:
+            g = [x for x in grids["L_nd"] if lo <= x < hi]
+            phi, ev = change(runs, refs["L_nd"], 1, g), change(runs, refs["L_nd"], 2, g)
+            cells.append(f"{phi[2]:.2f} ± {phi[1]:.2f}, {100 * ev[2]:.3f} ± {100 * ev[1]:.3f}")
+        out.append(f"| {float(rate):.3g} | " + " | ".join(cells) + " |")
+    out.append("")
+    out.append("### The responses")
+    out.append("")
+    out.append("| method | peak φ (°) | εv at 10 % (%) | builds |")
+    out.append("| --- | --- | --- | --- |")
+    for r in rows:
+        if "steps" in r:
+            out.append(f"| {r['method']} | {r['peak_phi'][0]:.2f} ± {r['peak_phi'][1]:.2f} | "
+                       f"{100 * r['ev_end'][0]:+.2f} ± {100 * r['ev_end'][1]:.2f} | {r['builds']} |")
+    out.append("")
+    with open(os.path.join(HERE, "tables.md"), "w") as f:
+        f.write("\n".join(out))
+    with open(os.path.join(HERE, "cost.csv"), "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(["method", "label", "steps_per_run", "wall_s_per_run", "reference", "phi_rms_deg", "phi_error_deg",
+                    "phi_excess_deg", "ev_rms", "ev_error", "ev_excess", "ev_end_diff", "ev_end_diff_error", "within"])
+        for r in rows:
+            if "steps" not in r:
+                continue
+            for name in refs:
+                e = r[name]
+                w.writerow([r["method"], r["label"], f"{r['steps']:.1f}", f"{r['wall_s']:.2f}", name]
+                           + [f"{v:.6g}" for v in e["phi"] + e["ev"] + e["ev_end"]] + [str(e["within"]).lower()])
+    print("\n".join(out))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) >= 3 and sys.argv[1] == "collect":
+        collect(sys.argv[2])
+    else:
+        main()
