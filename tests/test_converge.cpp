@@ -64,7 +64,8 @@ class Converge : public ::testing::Test {
 // Tolerances no response can miss: the first two rungs agree, the ladder stops there (exit 0),
 // and the fastest rung is the certified one.
 TEST_F(Converge, StopsAtTheFirstConvergedRungs) {
-  const Result r = ladder("wide", {"--rungs", "4", "--phi-tolerance", "90", "--ev-tolerance", "1", "--no-seed-scatter"});
+  const Result r = ladder("wide", {"--rungs", "4", "--phi-tolerance", "90", "--ev-tolerance", "1", "--no-seed-scatter",
+                                   "--ev-end-tolerance", "1"});
   ASSERT_EQ(r.code, 0) << r.err << r.out;
   const json c = certificate("wide");
   EXPECT_EQ(c["status"], "converged");
@@ -85,6 +86,15 @@ TEST_F(Converge, StopsAtTheFirstConvergedRungs) {
   EXPECT_NE(page.find("<td>6.25e-05</td><td>0 (the slowest)</td>"), std::string::npos) << page;
   EXPECT_NE(page.find("<td>peak_phi_deg</td>"), std::string::npos) << page;
   EXPECT_NE(page.find("src=\"analysis/figures/ladder_case_nd_0_5.png\""), std::string::npos) << page;
+  // The end tolerance, set: in the ladder's study file, the certificate, its page and convergence.csv.
+  EXPECT_NE(qsdem_test::slurp(dir_ / "wide" / "study.toml").find("ev_end_tolerance = 1"), std::string::npos);
+  EXPECT_EQ(c["ladder"]["tolerances"]["ev_end_tolerance"].get<double>(), 1.0);
+  EXPECT_TRUE(c["ladder"]["rungs"][0]["ev_end_to_slowest"]["rms"].is_number());
+  EXPECT_NE(page.find("Δεv at the end to the slowest (%)"), std::string::npos) << page;
+  const std::string csv = qsdem_test::slurp(dir_ / "wide" / "analysis" / "convergence.csv");
+  EXPECT_NE(csv.substr(0, csv.find('\n')).find(",ev_end_to_slowest,ev_end_to_slowest_error,ev_end_to_slowest_excess"),
+            std::string::npos)
+      << csv;
 }
 
 // Tolerances no two rates meet: every rung runs, the certificate is "not converged" (exit 4),
@@ -134,7 +144,8 @@ TEST_F(Converge, BadOptionsAreRefusedNamingTheOption) {
            {{"--factor", "1"}, "--factor = 1: allowed: a number > 1"},
            {{"--rungs", "1"}, "--rungs = 1: allowed: an integer in [2, 30]"},
            {{"--phi-tolerance", "0"}, "--phi-tolerance = 0"},
-           {{"--start-rate=-1"}, "--start-rate = -1"}}) {
+           {{"--start-rate=-1"}, "--start-rate = -1"},
+           {{"--ev-end-tolerance", "0"}, "--ev-end-tolerance = 0: allowed: a ratio > 0"}}) {
     const Result r = ladder("bad", opts);
     EXPECT_EQ(r.code, 2) << opts[0];
     EXPECT_NE(r.err.find(says), std::string::npos) << r.err;

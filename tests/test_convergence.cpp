@@ -211,3 +211,45 @@ TEST(Convergence, AChangeTheSeedsCannotResolveCertifiesNothing) {
   EXPECT_FALSE(c.certified.has_value());
   EXPECT_NE(c.reason.find("more seeds"), std::string::npos) << c.reason;
 }
+
+// ev that the rate moves in proportion to the strain, a e1 / 10 % (a = 0.15 %): over the 41 rows
+// e1 = k / 40 10 %, the RMS is a sqrt(sum k^2 / 41 / 40^2) = a sqrt(0.3375) = 0.087 %, within the
+// 0.1 % RMS tolerance, while the end moves by the whole 0.15 %. Only ConvergenceTolerances::ev_end
+// sees it.
+TEST(Convergence, AnEndToleranceJudgesWhatTheRmsOverTheStrainHides) {
+  const double a = 0.0015;
+  std::vector<Rung> l;
+  for (double rate : {1e-6, 1e-7}) {
+    Rung rung{rate, {}};
+    for (double s : kSeeds) {
+      ResponseCurve c = curve(s, 1e-3 * s);
+      if (rate > 5e-7)
+        for (std::size_t k = 0; k < c.e1.size(); ++k) c.ev[k] += a * c.e1[k] / 0.1;
+      rung.seeds.push_back(c);
+    }
+    l.push_back(rung);
+  }
+  ConvergenceTolerances rms_only;  // the seeds' ev scatter (0.056 %) is not what this test is about
+  rms_only.within_seed_scatter = false;
+  const Certificate plain = certify(l, rms_only);
+  EXPECT_EQ(plain.status, "converged") << plain.reason;
+  EXPECT_NEAR(plain.rungs[0].ev_to_slowest.rms, a * std::sqrt(0.3375), 1e-12);
+  EXPECT_NEAR(plain.rungs[0].ev_end_to_slowest.rms, a, 1e-12) << "the change at 10 %";
+  EXPECT_NEAR(plain.rungs[0].ev_end_to_slowest.error, 0.0, 1e-12) << "paired by seed";
+  EXPECT_NEAR(plain.rungs[0].ev_end_to_next.excess, a, 1e-12);
+
+  ConvergenceTolerances strict = rms_only;
+  strict.ev_end = 0.001;
+  const Certificate c = certify(l, strict);
+  EXPECT_EQ(c.status, "not converged") << c.reason;
+  EXPECT_FALSE(c.rungs[0].within);
+  EXPECT_NE(c.reason.find("at the end"), std::string::npos) << c.reason;
+  EXPECT_FALSE(c.certified.has_value());
+
+  ConvergenceTolerances loose = rms_only;
+  loose.ev_end = 0.002;
+  const Certificate d = certify(l, loose);
+  EXPECT_EQ(d.status, "converged") << d.reason;
+  ASSERT_TRUE(d.certified.has_value());
+  EXPECT_EQ(*d.certified, 0u);
+}

@@ -256,6 +256,8 @@ TEST(StudyCli, BadStudyFilesExitTwoNamingKeyAndValue) {
       {"a tolerance of zero", sample + design + "[analysis]\nphi_tolerance_deg = 0\n", {"analysis.phi_tolerance_deg", "> 0"}},
       {"a convergence tolerance below zero", sample + design + "[analysis]\nconvergence = { phi_tolerance_deg = -1 }\n",
        {"analysis.convergence.phi_tolerance_deg", "> 0"}},
+      {"an end tolerance of zero", sample + design + "[analysis]\nconvergence = { ev_end_tolerance = 0 }\n",
+       {"analysis.convergence.ev_end_tolerance", "> 0"}},
       {"a convergence key misspelt", sample + design + "[analysis]\nconvergence = { phi_tol = 1 }\n",
        {"analysis.convergence.phi_tol"}},
       {"convergence not a table", sample + design + "[analysis]\nconvergence = 0.5\n",

@@ -240,6 +240,8 @@ void add_study(CLI::App& app, CommandLine& c) {
   c.converge->add_option("--phi-tolerance", c.ladder.tolerances.phi_rms_deg, "RMS change of phi(e1), degrees")
         ->default_val(0.5);
   c.converge->add_option("--ev-tolerance", c.ladder.tolerances.ev_rms, "RMS change of ev(e1), a ratio")->default_val(0.001);
+  c.converge->add_option("--ev-end-tolerance", c.ladder.tolerances.ev_end,
+                         "Change of ev at the end (the last strain every curve reaches), a ratio (default: not judged)");
   c.converge->add_flag("--no-seed-scatter", c.no_scatter, "A rung's change need not be below the seed scatter");
   c.converge->add_option("--parallel,-j", c.parallel, "Child processes at once (default: cores / MPI ranks on the node)")
         ->check(whole_number_at_least(1));

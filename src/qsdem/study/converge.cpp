@@ -47,6 +47,8 @@ void check_options(const LadderOptions& o) {
     bad("--phi-tolerance", fmt::format("{:g}", o.tolerances.phi_rms_deg), "allowed: degrees > 0");
   if (!(o.tolerances.ev_rms > 0) || !std::isfinite(o.tolerances.ev_rms))
     bad("--ev-tolerance", fmt::format("{:g}", o.tolerances.ev_rms), "allowed: a ratio > 0");
+  if (!std::isnan(o.tolerances.ev_end) && (!(o.tolerances.ev_end > 0) || !std::isfinite(o.tolerances.ev_end)))
+    bad("--ev-end-tolerance", fmt::format("{:g}", o.tolerances.ev_end), "allowed: a ratio > 0");
 }
 
 // The rates of the ladder, fastest first, to 6 significant digits (the run ids' precision).
@@ -145,10 +147,11 @@ std::string ladder_study_text(const LadderOptions& o) {
                                  {"damping_ratios", toml::array{xi}},
                                  {"strain_rates", toml::array{rates[k]}}});
   study.insert("stage", stages);
-  study.insert("analysis", toml::table{{"convergence", toml::table{{"phi_tolerance_deg", o.tolerances.phi_rms_deg},
-                                                                    {"ev_tolerance", o.tolerances.ev_rms},
-                                                                    {"within_seed_scatter",
-                                                                     o.tolerances.within_seed_scatter}}}});
+  toml::table convergence{{"phi_tolerance_deg", o.tolerances.phi_rms_deg},
+                          {"ev_tolerance", o.tolerances.ev_rms},
+                          {"within_seed_scatter", o.tolerances.within_seed_scatter}};
+  if (std::isfinite(o.tolerances.ev_end)) convergence.insert("ev_end_tolerance", o.tolerances.ev_end);
+  study.insert("analysis", toml::table{{"convergence", convergence}});
   std::ostringstream text;
   text << "# The ladder of `qsdem converge` (docs/analysis.md section 11), written by the command.\n" << study << "\n";
   return text.str();

@@ -30,6 +30,7 @@ std::string change(const ojson& c, double scale) {
 std::string certificate_html(const ojson& c, const std::vector<std::string>& figures) {
   const ojson& l = c["ladder"];
   const ojson& tol = l["tolerances"];
+  const bool judge_end = tol.contains("ev_end_tolerance") && tol["ev_end_tolerance"].is_number();
   std::string h = html_head("qsdem certificate");
   h += "<h1>Quasi-static certificate</h1>\n";
   h += "<p>Case: <code>" + html_escape(c["case"].get<std::string>()) + "</code>";
@@ -41,10 +42,11 @@ std::string certificate_html(const ojson& c, const std::vector<std::string>& fig
        (c["certified_rate"].is_number() ? fmt::format(" at ε′ = {}", sig(number(c["certified_rate"]))) : "") +
        "</h2>\n<p>" + html_escape(c["reason"].get<std::string>()) + ".</p>\n";
   h += fmt::format(
-      "<p class=\"note\">Tolerances: RMS Δφ ≤ {}°, RMS Δεv ≤ {} %, each beyond the noise of the seed mean and with a "
+      "<p class=\"note\">Tolerances: RMS Δφ ≤ {}°, RMS Δεv ≤ {} %{}, each beyond the noise of the seed mean and with a "
       "standard error as small{}. Seed scatter at the slowest rung: {}° in φ, {} % in εv. The ladder stopped at: {}. "
       "The rules: docs/analysis.md, section 11.</p>\n",
       sig(number(tol["phi_tolerance_deg"])), sig(100 * number(tol["ev_tolerance"])),
+      judge_end ? fmt::format(", Δεv at the end ≤ {} %", sig(100 * number(tol["ev_end_tolerance"]))) : std::string(),
       tol["within_seed_scatter"].get<bool>() ? ", and no larger than the seed scatter" : "",
       sig(number(l["phi_scatter_deg"]), 2), sig(100 * number(l["ev_scatter"]), 2),
       html_escape(c["stopped_by"].get<std::string>()));
@@ -63,6 +65,7 @@ std::string certificate_html(const ojson& c, const std::vector<std::string>& fig
                         {"ε′", "Δφ to the slowest (°)", "Δεv to the slowest (%)", "within", "resolved", "peak φ (°)",
                          "εv at the end (%)", "steps", "run time (s)"},
                         {}};
+  if (judge_end) rungs.head.insert(rungs.head.begin() + 3, "Δεv at the end to the slowest (%)");
   for (std::size_t k = 0; k < l["rungs"].size(); ++k) {
     const ojson& r = l["rungs"][k];
     const bool last = k + 1 == l["rungs"].size();
@@ -74,6 +77,7 @@ std::string certificate_html(const ojson& c, const std::vector<std::string>& fig
                           last ? "0" : change(r["ev_to_slowest"], 100), r["within"].get<bool>() ? "yes" : "no",
                           r.value("resolved", true) ? "yes" : "no", at(peak, 1), at(ev, 100),
                           sig(number(r["steps"]), 4), sig(number(r["wall_s"]), 4)});
+    if (judge_end) rungs.rows.back().insert(rungs.rows.back().begin() + 3, last ? "0" : change(r["ev_end_to_slowest"], 100));
   }
   h += analysis::to_html(rungs);
 

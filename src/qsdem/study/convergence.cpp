@@ -64,16 +64,17 @@ double scatter(const Rung& r, Measure m, std::span<const double> grid) {
 }
 
 // Whether a change's excess is within the tolerances (and the seed scatter, when it counts).
-bool small(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol, double phi_scatter,
-           double ev_scatter) {
-  if (!within_tolerances(phi, ev, tol)) return false;
+bool small(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end, const ConvergenceTolerances& tol,
+           double phi_scatter, double ev_scatter) {
+  if (!within_tolerances(phi, ev, ev_end, tol)) return false;
   if (!tol.within_seed_scatter || !std::isfinite(phi_scatter)) return true;
   return phi.excess <= phi_scatter && ev.excess <= ev_scatter;
 }
 
 // Whether the seeds resolve a change to the tolerances.
-bool resolved(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol) {
-  return phi.error <= tol.phi_rms_deg && ev.error <= tol.ev_rms;
+bool resolved(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end,
+              const ConvergenceTolerances& tol) {
+  return phi.error <= tol.phi_rms_deg && ev.error <= tol.ev_rms && (!std::isfinite(tol.ev_end) || ev_end.error <= tol.ev_end);
 }
 
 // A curve's value at strain x (linear between its points; NaN outside it).
@@ -112,8 +113,10 @@ void set_limit(ScalarLimit& s) {
 
 }  // namespace
 
-bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol) {
-  return phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms;
+bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end,
+                       const ConvergenceTolerances& tol) {
+  return phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms &&
+         (!std::isfinite(tol.ev_end) || ev_end.excess <= tol.ev_end);
 }
 
 Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances& tol) {
@@ -127,6 +130,12 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
   }
   const Rung& slowest = ladder.back();
   const std::vector<double>& grid = slowest.seeds.front().e1;
+  // The end: the last strain every curve of the ladder reaches.
+  double end_strain = grid.empty() ? 0.0 : *std::max_element(grid.begin(), grid.end());
+  for (const Rung& r : ladder)
+    for (const ResponseCurve& s : r.seeds)
+      if (!s.e1.empty()) end_strain = std::min(end_strain, *std::max_element(s.e1.begin(), s.e1.end()));
+  const double end[] = {end_strain};
   Certificate c;
   c.phi_scatter_deg = scatter(slowest, &ResponseCurve::phi_deg, grid);
   c.ev_scatter = scatter(slowest, &ResponseCurve::ev, grid);
@@ -138,10 +147,13 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
       v.ev_to_slowest = change(ladder[k], slowest, &ResponseCurve::ev, grid);
       v.phi_to_next = change(ladder[k], ladder[k + 1], &ResponseCurve::phi_deg, grid);
       v.ev_to_next = change(ladder[k], ladder[k + 1], &ResponseCurve::ev, grid);
-      v.resolved = resolved(v.phi_to_slowest, v.ev_to_slowest, tol);
-      v.within = v.resolved && small(v.phi_to_slowest, v.ev_to_slowest, tol, c.phi_scatter_deg, c.ev_scatter);
+      v.ev_end_to_slowest = change(ladder[k], slowest, &ResponseCurve::ev, end);
+      v.ev_end_to_next = change(ladder[k], ladder[k + 1], &ResponseCurve::ev, end);
+      v.resolved = resolved(v.phi_to_slowest, v.ev_to_slowest, v.ev_end_to_slowest, tol);
+      v.within = v.resolved && small(v.phi_to_slowest, v.ev_to_slowest, v.ev_end_to_slowest, tol, c.phi_scatter_deg,
+                                     c.ev_scatter);
     } else {
-      v.phi_to_slowest = v.ev_to_slowest = {0.0, 0.0, 0.0};
+      v.phi_to_slowest = v.ev_to_slowest = v.ev_end_to_slowest = {0.0, 0.0, 0.0};
       v.within = v.resolved = true;
     }
     c.rungs.push_back(v);
@@ -154,17 +166,21 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
     c.reason = "one rung: nothing to compare it with";
   } else {
     const RungVerdict& last = c.rungs[ladder.size() - 2];
-    const CurveChange &phi = last.phi_to_next, &ev = last.ev_to_next;
+    const CurveChange &phi = last.phi_to_next, &ev = last.ev_to_next, &ev_end = last.ev_end_to_next;
+    const bool judge_end = std::isfinite(tol.ev_end);
     const std::string change = fmt::format(
-        "change of phi {:.3g} deg (beyond the noise {:.3g}, standard error {:.3g}), of ev {:.3g} ({:.3g}, {:.3g}); "
-        "tolerances {:.3g} deg, {:.3g}{}",
-        phi.rms, phi.excess, phi.error, ev.rms, ev.excess, ev.error, tol.phi_rms_deg, tol.ev_rms,
+        "change of phi {:.3g} deg (beyond the noise {:.3g}, standard error {:.3g}), of ev {:.3g} ({:.3g}, {:.3g}){}; "
+        "tolerances {:.3g} deg, {:.3g}{}{}",
+        phi.rms, phi.excess, phi.error, ev.rms, ev.excess, ev.error,
+        judge_end ? fmt::format(", of ev at the end {:.3g} ({:.3g}, {:.3g})", ev_end.rms, ev_end.excess, ev_end.error)
+                  : std::string(),
+        tol.phi_rms_deg, tol.ev_rms, judge_end ? fmt::format(", {:.3g} at the end", tol.ev_end) : std::string(),
         tol.within_seed_scatter && std::isfinite(c.phi_scatter_deg)
             ? fmt::format("; seed scatter {:.3g} deg, {:.3g}", c.phi_scatter_deg, c.ev_scatter)
             : std::string());
-    if (!small(phi, ev, tol, c.phi_scatter_deg, c.ev_scatter)) {
+    if (!small(phi, ev, ev_end, tol, c.phi_scatter_deg, c.ev_scatter)) {
       c.reason = "the two slowest rates still differ: " + change;
-    } else if (!resolved(phi, ev, tol)) {
+    } else if (!resolved(phi, ev, ev_end, tol)) {
       c.status = "not resolved";
       c.reason = "the two slowest rates differ by less than their noise, but the noise exceeds a tolerance (more "
                  "seeds would decide): " + change;
@@ -186,10 +202,6 @@ Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances
   // The scalars of the response: per seed, then their mean over the seeds.
   const char* names[] = {"peak_phi_deg", "e1_at_peak", "phi_deg", "ev", "cn", "q_over_p"};
   const Measure ends[] = {&ResponseCurve::phi_deg, &ResponseCurve::ev, &ResponseCurve::cn, &ResponseCurve::q_over_p};
-  double end_strain = grid.empty() ? 0.0 : *std::max_element(grid.begin(), grid.end());
-  for (const Rung& r : ladder)
-    for (const ResponseCurve& s : r.seeds)
-      if (!s.e1.empty()) end_strain = std::min(end_strain, *std::max_element(s.e1.begin(), s.e1.end()));
   for (const char* name : names) c.scalars.push_back({name, {}, {}});
   for (const Rung& r : ladder) {
     std::vector<std::vector<double>> v(6);

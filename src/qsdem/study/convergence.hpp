@@ -30,10 +30,15 @@ struct Rung {
 // cannot resolve certifies nothing), and, with two or more seeds and within_seed_scatter, the
 // excess at most the seed-to-seed scatter of the slowest rung's response (a rate effect smaller
 // than the choice of sample).
+// Optionally also the change of ev at the end (the last strain every curve reaches), seed-paired,
+// beyond its noise: the RMS over the strain weighs the end, where ev accumulates a rate effect, no
+// more than the start (NaN: not judged, the default).
 struct ConvergenceTolerances {
+  static constexpr double nan = std::numeric_limits<double>::quiet_NaN();
   double phi_rms_deg = 0.5;  // degrees
   double ev_rms = 1e-3;      // volumetric strain (0.1 %)
   bool within_seed_scatter = true;
+  double ev_end = nan;       // |change of ev at the end| (volumetric strain); NaN: off
 };
 
 // The change of one measure between two rungs: the seed mean, at each strain of the grid, of
@@ -67,6 +72,9 @@ struct RungVerdict {
   double rate = 0;
   CurveChange phi_to_slowest, ev_to_slowest;  // against the slowest rung
   CurveChange phi_to_next, ev_to_next;        // against the next slower rung
+  // ev at the end against the slowest and the next slower rung: the change at one strain (its
+  // `rms` is |seed mean|), computed whether or not ConvergenceTolerances::ev_end judges it
+  CurveChange ev_end_to_slowest, ev_end_to_next;
   bool within = false;                        // phi_to_slowest, ev_to_slowest within the tolerances
   bool resolved = false;                      // their standard errors within the tolerances
 };
@@ -94,8 +102,9 @@ struct Certificate {
 };
 
 // Whether a change's part beyond the noise (CurveChange::excess) is within the tolerances of phi and
-// ev; NaN (no common strain) is not.
-bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const ConvergenceTolerances& tol);
+// ev, and of ev at the end when that tolerance is set; NaN (no common strain) is not.
+bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end,
+                       const ConvergenceTolerances& tol);
 
 // The certificate of a ladder ordered from the fastest rate to the slowest (rates strictly
 // decreasing, every rung with the same number of seeds >= 1); std::invalid_argument otherwise.

@@ -210,6 +210,7 @@ nlohmann::ordered_json to_json(const AnalysisSettings& s) {
   j["convergence"] = {{"phi_tolerance_deg", s.convergence.phi_rms_deg},
                       {"ev_tolerance", s.convergence.ev_rms},
                       {"within_seed_scatter", s.convergence.within_seed_scatter}};
+  if (std::isfinite(s.convergence.ev_end)) j["convergence"]["ev_end_tolerance"] = s.convergence.ev_end;
   if (s.critical_state.on)
     j["critical_state"] = {{"from", s.critical_state.from},
                            {"ev_slope", s.critical_state.ev_slope},
@@ -242,6 +243,7 @@ AnalysisSettings analysis_settings_from_json(const nlohmann::json& j) {
     s.convergence.ev_rms = number(c, "ev_tolerance", s.convergence.ev_rms);
     if (c.contains("within_seed_scatter") && c["within_seed_scatter"].is_boolean())
       s.convergence.within_seed_scatter = c["within_seed_scatter"];
+    s.convergence.ev_end = number(c, "ev_end_tolerance", s.convergence.ev_end);
   }
   if (j.contains("critical_state") && j["critical_state"].is_object()) {
     const auto& c = j["critical_state"];
@@ -1306,7 +1308,7 @@ void write_tables(const Analysis& an, const std::vector<Table>& tables, const fs
     fs::remove(adir / "controlled_runs.csv");
   }
   if (!an.ladders.empty()) {
-    write_file_atomic(adir / "convergence.csv", ladders_csv(an.ladders));
+    write_file_atomic(adir / "convergence.csv", ladders_csv(an.ladders, an.settings.convergence));
     a["files"]["convergence_csv"] = "analysis/convergence.csv";
   } else {
     fs::remove(adir / "convergence.csv");

@@ -303,7 +303,7 @@ const OptimumFit* find_opt(const std::vector<Group>& groups, const Run& r);
 // The convergence certificate of each ladder of the runs (study_convergence.cpp), its JSON, CSV and table.
 std::vector<Ladder> make_ladders(const std::vector<Run>& runs, const ConvergenceTolerances& tol);
 json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
-std::string ladders_csv(const std::vector<Ladder>& ladders);
+std::string ladders_csv(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
 Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol);
 
 // The critical state of each (model, ratio, rate) (study_critical_state.cpp), its JSON, CSV,

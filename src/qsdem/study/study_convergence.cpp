@@ -95,6 +95,8 @@ json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerance
                        {"ev_to_slowest", change_json(v.ev_to_slowest)},
                        {"phi_to_next", change_json(v.phi_to_next)},
                        {"ev_to_next", change_json(v.ev_to_next)},
+                       {"ev_end_to_slowest", change_json(v.ev_end_to_slowest)},
+                       {"ev_end_to_next", change_json(v.ev_end_to_next)},
                        {"within", v.within},
                        {"resolved", v.resolved},
                        {"steps", l.rung_steps[k]},
@@ -121,7 +123,8 @@ json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerance
                    {"tolerances",
                     {{"phi_tolerance_deg", tol.phi_rms_deg},
                      {"ev_tolerance", tol.ev_rms},
-                     {"within_seed_scatter", tol.within_seed_scatter}}},
+                     {"within_seed_scatter", tol.within_seed_scatter},
+                     {"ev_end_tolerance", number_or_null(tol.ev_end)}}},
                    {"status", c.status},
                    {"reason", c.reason},
                    {"certified_rate", c.certified ? json(l.rates[*c.certified]) : json(nullptr)},
@@ -136,17 +139,20 @@ json ladders_json(const std::vector<Ladder>& ladders, const ConvergenceTolerance
   return out;
 }
 
-std::string ladders_csv(const std::vector<Ladder>& ladders) {
+std::string ladders_csv(const std::vector<Ladder>& ladders, const ConvergenceTolerances& tol) {
+  // The change of ev at the end only where it is judged: a study without that tolerance keeps its columns.
+  const bool end = std::isfinite(tol.ev_end);
   std::string out =
       "sample,model,xi,rate,seeds,phi_to_slowest_deg,phi_to_slowest_error_deg,phi_to_slowest_excess_deg,"
       "ev_to_slowest,ev_to_slowest_error,ev_to_slowest_excess,phi_to_next_deg,ev_to_next,within,resolved,certified,"
-      "peak_phi_deg,peak_phi_error_deg,ev_end,ev_end_error,steps,wall_s\n";
+      "peak_phi_deg,peak_phi_error_deg,ev_end,ev_end_error,steps,wall_s";
+  out += end ? ",ev_end_to_slowest,ev_end_to_slowest_error,ev_end_to_slowest_excess\n" : "\n";
   for (const Ladder& l : ladders) {
     const Certificate& c = l.certificate;
     const ScalarLimit *peak = c.scalar("peak_phi_deg"), *ev = c.scalar("ev");
     for (std::size_t k = 0; k < c.rungs.size(); ++k) {
       const RungVerdict& v = c.rungs[k];
-      out += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n", l.sample, l.model,
+      out += fmt::format("{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}", l.sample, l.model,
                          csvnum(l.xi), csvnum(v.rate), l.seeds.size(), csvnum(v.phi_to_slowest.rms),
                          csvnum(v.phi_to_slowest.error), csvnum(v.phi_to_slowest.excess), csvnum(v.ev_to_slowest.rms),
                          csvnum(v.ev_to_slowest.error), csvnum(v.ev_to_slowest.excess), csvnum(v.phi_to_next.rms),
@@ -154,6 +160,9 @@ std::string ladders_csv(const std::vector<Ladder>& ladders) {
                          c.certified && *c.certified == k ? "true" : "false", csvnum(peak ? peak->mean[k] : nan),
                          csvnum(peak ? peak->error[k] : nan), csvnum(ev ? ev->mean[k] : nan),
                          csvnum(ev ? ev->error[k] : nan), csvnum(l.rung_steps[k]), csvnum(l.rung_wall_s[k]));
+      out += end ? fmt::format(",{},{},{}\n", csvnum(v.ev_end_to_slowest.rms), csvnum(v.ev_end_to_slowest.error),
+                               csvnum(v.ev_end_to_slowest.excess))
+                 : "\n";
     }
   }
   return out;
@@ -164,11 +173,15 @@ Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceToleran
           fmt::format("Each (sample, model, ratio) run at two or more constant rates, every seed on each rate. Δ = the "
                       "seed mean of (curve at the rate − curve at the slowest rate) of the same seed, RMS over the "
                       "strain beyond the noise of the seed mean (± its standard error). Within: Δφ ≤ {}° and Δεv ≤ {} "
-                      "%, each with a standard error as small{} (✗: not within; ?: within the tolerances but not "
+                      "%{}, each with a standard error as small{} (✗: not within; ?: within the tolerances but not "
                       "resolved). "
                       "Certified: the fastest rate within whose slower rates are all within, once the two slowest "
                       "agree (docs/analysis.md, section 11).",
                       sig(tol.phi_rms_deg), pct(tol.ev_rms),
+                      std::isfinite(tol.ev_end)
+                          ? fmt::format(", and εv at the end changed by at most {} % (shown after a second /)",
+                                        pct(tol.ev_end))
+                          : std::string(),
                       tol.within_seed_scatter ? ", and no larger than the seed scatter" : ""),
           {"sample", "model", "ξ (%)", "seeds", "ε' : Δφ (°) / Δεv (%)", "seed scatter φ (°) / εv (%)", "status",
            "certified ε'", "peak φ as ε' → 0 (°)", "εv at the end as ε' → 0 (%)", "steps", "reason"},
@@ -182,8 +195,10 @@ Table table_ladders(const std::vector<Ladder>& ladders, const ConvergenceToleran
       const auto shown = [&](const CurveChange& d, double scale) {
         return last ? std::string("0") : fmt::format("{} ± {}", sig(scale * d.excess, 2), sig(scale * d.error, 2));
       };
-      const bool unresolved = !v.resolved && within_tolerances(v.phi_to_slowest, v.ev_to_slowest, tol);
-      changes += fmt::format("{}: {} / {}{}", sig(v.rate, 2), shown(v.phi_to_slowest, 1), shown(v.ev_to_slowest, 100),
+      const bool unresolved =
+          !v.resolved && within_tolerances(v.phi_to_slowest, v.ev_to_slowest, v.ev_end_to_slowest, tol);
+      changes += fmt::format("{}: {} / {}{}{}", sig(v.rate, 2), shown(v.phi_to_slowest, 1), shown(v.ev_to_slowest, 100),
+                             std::isfinite(tol.ev_end) ? " / " + shown(v.ev_end_to_slowest, 100) : std::string(),
                              v.within ? "" : unresolved ? " ?" : " ✗");
     }
     const auto limit = [&](const char* name, double scale) {

@@ -735,8 +735,11 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
   positive("cn_tolerance", false, a.cn_tolerance);
   if (const toml::node* c = t->get("convergence")) {
     const toml::table* ct = c->as_table();
-    if (!ct) r.fail("analysis.convergence", c, "expected a table { phi_tolerance_deg = ..., ev_tolerance = ..., within_seed_scatter = ... }");
-    r.only(*ct, "analysis.convergence.", {"phi_tolerance_deg", "ev_tolerance", "within_seed_scatter"});
+    if (!ct)
+      r.fail("analysis.convergence", c,
+             "expected a table { phi_tolerance_deg = ..., ev_tolerance = ..., within_seed_scatter = ..., "
+             "ev_end_tolerance = ... }");
+    r.only(*ct, "analysis.convergence.", {"phi_tolerance_deg", "ev_tolerance", "within_seed_scatter", "ev_end_tolerance"});
     ConvergenceTolerances& tol = a.convergence;
     if (const toml::node* n = ct->get("phi_tolerance_deg")) {
       if (!(n->is_floating_point() || n->is_integer())) r.fail("analysis.convergence.phi_tolerance_deg", n, "expected a number");
@@ -751,6 +754,11 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
     if (const toml::node* n = ct->get("within_seed_scatter")) {
       if (!n->is_boolean()) r.fail("analysis.convergence.within_seed_scatter", n, "expected true or false");
       tol.within_seed_scatter = *n->value<bool>();
+    }
+    if (const toml::node* n = ct->get("ev_end_tolerance")) {
+      tol.ev_end = read_ratio(r, n, "analysis.convergence.ev_end_tolerance");
+      if (!std::isfinite(tol.ev_end) || tol.ev_end <= 0)
+        r.fail("analysis.convergence.ev_end_tolerance", n, "out of range: must be > 0");
     }
   }
   if (const toml::node* c = t->get("critical_state")) {
