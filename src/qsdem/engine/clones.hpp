@@ -5,6 +5,9 @@
 
 #ifdef QSDEM_BASELINE_ONLY
 #define QSDEM_CLONES
+#define QSDEM_CLONES_WIDE
 #else
 #define QSDEM_CLONES [[gnu::target_clones("avx2", "default")]]
+// Also AVX-512 (8 lanes), for a loop of long independent lane arithmetic (the spheroids' turn).
+#define QSDEM_CLONES_WIDE [[gnu::target_clones("avx512f", "avx2", "default")]]
 #endif

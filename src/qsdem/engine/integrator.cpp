@@ -377,7 +377,7 @@ inline void turn_lane(int k, TurnLanes& t, int a, double dt) {
 // All lanes at once, by the Taylor polynomials (several lanes per vector instruction: a lone
 // spheroid's turn is one long chain of dependent operations). Built for AVX2 and the x86-64
 // baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
-QSDEM_CLONES void turn_lanes(int k, TurnLanes& t, double dt) {
+QSDEM_CLONES_WIDE void turn_lanes(int k, TurnLanes& t, double dt) {
   if (k == 0) {
 #pragma omp simd
     for (int a = 0; a < t.size; ++a) turn_lane<0, true>(t, a, dt);
@@ -390,28 +390,41 @@ QSDEM_CLONES void turn_lanes(int k, TurnLanes& t, double dt) {
   }
 }
 
+// The particle arrays a turn reads and writes, through local pointers: through Particles, each
+// store made GCC load the next array's address again (as in integrate_velocities).
+struct SpinArrays {
+  Quat* q;
+  const Vec3* angmom;
+  const Vec3* inv_inertia;
+  Vec3* omega;
+  const double* bound_radius;
+  double* path;  // the surface path, or nullptr when it is not tracked
+};
+
 // Lane a <- particle i.
-inline void load_lane(TurnLanes& t, int a, const Particles& p, std::uint32_t i, int k) {
+inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i, int k) {
   t.particle[a] = i;
-  const Quat& q = p.q[i];
+  const Quat& q = s.q[i];
+  const Vec3& l = s.angmom[i];
+  const Vec3& inv = s.inv_inertia[i];
   t.qw[a] = q.w(), t.qx[a] = q.x(), t.qy[a] = q.y(), t.qz[a] = q.z();
-  t.lx[a] = p.angmom[i].x(), t.ly[a] = p.angmom[i].y(), t.lz[a] = p.angmom[i].z();
-  t.inv_s[a] = p.inv_inertia[i][k], t.inv_perp[a] = p.inv_inertia[i][(k + 1) % 3];
+  t.lx[a] = l.x(), t.ly[a] = l.y(), t.lz[a] = l.z();
+  t.inv_s[a] = inv[k], t.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
 }
 
 // Turns the spheroids of the lanes (symmetry axis k) and stores their orientation, omega and
 // surface path.
-void turn_spheroids(int k, TurnLanes& t, Particles& p, std::span<double> surface_path, bool track, double dt) {
+void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
   turn_lanes(k, t, dt);
   for (int a = 0; a < t.size; ++a) {
     const std::uint32_t i = t.particle[a];
     if (t.outside[a] != 0) {  // a half angle beyond the Taylor range: again, with libm
-      load_lane(t, a, p, i, k);
+      load_lane(t, a, s, i, k);
       turn_lane<false>(k, t, a, dt);
     }
-    p.q[i] = Quat(t.qw[a], t.qx[a], t.qy[a], t.qz[a]);
-    p.omega[i] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
-    if (track) surface_path[i] += 2 * p.bound_radius[i] * std::sqrt(t.chord2[a]);
+    s.q[i] = Quat(t.qw[a], t.qx[a], t.qy[a], t.qz[a]);
+    s.omega[i] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
+    if (s.path) s.path[i] += 2 * s.bound_radius[i] * std::sqrt(t.chord2[a]);
   }
   t.size = 0;
 }
@@ -472,6 +485,8 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const ShapeKind* const shape = p.shape.data();
   const Vec3* const inertia = p.inertia.data();
   double* const path = surface_path.data();
+  const SpinArrays spin{p.q.data(), p.angmom.data(), p.inv_inertia.data(), p.omega.data(), p.bound_radius.data(),
+                        track ? path : nullptr};
   // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
   // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
   // rounds to 0: s and the path would keep their bits, and are left alone (no subnormal operation).
@@ -489,13 +504,13 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     }
     if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
     if (const int k = symmetry_axis(inertia[i]); k >= 0) {
-      if (resting(p.angmom[i])) {
-        p.omega[i] = resting_omega(k, p.q[i], p.angmom[i], p.inv_inertia[i]);
+      if (resting(spin.angmom[i])) {
+        spin.omega[i] = resting_omega(k, spin.q[i], spin.angmom[i], spin.inv_inertia[i]);
         continue;
       }
       TurnLanes& t = lanes[k];
-      load_lane(t, t.size++, p, static_cast<std::uint32_t>(i), k);
-      if (t.size == TurnLanes::capacity) turn_spheroids(k, t, p, surface_path, track, dt);
+      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(i), k);
+      if (t.size == TurnLanes::capacity) turn_spheroids(k, t, spin, dt);
       continue;
     }
     // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the
@@ -510,7 +525,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     }
   }
   for (int k = 0; k < 3; ++k)
-    if (lanes[k].size > 0) turn_spheroids(k, lanes[k], p, surface_path, track, dt);
+    if (lanes[k].size > 0) turn_spheroids(k, lanes[k], spin, dt);
 }
 
 }  // namespace qsdem
