@@ -1,5 +1,6 @@
-// The loops over vector lanes are built twice, for AVX2 and for the x86-64 baseline, and the CPU
-// chooses at load time. Neither build uses FMA, so both give the same bits. QSDEM_BASELINE_ONLY
+// The loops over vector lanes are built for AVX2 and for the x86-64 baseline (QSDEM_CLONES_WIDE:
+// also AVX-512), and the CPU chooses at load time. No build uses FMA and no loop reduces across
+// lanes other than by max, so all give the same bits. QSDEM_BASELINE_ONLY
 // (CMake option QSDEM_TARGET_CLONES=OFF, and the tests' second engine) builds the baseline only.
 #pragma once
 
