@@ -750,7 +750,7 @@ TEST(StudyAnalysisResults, CommittedFullStudyReanalysesFromItsRuns) {
 // its certificate (convergence.csv),
 // per_run.csv and tables byte for byte, so docs/results/quasi-static-limit.md comes from those files.
 TEST(StudyAnalysisResults, CommittedQuasiStaticLimitStudiesReanalyseFromTheirRuns) {
-  for (const char* name : {"small", "small-B", "small-B-seeds", "default-case", "default-case-6"}) {
+  for (const char* name : {"small", "small-B", "small-B-seeds", "default-case", "default-case-6", "A"}) {
     SCOPED_TRACE(name);
     const fs::path results = fs::path(QSDEM_SOURCE_DIR) / "docs" / "results" / "quasi-static-limit" / name;
     ASSERT_TRUE(fs::exists(results / "analysis" / "convergence.csv"));
