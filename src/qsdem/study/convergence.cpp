@@ -63,6 +63,11 @@ double scatter(const Rung& r, Measure m, std::span<const double> grid) {
   return points > 0 ? std::sqrt(sum / points) : std::numeric_limits<double>::quiet_NaN();
 }
 
+// Whether a value of ev's change at the end is within its tolerance; without one, it is not judged.
+bool end_within(double value, const ConvergenceTolerances& tol) {
+  return !std::isfinite(tol.ev_end) || value <= tol.ev_end;
+}
+
 // Whether a change's excess is within the tolerances (and the seed scatter, when it counts).
 bool small(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end, const ConvergenceTolerances& tol,
            double phi_scatter, double ev_scatter) {
@@ -74,7 +79,7 @@ bool small(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_
 // Whether the seeds resolve a change to the tolerances.
 bool resolved(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end,
               const ConvergenceTolerances& tol) {
-  return phi.error <= tol.phi_rms_deg && ev.error <= tol.ev_rms && (!std::isfinite(tol.ev_end) || ev_end.error <= tol.ev_end);
+  return phi.error <= tol.phi_rms_deg && ev.error <= tol.ev_rms && end_within(ev_end.error, tol);
 }
 
 // A curve's value at strain x (linear between its points; NaN outside it).
@@ -115,8 +120,7 @@ void set_limit(ScalarLimit& s) {
 
 bool within_tolerances(const CurveChange& phi, const CurveChange& ev, const CurveChange& ev_end,
                        const ConvergenceTolerances& tol) {
-  return phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms &&
-         (!std::isfinite(tol.ev_end) || ev_end.excess <= tol.ev_end);
+  return phi.excess <= tol.phi_rms_deg && ev.excess <= tol.ev_rms && end_within(ev_end.excess, tol);
 }
 
 Certificate certify(const std::vector<Rung>& ladder, const ConvergenceTolerances& tol) {

@@ -718,10 +718,11 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
     a.imom_target = read_ratio(r, n, "analysis.imom_target");
     if (!(a.imom_target > 0 && a.imom_target < 1)) r.fail("analysis.imom_target", n, "out of range: must be in (0, 100 %)");
   }
-  const auto positive = [&](const char* key, bool ratio, double& out) {
-    const toml::node* n = t->get(key);
+  // A tolerance > 0 of `table` (whose keys' paths begin with `prefix`), a number or, with `ratio`, a ratio.
+  const auto positive = [&](const toml::table& table, const char* prefix, const char* key, bool ratio, double& out) {
+    const toml::node* n = table.get(key);
     if (!n) return;
-    const std::string path = std::string("analysis.") + key;
+    const std::string path = std::string(prefix) + key;
     if (ratio) {
       out = read_ratio(r, n, path);
     } else {
@@ -730,9 +731,9 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
     }
     if (!std::isfinite(out) || out <= 0) r.fail(path, n, "out of range: must be > 0");
   };
-  positive("phi_tolerance_deg", false, a.phi_tolerance_deg);
-  positive("ev_tolerance", true, a.ev_tolerance);
-  positive("cn_tolerance", false, a.cn_tolerance);
+  positive(*t, "analysis.", "phi_tolerance_deg", false, a.phi_tolerance_deg);
+  positive(*t, "analysis.", "ev_tolerance", true, a.ev_tolerance);
+  positive(*t, "analysis.", "cn_tolerance", false, a.cn_tolerance);
   if (const toml::node* c = t->get("convergence")) {
     const toml::table* ct = c->as_table();
     if (!ct)
@@ -741,25 +742,13 @@ void read_analysis(const StudyReader& r, const toml::table& root, Study& s) {
              "ev_end_tolerance = ... }");
     r.only(*ct, "analysis.convergence.", {"phi_tolerance_deg", "ev_tolerance", "within_seed_scatter", "ev_end_tolerance"});
     ConvergenceTolerances& tol = a.convergence;
-    if (const toml::node* n = ct->get("phi_tolerance_deg")) {
-      if (!(n->is_floating_point() || n->is_integer())) r.fail("analysis.convergence.phi_tolerance_deg", n, "expected a number");
-      tol.phi_rms_deg = *n->value<double>();
-      if (!std::isfinite(tol.phi_rms_deg) || tol.phi_rms_deg <= 0)
-        r.fail("analysis.convergence.phi_tolerance_deg", n, "out of range: must be > 0");
-    }
-    if (const toml::node* n = ct->get("ev_tolerance")) {
-      tol.ev_rms = read_ratio(r, n, "analysis.convergence.ev_tolerance");
-      if (!std::isfinite(tol.ev_rms) || tol.ev_rms <= 0) r.fail("analysis.convergence.ev_tolerance", n, "out of range: must be > 0");
-    }
+    positive(*ct, "analysis.convergence.", "phi_tolerance_deg", false, tol.phi_rms_deg);
+    positive(*ct, "analysis.convergence.", "ev_tolerance", true, tol.ev_rms);
     if (const toml::node* n = ct->get("within_seed_scatter")) {
       if (!n->is_boolean()) r.fail("analysis.convergence.within_seed_scatter", n, "expected true or false");
       tol.within_seed_scatter = *n->value<bool>();
     }
-    if (const toml::node* n = ct->get("ev_end_tolerance")) {
-      tol.ev_end = read_ratio(r, n, "analysis.convergence.ev_end_tolerance");
-      if (!std::isfinite(tol.ev_end) || tol.ev_end <= 0)
-        r.fail("analysis.convergence.ev_end_tolerance", n, "out of range: must be > 0");
-    }
+    positive(*ct, "analysis.convergence.", "ev_end_tolerance", true, tol.ev_end);
   }
   if (const toml::node* c = t->get("critical_state")) {
     const toml::table* ct = c->as_table();
