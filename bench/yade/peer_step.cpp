@@ -2,17 +2,22 @@
 // for a contact-by-contact comparison of the forces and a particle-by-particle one of the kick.
 //
 //   qsdem_peer_step --case CASE [--set KEY=VALUE ...] --packing FILE --contacts FILE
-//                   [--motion FILE] [--velocity-gradient "L11 L12 ... L33"] [--steps N] --out DIR
+//                   [--motion FILE] [--velocity-gradient "L11 L12 ... L33"] [--steps N]
+//                   [--servo "TARGET_PA CAP_PER_S"] --out DIR
 //
 // The packing's particles keep their order (ids = lines) and its centres as given; the contacts
 // file (bench/yade/peer.py, write_contacts: id1 id2 c1 c2 c3 nx ny nz overlap fn ft) gives the
 // tangential history, the stored tangential force on id2, which every listed contact starts with;
 // the motion file gives each particle's velocity and angular velocity (total, as YADE keeps them:
 // the fluctuation velocity is v - L x, with L the velocity gradient). The cell's velocity gradient
-// L is held for every step (no servo). It writes, for the last step:
+// L is held for every step, or, with --servo, axes 1 and 2 follow qsdem's stress servo (SPEC 3.5)
+// towards TARGET with |L_kk| <= CAP, axis 3 and the shear components fixed, the integral starting
+// at zero (bench/yade/servo_check.py). It writes, for the last step:
 //   DIR/forces.txt   per contact of the force evaluation, its key i j c1 c2 c3 (i < j) and the
 //                    force on j split into its normal and tangential parts
 //   DIR/motion.txt   per particle, the fluctuation velocity and the angular velocity after the kick
+// and with --servo, for every step, DIR/servo.txt: the stresses and affine stiffnesses of its force
+// evaluation and the rates L11, L22 the servo chose from them.
 #include <fmt/format.h>
 
 #include <cstdio>
@@ -30,6 +35,7 @@
 #include "qsdem/engine/damping/stage.hpp"
 #include "qsdem/engine/forces.hpp"
 #include "qsdem/engine/neighbor.hpp"
+#include "qsdem/engine/servo.hpp"
 #include "qsdem/engine/step.hpp"
 #include "qsdem/run/config.hpp"
 #include "qsdem/run/packing_io.hpp"
@@ -40,7 +46,7 @@ using namespace qsdem;
 namespace {
 
 int run(int argc, char** argv) {
-  std::string case_path, packing, contacts_path, motion_path, out_dir, gradient;
+  std::string case_path, packing, contacts_path, motion_path, out_dir, gradient, servo;
   std::vector<std::string> overrides;
   long steps = 1;
   for (int a = 1; a < argc; ++a) {
@@ -56,12 +62,13 @@ int run(int argc, char** argv) {
     else if (arg == "--motion") motion_path = value();
     else if (arg == "--velocity-gradient") gradient = value();
     else if (arg == "--steps") steps = std::stol(value());
+    else if (arg == "--servo") servo = value();
     else if (arg == "--out") out_dir = value();
     else throw InputError(fmt::format("unknown argument '{}'", arg));
   }
   if (case_path.empty() || packing.empty() || contacts_path.empty() || out_dir.empty())
     throw InputError("usage: qsdem_peer_step --case CASE --packing FILE --contacts FILE --out DIR [--motion FILE] "
-                     "[--velocity-gradient \"9 numbers\"] [--steps N] [--set KEY=VALUE]");
+                     "[--velocity-gradient \"9 numbers\"] [--steps N] [--servo \"TARGET_PA CAP_PER_S\"] [--set KEY=VALUE]");
   const Params params = load_case(case_path, overrides);
   State st = read_packing(packing, params.material.density);
   Model model = triaxial_model(params, st);
@@ -70,6 +77,22 @@ int run(int argc, char** argv) {
   peer::adopt_yade_state(st, model, gradient, motion_path, contacts_path);
   const Mat3 L = st.cell.L;
   assign_damping(model, st.particles);
+  if (!servo.empty()) {
+    std::istringstream in(servo);
+    double target = 0, cap = 0;
+    if (!(in >> target >> cap) || !(target > 0) || !(cap > 0))
+      throw InputError(fmt::format("--servo '{}': give the target stress (Pa, > 0) and the rate cap (1/s, > 0)", servo));
+    for (ResolvedControl& c : model.control) c = ResolvedControl{};  // fixed
+    model.control[0] = model.control[1] = ResolvedControl{ControlKind::stress, target, 0};
+    model.servo.max_strain_rate = cap;
+    st.servo_integral = Vec3::Zero();
+  }
+  std::ofstream servo_rows;
+  if (!servo.empty()) {
+    std::filesystem::create_directories(out_dir);
+    servo_rows.open(std::filesystem::path(out_dir) / "servo.txt");
+    servo_rows << "# step s11 s22 s33 (Pa, compression positive) C11 C22 (Pa, affine stiffness) L11 L22 (1/s)\n";
+  }
 
   // The last step's contacts at its force evaluation: force on j and the unit normal from i to j.
   std::vector<std::tuple<std::size_t, Vec3, Vec3>> last;
@@ -88,7 +111,14 @@ int run(int argc, char** argv) {
         last.emplace_back(k, forces[k], l.normalized());
       }
     }
-    st.cell.L = L;
+    if (servo.empty()) {
+      st.cell.L = L;
+    } else {
+      servo_update(model, st);
+      servo_rows << fmt::format("{} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g}\n", n, st.stress(0, 0),
+                                st.stress(1, 1), st.stress(2, 2), st.affine_stiffness[0], st.affine_stiffness[1],
+                                st.cell.L(0, 0), st.cell.L(1, 1));
+    }
     deform(st.cell, model.dt);
     update_particles(model, st, schedule);
   }
