@@ -1,12 +1,13 @@
 // Per-particle inertia scaling (docs/physics.md 5.6) against closed forms and known configurations:
 // the multipliers and the step gain of a two-size system, a frictionless lattice in static
 // equilibrium that stays in it under any scaling, the largest stable step of the vibrating
-// lattice with and without scaling, the same equilibrium reached from a perturbed lattice with and without scaling, and a
-// binary collision that conserves the momentum of the scaled masses.
+// lattice with and without scaling, the same equilibrium reached from a perturbed lattice with and without scaling, a
+// binary collision that conserves the momentum of the scaled masses, and a uniform scaling that is a change of rate.
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <cmath>
+#include <random>
 
 #include "collision.hpp"
 #include "qsdem/engine/damping/stage.hpp"
@@ -269,4 +270,67 @@ TEST(InertiaScaling, BinaryCollisionConservesTheScaledMomentum) {
   ASSERT_GT(qsdem_test::step_through_collision(m, st, 100000), 0) << "touched";
   EXPECT_LT((momentum(p) - scaled0).norm(), 1e-13 * scaled0.norm());
   EXPECT_GT((momentum(solid) - true0).norm(), 1e-2 * true0.norm());
+}
+
+// physics.md 5.6: one mu for every particle is a change of rate and nothing else. With mu = 4 (a
+// power of two: the factors are exact), a triaxial test at eps' is the unscaled test at 2 eps'
+// step for step: the same positions, cell and stresses, velocities halved. A perturbed frictional
+// lattice of equal spheres, damped by nd, od or local damping, axis 3 strained, axes 1 and 2 on
+// the stress servo.
+TEST(InertiaScaling, UniformScalingIsAChangeOfRate) {
+  const qsdem_test::SingleThread one_thread;
+  const double radius = 1e-3, a = 1.996e-3;
+  const int n = 4;
+  State base;
+  base.cell = make_cell(n * a * Mat3::Identity());
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> jitter(-3e-6, 3e-6);
+  std::uint32_t id = 0;
+  for (int x = 0; x < n; ++x)
+    for (int y = 0; y < n; ++y)
+      for (int z = 0; z < n; ++z) {
+        const Vec3 at = a * Vec3(x + 0.5, y + 0.5, z + 0.5) + Vec3(jitter(rng), jitter(rng), jitter(rng));
+        base.particles.add(id++, ShapeKind::sphere, Vec3::Constant(radius), kRho, base.cell.h_inv * at,
+                           Quat::Identity());
+      }
+  const auto sheared = [&](const std::string& damping, double rate, const InertiaScaling& s, long steps) {
+    State st = base;
+    scale_inertia(st.particles, s, kRho);
+    Params params;
+    params.material = {kRho, kE, kNu};
+    Phase phase;
+    phase.inertia = s;
+    phase.friction = 0.5;
+    phase.damping = {damping, 0.05, DampedMotion::both};
+    phase.controls.component[0] = phase.controls.component[1] = {ControlKind::stress, 3e6};
+    phase.controls.component[2] = {ControlKind::strain_rate, rate};
+    phase.controls.rate_factor = 10;
+    Model m = phase_model(params, phase, phase.controls, st.particles, st.cell.h);
+    m.sort_particles = false;
+    assign_damping(m, st.particles);
+    for (long k = 0; k < steps; ++k) step(m, st);
+    return std::pair{m.dt, st};
+  };
+  const long steps = 4000;
+  for (const std::string damping : {"nd", "od", "local"}) {
+    SCOPED_TRACE(damping);
+    const auto [dt_u, u] = sheared(damping, 1e-5, InertiaScaling{}, steps);
+    const auto [dt_s, s] = sheared(damping, 5e-6, scaling(Target::factor, 2, 4), steps);
+    ASSERT_EQ(dt_s, 2 * dt_u);
+    ASSERT_EQ(s.particles.inertia_scale[0], 4.0);
+    EXPECT_GT((u.cell.h - base.cell.h).norm(), 1e-3 * base.cell.h.norm()) << "the cell deformed";
+    double dx = 0, dv = 0, vmax = 0;
+    for (std::size_t i = 0; i < u.particles.size(); ++i) {
+      dx = std::max(dx, (u.cell.h * (s.particles.s[i] - u.particles.s[i])).norm());
+      dv = std::max(dv, (2 * s.particles.v[i] - u.particles.v[i]).norm());
+      vmax = std::max(vmax, u.particles.v[i].norm());
+    }
+    std::printf("[ info ] %s, %ld steps: positions %.3g m apart, velocities %.3g of %.3g m/s, stress %.6g / %.6g Pa\n",
+                damping.c_str(), steps, dx, dv, vmax, s.stress(2, 2), u.stress(2, 2));
+    EXPECT_GT(vmax, 0);
+    EXPECT_EQ(dx, 0);
+    EXPECT_EQ(dv, 0);
+    EXPECT_EQ((s.cell.h - u.cell.h).norm(), 0);
+    EXPECT_EQ((s.stress - u.stress).norm(), 0);
+  }
 }
