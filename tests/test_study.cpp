@@ -494,6 +494,57 @@ TEST(StudyFile, CommentsAndLayoutDoNotMakeAnotherStudy) {
 
 }
 
+// A study grows when its new file only adds runs: every run and sample of the study a directory
+// holds is still defined, with the same resolved case (an override that sets a key to the value
+// it had is no change). A run gone, a run or sample defined otherwise, another name or analysis
+// is refused, naming it.
+TEST(StudyFile, GrowthOnlyAddsRuns) {
+  const std::string text = slurp(tiny_study);
+  const qsdem::Study held = qsdem::load_study(tiny_study);
+  ASSERT_EQ(held.runs.size(), 8u);
+  const auto edited = [&](std::vector<std::pair<std::string, std::string>> edits) {
+    std::string t = text;
+    for (const auto& [from, to] : edits) {
+      const auto at = t.find(from);
+      EXPECT_NE(at, std::string::npos) << from;
+      if (at != std::string::npos) t.replace(at, from.size(), to);
+    }
+    return qsdem::load_study_text(t, tiny_study);  // beside tiny.toml: its relative case path
+  };
+  // Another rate, model and seed (the case's seed 1 given as design.seeds: the same sample), and
+  // other [execution] values.
+  const qsdem::Study grown =
+      edited({{"models = [\"od\", \"nd\"]", "models = [\"od\", \"nd\", \"none\"]\nseeds = [1, 2]"},
+              {"strain_rates = [5e-6, 2.5e-6]", "strain_rates = [5e-6, 2.5e-6, 1.25e-6]"},
+              {"parallel_runs = 2", "parallel_runs = 1"}});
+  EXPECT_EQ(qsdem::growth_refusal(held, grown), "");
+  EXPECT_EQ(grown.runs.size(), 2u * 3u * 2u * 3u);
+  EXPECT_EQ(qsdem::growth_refusal(held, held), "");
+
+  const auto refusal = [&](std::vector<std::pair<std::string, std::string>> edits) {
+    return qsdem::growth_refusal(held, edited(std::move(edits)));
+  };
+  EXPECT_EQ(refusal({{"strain_rates = [5e-6, 2.5e-6]", "strain_rates = [5e-6, 1.25e-6]"}}),
+            "the run 'tiny-seed1/od/xi-0.2%/rate-2.5e-06' is not in it");
+  const std::string changed = refusal({{"strain_rates = [5e-6, 2.5e-6]", "strain_rates = [5e-6, 2.5e-6, 1.25e-6]"},
+                                       {"final_axial_strain=1 %", "final_axial_strain=2 %"}});
+  EXPECT_NE(changed.find("the run 'tiny-seed1/od/xi-0.2%/rate-5e-06' changes: --set triaxial.final_axial_strain was "
+                         "'1 %' and is now '2 %'"),
+            std::string::npos)
+      << changed;
+  const std::string sample = refusal({{"count=60}]", "count=61}]"}});
+  EXPECT_NE(sample.find("the sample 'tiny-seed1' is prepared otherwise: --set sample.particles"), std::string::npos)
+      << sample;
+  EXPECT_NE(refusal({{"models = [\"od\", \"nd\"]", "models = [\"none\", \"od\", \"nd\"]"}})
+                .find("its analysis.baseline was \"od\" and is now \"none\""),
+            std::string::npos)
+      << "the first model is the default baseline";
+  EXPECT_NE(refusal({{"[execution]", "[analysis]\nimom_target = \"1 %\"\n[execution]"}})
+                .find("its analysis.imom_target was 0.001 and is now 0.01"),
+            std::string::npos);
+  EXPECT_EQ(refusal({{"name = \"tiny\"\n", "name = \"small\"\n"}}), "its name was 'tiny' and is now 'small'");
+}
+
 // Another study file for the same directory is refused before anything is touched.
 TEST(StudyCli, RefusesADirectoryOfAnotherStudy) {
   const fs::path dir = fresh_dir("other");
@@ -799,6 +850,68 @@ TEST(StudyCli, RefusesAChangedCaseFileOrSample) {
   r = study(file, out, dir / "log");
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("the prepared sample"), std::string::npos) << r.err;
+  fs::remove_all(dir);
+}
+
+// A study grown by a rate (the next rung of a ladder) keeps its finished run and its prepared
+// sample to the byte and the mtime, runs only the new rate, and takes the new file as its
+// study.toml. A file that then changes the value of a run it holds is refused, naming the run
+// and the key, and changes nothing.
+TEST(Study, GrowsByAnAddedRateKeepingItsFinishedRuns) {
+  const fs::path dir = fresh_dir("grow");
+  const fs::path file = one_run_study(dir);
+  const fs::path out = dir / "out";
+  Result r = study(file, out, dir / "first");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto before = manifest(out);
+  ASSERT_EQ(before["runs"].size(), 1u);
+  std::map<fs::path, std::pair<std::string, fs::file_time_type>> kept;  // every file of the run and sample
+  for (const auto& e : fs::recursive_directory_iterator(out))
+    if (e.is_regular_file() && (e.path().string().find("/runs/") != std::string::npos ||
+                                e.path().string().find("/samples/") != std::string::npos))
+      kept[e.path()] = {slurp(e.path()), fs::last_write_time(e.path())};
+  ASSERT_GT(kept.size(), 8u);
+
+  std::string text = slurp(file);
+  const std::string rates = "strain_rates = [5e-6]";
+  ASSERT_NE(text.find(rates), std::string::npos);
+  text.replace(text.find(rates), rates.size(), "strain_rates = [5e-6, 1e-5]   # the next rung");
+  write(dir / "grown.toml", text);
+  r = study(dir / "grown.toml", out, dir / "grown", false);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("grows by 1 run (1 kept)"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("runs 1/2 done"), std::string::npos) << "the kept run is counted as done\n" << r.err;
+  for (const auto& [p, was] : kept) {
+    EXPECT_EQ(slurp(p), was.first) << p;
+    EXPECT_EQ(fs::last_write_time(p), was.second) << p << " was written again";
+  }
+  const fs::path added = out / "runs/tiny-seed1/nd/xi-1%/rate-1e-05";
+  EXPECT_TRUE(fs::exists(added / "summary.json"));
+  const std::string log = slurp(added / "run.log");
+  EXPECT_EQ(log.find("=== qsdem", 1), std::string::npos) << "one start\n" << log;
+  EXPECT_EQ(slurp(out / "study.toml"), text);
+  const auto after = manifest(out);
+  ASSERT_EQ(after["runs"].size(), 2u);
+  EXPECT_EQ(after["runs"][0], before["runs"][0]);
+  EXPECT_EQ(after["runs"][1]["rate"], 1e-5);
+  EXPECT_EQ(after["samples"], before["samples"]) << "the recorded hashes are kept";
+
+  // The kept run changed (its final strain) and the added one dropped: refused, naming them.
+  std::string other = text;
+  other.replace(other.find("final_axial_strain=1 %"), 22, "final_axial_strain=2 %");
+  write(dir / "other.toml", other);
+  r = study(dir / "other.toml", out, dir / "other");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("holds another study"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("the run 'tiny-seed1/nd/xi-1%/rate-5e-06' changes: --set triaxial.final_axial_strain was '1 %' "
+                       "and is now '2 %'"),
+            std::string::npos)
+      << r.err;
+  r = study(file, out, dir / "fewer");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("the run 'tiny-seed1/nd/xi-1%/rate-1e-05' is not in it"), std::string::npos) << r.err;
+  EXPECT_EQ(slurp(out / "study.toml"), text) << "a refused file changes nothing";
+  EXPECT_EQ(manifest(out)["runs"], after["runs"]);
   fs::remove_all(dir);
 }
 

@@ -560,10 +560,11 @@ nlohmann::ordered_json manifest_keeping(const Study& study, const nlohmann::json
   return m;
 }
 
-// Creates DIR with study.toml and study.json, or checks that DIR holds this very study with the
-// same case files and prepared samples. Takes the lock on DIR first (two studies started at once:
-// the second is told so) and holds it, in `lock`, for the life of the study: two studies in one
-// directory would run the same runs twice at once.
+// Creates DIR with study.toml and study.json, or checks that DIR holds this very study, or one
+// the study file only adds runs to (growth_refusal), with the same case files and prepared
+// samples. Takes the lock on DIR first (two studies started at once: the second is told so) and
+// holds it, in `lock`, for the life of the study: two studies in one directory would run the same
+// runs twice at once.
 void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryLock>& lock) {
   std::error_code ec;
   fs::create_directories(out, ec);
@@ -582,18 +583,39 @@ void setup_directory(Study& study, const fs::path& out, std::optional<DirectoryL
   };
   const bool has_copy = fs::exists(copy);
   const std::string copied = has_copy ? read_bytes(copy) : std::string();
-  if (has_copy) {
-    if (!same_study_values(copied, study.text))
+  const nlohmann::json recorded = recorded_manifest(out);
+  // Other values may only add runs (a study grows): every run DIR holds stays defined as it was.
+  std::optional<Study> held;
+  if (has_copy && !same_study_values(copied, study.text)) {
+    std::string why;
+    try {
+      held = load_study_text(copied, study.file);
+      adopt_recorded_picks(*held, recorded);
+      adopt_recorded_picks(study, recorded);
+      why = growth_refusal(*held, study);
+    } catch (const InputError& e) {
+      why = fmt::format("the study it holds cannot be read beside it: {}", e.what());
+    }
+    if (!why.empty())
       refuse(fmt::format(
-          "'{}' holds another study: its study.toml differs from '{}' in its tables and values. Continue a study "
-          "with the study file it was started with (its comments and layout may change), or choose another --out",
-          out.string(), study.file.string()));
-  } else if (!empty) {
+          "'{}' holds another study: '{}' does not only add runs to it: {}. Continue a study with a file that keeps "
+          "its name, [analysis], samples and runs as they are and adds others (comments, layout and [execution] may "
+          "change), or choose another --out",
+          out.string(), study.file.string(), why));
+  } else if (!has_copy && !empty) {
     refuse(fmt::format("'{}' is not empty and holds no study.toml: choose a new or empty --out directory", out.string()));
   }
-  const nlohmann::json recorded = recorded_manifest(out);
   check_recorded(study, out, recorded);
   adopt_recorded_picks(study, recorded);
+  if (held) {
+    const std::string samples = study.samples.size() > held->samples.size()
+                                    ? plural(study.samples.size() - held->samples.size(), "sample") + " and "
+                                    : "";
+    fmt::print(stderr, "qsdem: the study in '{}' grows by {}{} ({} kept): its study.toml and study.json now hold the "
+                       "design of '{}'\n",
+               out.string(), samples, plural(study.runs.size() - held->runs.size(), "run"), held->runs.size(),
+               study.file.string());
+  }
   if (!has_copy || copied != study.text) write_file_atomic(copy, study.text);  // new, or new comments
   write_case_copies(study, out);
   write_file_atomic(out / "study.json", json_text(manifest_keeping(study, recorded)) + "\n");

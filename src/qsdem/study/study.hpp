@@ -135,6 +135,15 @@ struct Study {
 // Throws InputError naming the file, line, key, value and what is allowed.
 Study load_study(const std::filesystem::path& file);
 
+// The same, from the text of a study file read as if it were `file` (its relative case paths and
+// its default name are `file`'s): the design a study directory's study.toml holds.
+Study load_study_text(const std::string& text, const std::filesystem::path& file);
+
+// Why `grown` does not only add runs to `held` (the design a study directory holds, both with
+// their recorded picks): a run or sample of `held` that `grown` lacks or defines otherwise (its
+// case, its overrides, its stage), another name, analysis or picking rule. Empty when it grows.
+std::string growth_refusal(const Study& held, const Study& grown);
+
 // Two study files with the same tables and values (comments and layout aside): a study directory
 // made with one continues with the other.
 bool same_study_values(const std::string& a, const std::string& b);

@@ -965,10 +965,12 @@ bool same_study_values(const std::string& a, const std::string& b) {
   }
 }
 
-Study load_study(const fs::path& file) {
+Study load_study(const fs::path& file) { return load_study_text(slurp(file), file); }
+
+Study load_study_text(const std::string& text, const fs::path& file) {
   Study s;
   s.file = file;
-  s.text = slurp(file);
+  s.text = text;
   const std::string name = file.string();
   const StudyReader r(name);
   toml::table root;
@@ -1027,6 +1029,121 @@ void adopt_recorded_picks(Study& s, const nlohmann::json& manifest) {
     }
     add_stage_runs(s, static_cast<std::size_t>(st - s.stages.begin()));
   }
+}
+
+namespace {
+
+// The keys that two lists of overrides set otherwise, as "--set KEY was 'X' and is now 'Y'".
+std::string override_change(const std::vector<std::string>& then, const std::vector<std::string>& now) {
+  const auto key_of = [](const std::string& set) { return set.substr(0, set.find('=')); };
+  const auto value_of = [&](const std::vector<std::string>& sets, const std::string& key) {
+    std::string v = "not set";
+    for (const std::string& set : sets)  // the last one wins, as on the command line
+      if (key_of(set) == key) v = "'" + set.substr(std::min(set.size(), key.size() + 1)) + "'";
+    return v;
+  };
+  std::vector<std::string> keys, changes;
+  for (const auto* sets : {&then, &now})
+    for (const std::string& set : *sets) {
+      const std::string key = key_of(set), a = value_of(then, key), b = value_of(now, key);
+      if (a == b || std::find(keys.begin(), keys.end(), key) != keys.end()) continue;
+      keys.push_back(key);
+      changes.push_back(fmt::format("--set {} was {} and is now {}", key, a, b));
+    }
+  if (changes.empty()) return "its overrides are given in another order";
+  std::string out;
+  for (const std::string& c : changes) out += (out.empty() ? "" : ", ") + c;
+  return out;
+}
+
+// The first value where two resolved cases differ, "PATH was A and is now B"; empty: none.
+std::string json_change(const nlohmann::json& a, const nlohmann::json& b, const std::string& path) {
+  if (a == b) return "";
+  const auto at = [&](const std::string& p) { return path.empty() ? p : path + "." + p; };
+  if (a.is_object() && b.is_object()) {
+    for (const auto* side : {&a, &b})
+      for (const auto& item : side->items()) {
+        const std::string& key = item.key();
+        const std::string c = json_change(a.contains(key) ? a.at(key) : nlohmann::json(),
+                                          b.contains(key) ? b.at(key) : nlohmann::json(), at(key));
+        if (!c.empty()) return c;
+      }
+  }
+  if (a.is_array() && b.is_array() && a.size() == b.size())
+    for (std::size_t k = 0; k < a.size(); ++k)
+      if (const std::string c = json_change(a[k], b[k], at(std::to_string(k))); !c.empty()) return c;
+  return fmt::format("{} was {} and is now {}", path, a.dump(), b.dump());
+}
+
+// How the case of a sample differs with two lists of overrides: empty when both give the same
+// case to the bit (summary.json's resolved_si: an override that sets the value the key had is no
+// change, e.g. design.seeds = [1] for a case of seed 1); else the overrides that differ and the
+// first resolved value that does.
+std::string case_change(const StudySample& smp, const std::vector<std::string>& then,
+                        const std::vector<std::string>& now) {
+  if (then == now) return "";
+  const auto resolved = [&](const std::vector<std::string>& sets) {
+    nlohmann::json j = to_json(load_case(smp.case_file.string(), sets));
+    j.erase("source");  // the case file's path: its bytes are compared by their hash
+    return j;
+  };
+  const std::string c = json_change(resolved(then), resolved(now), "");
+  return c.empty() ? "" : fmt::format("{} (so {})", override_change(then, now), c);
+}
+
+std::string pick_text(const Study& s, const StudyStage& st) {
+  return fmt::format("'{}' of stage '{}' at {}, {} digits", st.pick, s.stages[st.from].name,
+                     std::isfinite(st.at_rate) ? "rate " + exact(st.at_rate) : "every rate", st.digits);
+}
+
+}  // namespace
+
+std::string growth_refusal(const Study& held, const Study& grown) {
+  if (held.name != grown.name) return fmt::format("its name was '{}' and is now '{}'", held.name, grown.name);
+  // The analysis' settings are the decision the study was designed with: growing keeps them.
+  const nlohmann::ordered_json a = to_json(held.analysis), b = to_json(grown.analysis);
+  for (const auto* side : {&a, &b})
+    for (const auto& item : side->items()) {
+      const std::string& key = item.key();
+      const auto then = a.value(key, nlohmann::ordered_json()), now = b.value(key, nlohmann::ordered_json());
+      if (then != now) return fmt::format("its analysis.{} was {} and is now {}", key, then.dump(), now.dump());
+    }
+  for (const StudyStage& st : held.stages) {
+    if (st.pick.empty()) continue;
+    const auto g = std::find_if(grown.stages.begin(), grown.stages.end(),
+                                [&](const StudyStage& x) { return x.name == st.name; });
+    const std::string now = g == grown.stages.end() ? "there is no such stage"
+                            : g->pick.empty()       ? "it lists its ratios"
+                                                    : "it picks " + pick_text(grown, *g);
+    if (g == grown.stages.end() || g->pick.empty() || pick_text(held, st) != pick_text(grown, *g))
+      return fmt::format("stage '{}' picked its ratios as {}, and now {}: its recorded picks would not be its own",
+                         st.name, pick_text(held, st), now);
+  }
+  for (const StudySample& smp : held.samples) {
+    const std::string id = fs::path(smp.dir).filename().string();
+    const auto g = std::find_if(grown.samples.begin(), grown.samples.end(),
+                                [&](const StudySample& x) { return x.dir == smp.dir; });
+    if (g == grown.samples.end()) return fmt::format("the sample '{}' is not in it", id);
+    if (g->case_hash != smp.case_hash)
+      return fmt::format("the sample '{}' was prepared from '{}' (FNV-1a {}) and is now from '{}' ({})", id,
+                         smp.case_file.string(), smp.case_hash, g->case_file.string(), g->case_hash);
+    if (const std::string c = case_change(smp, smp.sets, g->sets); !c.empty())
+      return fmt::format("the sample '{}' is prepared otherwise: {}", id, c);
+    if (g->from != smp.from)
+      return fmt::format("the sample '{}' is prepared otherwise: its sample.from was '{}' and is now '{}'", id,
+                         smp.from, g->from);
+  }
+  for (const StudyRun& run : held.runs) {
+    const auto g = std::find_if(grown.runs.begin(), grown.runs.end(), [&](const StudyRun& x) { return x.id == run.id; });
+    if (g == grown.runs.end()) return fmt::format("the run '{}' is not in it", run.id);
+    // A stage's runs make its optimum (the picks of later stages) and its part of the report.
+    if (held.stages[run.stage].name != grown.stages[g->stage].name)
+      return fmt::format("the run '{}' was of stage '{}' and is now of stage '{}'", run.id,
+                         held.stages[run.stage].name, grown.stages[g->stage].name);
+    if (const std::string c = case_change(held.samples[run.sample], run.sets, g->sets); !c.empty())
+      return fmt::format("the run '{}' changes: {}", run.id, c);
+  }
+  return "";
 }
 
 namespace {
