@@ -15,7 +15,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_dashpot-e0_7.dat' index 0 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_dashpot-e0_7.dat' index 0 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -25,7 +25,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_dashpot-e0_7.dat' index 1 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_dashpot-e0_7.dat' index 1 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -35,7 +35,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_dashpot-e0_7.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_dashpot-e0_7.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -68,7 +68,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_dashpot-e0_7.dat' index 0 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_dashpot-e0_7.dat' index 0 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -78,7 +78,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_dashpot-e0_7.dat' index 1 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_dashpot-e0_7.dat' index 1 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -88,7 +88,7 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_dashpot-e0_7.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_dashpot-e0_7.dat' index 2 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"

@@ -15,10 +15,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 3 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 4 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -28,10 +29,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 4 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 7 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 8 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 9 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -41,10 +43,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 8 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 11 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 11 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 12 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 14 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -54,9 +57,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 12 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 14 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %"
+plot 'curves_A_nd.dat' index 15 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 16 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 17 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 18 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %"
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -74,10 +78,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 3 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 4 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -87,10 +92,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 4 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 7 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_nd.dat' index 5 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 6 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 7 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 8 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 9 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "Cn"
 set xlabel "axial strain ε1 (%)"
 set ylabel "coordination number Cn"
@@ -100,10 +106,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 8 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 9 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 11 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 1e-06"
+plot 'curves_A_nd.dat' index 10 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 11 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 12 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 14 using 1:2 with lines lw 1.5 dt 2 lc rgb '#000000' title "reference: none ε' = 3.16e-07"
 set title "IMom"
 set xlabel "axial strain ε1 (%)"
 set ylabel "moment index IMom (%)"
@@ -113,8 +120,9 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'curves_A_nd.dat' index 12 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 1e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 13 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
-     'curves_A_nd.dat' index 14 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 1e-05, ξ = 0.51 %"
+plot 'curves_A_nd.dat' index 15 using 1:2 with lines lw 1.5 lc 1 title "nd ε' = 3.16e-07, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 16 using 1:2 with lines lw 1.5 lc 2 title "nd ε' = 1e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 17 using 1:2 with lines lw 1.5 lc 3 title "nd ε' = 3.16e-06, ξ = 0.51 %", \
+     'curves_A_nd.dat' index 18 using 1:2 with lines lw 1.5 lc 4 title "nd ε' = 1e-05, ξ = 0.51 %"
 unset multiplot
 unset output

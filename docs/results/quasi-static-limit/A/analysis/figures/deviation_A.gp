@@ -63,12 +63,14 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 set yrange [0:*]
-plot 'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 7 title "local ε' = 1e-06", \
-     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 8 title "local ε' = 3.16e-06", \
-     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 9 title "local ε' = 1e-05", \
-     'deviation_A.dat' index 20 using 1:2 with linespoints pt 7 ps 0.8 lc 10 title "nd ε' = 1e-06", \
-     'deviation_A.dat' index 21 using 1:2 with linespoints pt 7 ps 0.8 lc 11 title "nd ε' = 3.16e-06", \
-     'deviation_A.dat' index 22 using 1:2 with linespoints pt 7 ps 0.8 lc 12 title "nd ε' = 1e-05"
+plot 'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 9 title "local ε' = 3.16e-07", \
+     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 10 title "local ε' = 1e-06", \
+     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 11 title "local ε' = 3.16e-06", \
+     'deviation_A.dat' index 20 using 1:2 with linespoints pt 7 ps 0.8 lc 12 title "local ε' = 1e-05", \
+     'deviation_A.dat' index 21 using 1:2 with linespoints pt 7 ps 0.8 lc 13 title "nd ε' = 3.16e-07", \
+     'deviation_A.dat' index 22 using 1:2 with linespoints pt 7 ps 0.8 lc 14 title "nd ε' = 1e-06", \
+     'deviation_A.dat' index 23 using 1:2 with linespoints pt 7 ps 0.8 lc 15 title "nd ε' = 3.16e-06", \
+     'deviation_A.dat' index 24 using 1:2 with linespoints pt 7 ps 0.8 lc 16 title "nd ε' = 1e-05"
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -134,11 +136,13 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 set yrange [0:*]
-plot 'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 7 title "local ε' = 1e-06", \
-     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 8 title "local ε' = 3.16e-06", \
-     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 9 title "local ε' = 1e-05", \
-     'deviation_A.dat' index 20 using 1:2 with linespoints pt 7 ps 0.8 lc 10 title "nd ε' = 1e-06", \
-     'deviation_A.dat' index 21 using 1:2 with linespoints pt 7 ps 0.8 lc 11 title "nd ε' = 3.16e-06", \
-     'deviation_A.dat' index 22 using 1:2 with linespoints pt 7 ps 0.8 lc 12 title "nd ε' = 1e-05"
+plot 'deviation_A.dat' index 17 using 1:2 with linespoints pt 7 ps 0.8 lc 9 title "local ε' = 3.16e-07", \
+     'deviation_A.dat' index 18 using 1:2 with linespoints pt 7 ps 0.8 lc 10 title "local ε' = 1e-06", \
+     'deviation_A.dat' index 19 using 1:2 with linespoints pt 7 ps 0.8 lc 11 title "local ε' = 3.16e-06", \
+     'deviation_A.dat' index 20 using 1:2 with linespoints pt 7 ps 0.8 lc 12 title "local ε' = 1e-05", \
+     'deviation_A.dat' index 21 using 1:2 with linespoints pt 7 ps 0.8 lc 13 title "nd ε' = 3.16e-07", \
+     'deviation_A.dat' index 22 using 1:2 with linespoints pt 7 ps 0.8 lc 14 title "nd ε' = 1e-06", \
+     'deviation_A.dat' index 23 using 1:2 with linespoints pt 7 ps 0.8 lc 15 title "nd ε' = 3.16e-06", \
+     'deviation_A.dat' index 24 using 1:2 with linespoints pt 7 ps 0.8 lc 16 title "nd ε' = 1e-05"
 unset multiplot
 unset output

@@ -14,9 +14,10 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-06, ξ = 0.51 %", \
-     'ekin_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 3.16e-06, ξ = 0.51 %", \
-     'ekin_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-05, ξ = 0.51 %"
+plot 'ekin_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 3.16e-07, ξ = 0.51 %", \
+     'ekin_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-06, ξ = 0.51 %", \
+     'ekin_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 3.16e-06, ξ = 0.51 %", \
+     'ekin_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "ε' = 1e-05, ξ = 0.51 %"
 unset output
 set terminal pngcairo size 820,560 noenhanced font 'DejaVu Sans,10' background '#ffffff'
 set output 'ekin_A_nd.png'
@@ -32,7 +33,8 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ekin_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-06, ξ = 0.51 %", \
-     'ekin_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 3.16e-06, ξ = 0.51 %", \
-     'ekin_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-05, ξ = 0.51 %"
+plot 'ekin_A_nd.dat' index 0 using 1:2 with lines lw 1.5 lc 1 title "ε' = 3.16e-07, ξ = 0.51 %", \
+     'ekin_A_nd.dat' index 1 using 1:2 with lines lw 1.5 lc 2 title "ε' = 1e-06, ξ = 0.51 %", \
+     'ekin_A_nd.dat' index 2 using 1:2 with lines lw 1.5 lc 3 title "ε' = 3.16e-06, ξ = 0.51 %", \
+     'ekin_A_nd.dat' index 3 using 1:2 with lines lw 1.5 lc 4 title "ε' = 1e-05, ξ = 0.51 %"
 unset output

@@ -15,10 +15,10 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'imom_opt_vs_rate_A.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 3 title "local", \
-     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 3 title "local fit: 198 ε'^0.623, R² = 0.9993", \
+     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 3 title "local fit: 274.5 ε'^0.65, R² = 0.9986", \
      'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 2 lw 1.5 lc 3 notitle, \
      'imom_opt_vs_rate_A.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 4 title "nd", \
-     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 4 title "nd fit: 473 ε'^0.8, R² = 0.9999", \
+     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 4 title "nd fit: 635.8 ε'^0.824, R² = 0.9994", \
      'imom_opt_vs_rate_A.dat' index 5 using 1:2 with lines dt 2 lw 1.5 lc 4 notitle, \
      'imom_opt_vs_rate_A.dat' index 6 using 1:2 with lines dt 3 lw 1.5 lc 4 title "paper nd: 629.92 ε'^0.83", \
      'imom_opt_vs_rate_A.dat' index 7 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"
@@ -38,10 +38,10 @@ set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
 plot 'imom_opt_vs_rate_A.dat' index 0 using 1:2 with points pt 7 ps 1.3 lc 3 title "local", \
-     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 3 title "local fit: 198 ε'^0.623, R² = 0.9993", \
+     'imom_opt_vs_rate_A.dat' index 1 using 1:2 with lines lw 1.5 lc 3 title "local fit: 274.5 ε'^0.65, R² = 0.9986", \
      'imom_opt_vs_rate_A.dat' index 2 using 1:2 with lines dt 2 lw 1.5 lc 3 notitle, \
      'imom_opt_vs_rate_A.dat' index 3 using 1:2 with points pt 7 ps 1.3 lc 4 title "nd", \
-     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 4 title "nd fit: 473 ε'^0.8, R² = 0.9999", \
+     'imom_opt_vs_rate_A.dat' index 4 using 1:2 with lines lw 1.5 lc 4 title "nd fit: 635.8 ε'^0.824, R² = 0.9994", \
      'imom_opt_vs_rate_A.dat' index 5 using 1:2 with lines dt 2 lw 1.5 lc 4 notitle, \
      'imom_opt_vs_rate_A.dat' index 6 using 1:2 with lines dt 3 lw 1.5 lc 4 title "paper nd: 629.92 ε'^0.83", \
      'imom_opt_vs_rate_A.dat' index 7 using 1:2 with lines dt 2 lc rgb '#888888' title "IMom = 0.1 %"

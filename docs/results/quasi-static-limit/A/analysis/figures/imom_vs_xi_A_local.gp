@@ -14,12 +14,14 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'imom_vs_xi_A_local.dat' index 0 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "ε' = 1e-06", \
+plot 'imom_vs_xi_A_local.dat' index 0 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "ε' = 3.16e-07", \
      'imom_vs_xi_A_local.dat' index 1 using 1:2 with points pt 6 ps 2.2 lw 2 lc 1 title "ξopt", \
-     'imom_vs_xi_A_local.dat' index 2 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "ε' = 3.16e-06", \
+     'imom_vs_xi_A_local.dat' index 2 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "ε' = 1e-06", \
      'imom_vs_xi_A_local.dat' index 3 using 1:2 with points pt 6 ps 2.2 lw 2 lc 2 notitle, \
-     'imom_vs_xi_A_local.dat' index 4 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "ε' = 1e-05", \
-     'imom_vs_xi_A_local.dat' index 5 using 1:2 with points pt 6 ps 2.2 lw 2 lc 3 notitle
+     'imom_vs_xi_A_local.dat' index 4 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "ε' = 3.16e-06", \
+     'imom_vs_xi_A_local.dat' index 5 using 1:2 with points pt 6 ps 2.2 lw 2 lc 3 notitle, \
+     'imom_vs_xi_A_local.dat' index 6 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "ε' = 1e-05", \
+     'imom_vs_xi_A_local.dat' index 7 using 1:2 with points pt 6 ps 2.2 lw 2 lc 4 notitle
 unset output
 set terminal pngcairo size 820,560 noenhanced font 'DejaVu Sans,10' background '#ffffff'
 set output 'imom_vs_xi_A_local.png'
@@ -35,10 +37,12 @@ set logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'imom_vs_xi_A_local.dat' index 0 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "ε' = 1e-06", \
+plot 'imom_vs_xi_A_local.dat' index 0 using 1:2 with linespoints pt 7 ps 0.8 lc 1 title "ε' = 3.16e-07", \
      'imom_vs_xi_A_local.dat' index 1 using 1:2 with points pt 6 ps 2.2 lw 2 lc 1 title "ξopt", \
-     'imom_vs_xi_A_local.dat' index 2 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "ε' = 3.16e-06", \
+     'imom_vs_xi_A_local.dat' index 2 using 1:2 with linespoints pt 7 ps 0.8 lc 2 title "ε' = 1e-06", \
      'imom_vs_xi_A_local.dat' index 3 using 1:2 with points pt 6 ps 2.2 lw 2 lc 2 notitle, \
-     'imom_vs_xi_A_local.dat' index 4 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "ε' = 1e-05", \
-     'imom_vs_xi_A_local.dat' index 5 using 1:2 with points pt 6 ps 2.2 lw 2 lc 3 notitle
+     'imom_vs_xi_A_local.dat' index 4 using 1:2 with linespoints pt 7 ps 0.8 lc 3 title "ε' = 3.16e-06", \
+     'imom_vs_xi_A_local.dat' index 5 using 1:2 with points pt 6 ps 2.2 lw 2 lc 3 notitle, \
+     'imom_vs_xi_A_local.dat' index 6 using 1:2 with linespoints pt 7 ps 0.8 lc 4 title "ε' = 1e-05", \
+     'imom_vs_xi_A_local.dat' index 7 using 1:2 with points pt 6 ps 2.2 lw 2 lc 4 notitle
 unset output

@@ -23,7 +23,10 @@ plot 'ladder_A_dashpot-e0_7_0.dat' index 0 using 1:2 with lines lw 1.5 lc 1 titl
      'ladder_A_dashpot-e0_7_0.dat' index 5 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
      'ladder_A_dashpot-e0_7_0.dat' index 6 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06", \
      'ladder_A_dashpot-e0_7_0.dat' index 7 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 8 using 1:2 with lines lw 1 dt 2 lc 3 notitle
+     'ladder_A_dashpot-e0_7_0.dat' index 8 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 9 using 1:2 with lines lw 1.5 lc 4 title "ε' = 3.16e-07", \
+     'ladder_A_dashpot-e0_7_0.dat' index 10 using 1:2 with lines lw 1 dt 2 lc 4 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 11 using 1:2 with lines lw 1 dt 2 lc 4 notitle
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -33,15 +36,18 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ladder_A_dashpot-e0_7_0.dat' index 9 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-05", \
-     'ladder_A_dashpot-e0_7_0.dat' index 10 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 11 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 12 using 1:2 with lines lw 1.5 lc 2 title "ε' = 3.16e-06", \
-     'ladder_A_dashpot-e0_7_0.dat' index 13 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 14 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 15 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06", \
-     'ladder_A_dashpot-e0_7_0.dat' index 16 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 17 using 1:2 with lines lw 1 dt 2 lc 3 notitle
+plot 'ladder_A_dashpot-e0_7_0.dat' index 12 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-05", \
+     'ladder_A_dashpot-e0_7_0.dat' index 13 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 14 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 15 using 1:2 with lines lw 1.5 lc 2 title "ε' = 3.16e-06", \
+     'ladder_A_dashpot-e0_7_0.dat' index 16 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 17 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 18 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06", \
+     'ladder_A_dashpot-e0_7_0.dat' index 19 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 20 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 21 using 1:2 with lines lw 1.5 lc 4 title "ε' = 3.16e-07", \
+     'ladder_A_dashpot-e0_7_0.dat' index 22 using 1:2 with lines lw 1 dt 2 lc 4 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 23 using 1:2 with lines lw 1 dt 2 lc 4 notitle
 set title "peak φ (°)"
 set xlabel "strain rate ε'"
 set ylabel "peak φ (°)"
@@ -51,11 +57,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-set xrange [1.5e-05:6.66666667e-07]
-set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06)
-plot 'ladder_A_dashpot-e0_7_0.dat' index 18 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
-     'ladder_A_dashpot-e0_7_0.dat' index 19 using 1:2 with lines dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 20 using 1:2 with lines dt 2 lc 1 notitle
+set xrange [1.5e-05:2.10818667e-07]
+set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06, '3.16e-07' 3.16228e-07)
+plot 'ladder_A_dashpot-e0_7_0.dat' index 24 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
+     'ladder_A_dashpot-e0_7_0.dat' index 25 using 1:2 with lines dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 26 using 1:2 with lines dt 2 lc 1 notitle
 set title "εv at the last strain (%)"
 set xlabel "strain rate ε'"
 set ylabel "εv at the last strain (%)"
@@ -65,11 +71,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-set xrange [1.5e-05:6.66666667e-07]
-set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06)
-plot 'ladder_A_dashpot-e0_7_0.dat' index 21 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
-     'ladder_A_dashpot-e0_7_0.dat' index 22 using 1:2 with lines dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 23 using 1:2 with lines dt 2 lc 1 notitle
+set xrange [1.5e-05:2.10818667e-07]
+set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06, '3.16e-07' 3.16228e-07)
+plot 'ladder_A_dashpot-e0_7_0.dat' index 27 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
+     'ladder_A_dashpot-e0_7_0.dat' index 28 using 1:2 with lines dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 29 using 1:2 with lines dt 2 lc 1 notitle
 unset multiplot
 unset output
 set terminal pngcairo size 1100,820 noenhanced font 'DejaVu Sans,10' background '#ffffff'
@@ -95,7 +101,10 @@ plot 'ladder_A_dashpot-e0_7_0.dat' index 0 using 1:2 with lines lw 1.5 lc 1 titl
      'ladder_A_dashpot-e0_7_0.dat' index 5 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
      'ladder_A_dashpot-e0_7_0.dat' index 6 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06", \
      'ladder_A_dashpot-e0_7_0.dat' index 7 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 8 using 1:2 with lines lw 1 dt 2 lc 3 notitle
+     'ladder_A_dashpot-e0_7_0.dat' index 8 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 9 using 1:2 with lines lw 1.5 lc 4 title "ε' = 3.16e-07", \
+     'ladder_A_dashpot-e0_7_0.dat' index 10 using 1:2 with lines lw 1 dt 2 lc 4 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 11 using 1:2 with lines lw 1 dt 2 lc 4 notitle
 set title "εv"
 set xlabel "axial strain ε1 (%)"
 set ylabel "volumetric strain εv (%)"
@@ -105,15 +114,18 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-plot 'ladder_A_dashpot-e0_7_0.dat' index 9 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-05", \
-     'ladder_A_dashpot-e0_7_0.dat' index 10 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 11 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 12 using 1:2 with lines lw 1.5 lc 2 title "ε' = 3.16e-06", \
-     'ladder_A_dashpot-e0_7_0.dat' index 13 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 14 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 15 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06", \
-     'ladder_A_dashpot-e0_7_0.dat' index 16 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 17 using 1:2 with lines lw 1 dt 2 lc 3 notitle
+plot 'ladder_A_dashpot-e0_7_0.dat' index 12 using 1:2 with lines lw 1.5 lc 1 title "ε' = 1e-05", \
+     'ladder_A_dashpot-e0_7_0.dat' index 13 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 14 using 1:2 with lines lw 1 dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 15 using 1:2 with lines lw 1.5 lc 2 title "ε' = 3.16e-06", \
+     'ladder_A_dashpot-e0_7_0.dat' index 16 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 17 using 1:2 with lines lw 1 dt 2 lc 2 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 18 using 1:2 with lines lw 1.5 lc 3 title "ε' = 1e-06", \
+     'ladder_A_dashpot-e0_7_0.dat' index 19 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 20 using 1:2 with lines lw 1 dt 2 lc 3 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 21 using 1:2 with lines lw 1.5 lc 4 title "ε' = 3.16e-07", \
+     'ladder_A_dashpot-e0_7_0.dat' index 22 using 1:2 with lines lw 1 dt 2 lc 4 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 23 using 1:2 with lines lw 1 dt 2 lc 4 notitle
 set title "peak φ (°)"
 set xlabel "strain rate ε'"
 set ylabel "peak φ (°)"
@@ -123,11 +135,11 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-set xrange [1.5e-05:6.66666667e-07]
-set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06)
-plot 'ladder_A_dashpot-e0_7_0.dat' index 18 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
-     'ladder_A_dashpot-e0_7_0.dat' index 19 using 1:2 with lines dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 20 using 1:2 with lines dt 2 lc 1 notitle
+set xrange [1.5e-05:2.10818667e-07]
+set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06, '3.16e-07' 3.16228e-07)
+plot 'ladder_A_dashpot-e0_7_0.dat' index 24 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
+     'ladder_A_dashpot-e0_7_0.dat' index 25 using 1:2 with lines dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 26 using 1:2 with lines dt 2 lc 1 notitle
 set title "εv at the last strain (%)"
 set xlabel "strain rate ε'"
 set ylabel "εv at the last strain (%)"
@@ -137,10 +149,10 @@ unset logscale y
 set format y '%g'
 set autoscale
 set offsets graph 0.04, graph 0.04, graph 0.06, graph 0.06
-set xrange [1.5e-05:6.66666667e-07]
-set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06)
-plot 'ladder_A_dashpot-e0_7_0.dat' index 21 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
-     'ladder_A_dashpot-e0_7_0.dat' index 22 using 1:2 with lines dt 2 lc 1 notitle, \
-     'ladder_A_dashpot-e0_7_0.dat' index 23 using 1:2 with lines dt 2 lc 1 notitle
+set xrange [1.5e-05:2.10818667e-07]
+set xtics ('1e-05' 1e-05, '3.16e-06' 3.16228e-06, '1e-06' 1e-06, '3.16e-07' 3.16228e-07)
+plot 'ladder_A_dashpot-e0_7_0.dat' index 27 using 1:2 with linespoints pt 7 lw 1.5 lc 1 title "seed mean", \
+     'ladder_A_dashpot-e0_7_0.dat' index 28 using 1:2 with lines dt 2 lc 1 notitle, \
+     'ladder_A_dashpot-e0_7_0.dat' index 29 using 1:2 with lines dt 2 lc 1 notitle
 unset multiplot
 unset output
