@@ -210,6 +210,25 @@ def write_contacts(path):
     os.replace(tmp, path)
 
 
+def write_state(d):
+    """The state before a step, for qsdem_peer_step: positions with the cell they belong to (YADE
+    integrates the cell at the start of the next step, so the positions are those of
+    (I + dt L) hSize), contacts and velocities, in directory d."""
+    os.makedirs(d, exist_ok=True)
+    write_packing(os.path.join(d, "packing"), next_cell())
+    write_contacts(os.path.join(d, "contacts.txt"))
+    write_motion(os.path.join(d, "motion.txt"))
+
+
+def peer_step_command(tool, case, alpha, mu, state, gradient, steps, out, *extra):
+    """qsdem_peer_step (`tool`) on the state write_state put in `state`: local damping alpha and
+    friction mu on CASE, the velocity gradient `gradient` (9 numbers), `steps` steps, into `out`."""
+    return [tool, "--case", case, "--set", "damping.model=local", "--set", f"damping.ratio={alpha!r}",
+            "--set", f"triaxial.friction={mu!r}", "--packing", os.path.join(state, "packing"),
+            "--contacts", os.path.join(state, "contacts.txt"), "--motion", os.path.join(state, "motion.txt"),
+            "--velocity-gradient", gradient, "--steps", str(steps), *extra, "--out", out]
+
+
 def write_json(path, obj):
     tmp = path + ".tmp"
     with open(tmp, "w") as f:

@@ -51,10 +51,7 @@ newton.damping = alpha
 O.cell.velGrad = Matrix3.Zero
 O.run(warmup, True)
 before = os.path.join(out, "before")
-os.makedirs(before, exist_ok=True)
-peer.write_packing(os.path.join(before, "packing"), peer.next_cell())
-peer.write_contacts(os.path.join(before, "contacts.txt"))
-peer.write_motion(os.path.join(before, "motion.txt"))
+peer.write_state(before)
 saved = os.path.join(out, "before.yade.gz")
 O.save(saved)
 
@@ -87,11 +84,8 @@ def yade_run(target, k):
 
 
 def qsdem_run(target, k, d):
-    cmd = [tool, "--case", case, "--set", "damping.model=local", "--set", f"damping.ratio={alpha!r}",
-           "--set", f"triaxial.friction={mu!r}", "--packing", os.path.join(before, "packing"),
-           "--contacts", os.path.join(before, "contacts.txt"), "--motion", os.path.join(before, "motion.txt"),
-           "--velocity-gradient", "0 0 0 0 0 0 0 0 0", "--steps", str(k), "--servo", f"{target!r} {cap!r}",
-           "--out", d]
+    cmd = peer.peer_step_command(tool, case, alpha, mu, before, "0 0 0 0 0 0 0 0 0", k, d,
+                                 "--servo", f"{target!r} {cap!r}")
     done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     if done.returncode != 0:
         raise SystemExit(f"qsdem_peer_step failed ({done.returncode}): {' '.join(cmd)}\n{done.stdout}")

@@ -47,18 +47,8 @@ O.cell.velGrad = L
 O.run(warmup, True)
 
 
-def write_state(d):
-    """The state before a step: positions with the cell they belong to (YADE integrates the cell
-    at the start of the next step, so the positions are those of (I + dt L) hSize), contacts and
-    velocities."""
-    os.makedirs(d, exist_ok=True)
-    peer.write_packing(os.path.join(d, "packing"), peer.next_cell())
-    peer.write_contacts(os.path.join(d, "contacts.txt"))
-    peer.write_motion(os.path.join(d, "motion.txt"))
-
-
 before = os.path.join(out, "before")
-write_state(before)
+peer.write_state(before)
 O.run(steps, True)
 # YADE after the K steps: the contacts of the K-th force evaluation, the velocities after its kick.
 yade_forces = {}
@@ -107,10 +97,7 @@ for b in O.bodies:
     yade_motion.append(([fluct[k] for k in range(3)], [w[k] for k in range(3)]))
 
 qsdem_out = os.path.join(out, "qsdem")
-cmd = [tool, "--case", case, "--set", f"damping.model=local", "--set", f"damping.ratio={alpha!r}",
-       "--set", f"triaxial.friction={mu!r}", "--packing", os.path.join(before, "packing"),
-       "--contacts", os.path.join(before, "contacts.txt"), "--motion", os.path.join(before, "motion.txt"),
-       "--velocity-gradient", peer.velocity_gradient(), "--steps", str(steps), "--out", qsdem_out]
+cmd = peer.peer_step_command(tool, case, alpha, mu, before, peer.velocity_gradient(), steps, qsdem_out)
 done = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 if done.returncode != 0:
     raise SystemExit(f"qsdem_peer_step failed ({done.returncode}): {' '.join(cmd)}\n{done.stdout}")
@@ -154,7 +141,7 @@ def rms(xs):
 
 
 def read_before():
-    """The state the step started from, as written by write_state."""
+    """The state the step started from, as written by peer.write_state."""
     lines = [l.split() for l in open(os.path.join(before, "packing")) if not l.startswith("#")]
     h = [float(x) for x in lines[1][1:10]]
     body = [[float(x) for x in w] for w in lines[3:]]
