@@ -1101,13 +1101,8 @@ std::string pick_text(const Study& s, const StudyStage& st) {
 std::string growth_refusal(const Study& held, const Study& grown) {
   if (held.name != grown.name) return fmt::format("its name was '{}' and is now '{}'", held.name, grown.name);
   // The analysis' settings are the decision the study was designed with: growing keeps them.
-  const nlohmann::ordered_json a = to_json(held.analysis), b = to_json(grown.analysis);
-  for (const auto* side : {&a, &b})
-    for (const auto& item : side->items()) {
-      const std::string& key = item.key();
-      const auto then = a.value(key, nlohmann::ordered_json()), now = b.value(key, nlohmann::ordered_json());
-      if (then != now) return fmt::format("its analysis.{} was {} and is now {}", key, then.dump(), now.dump());
-    }
+  if (const std::string c = json_change(to_json(held.analysis), to_json(grown.analysis), "analysis"); !c.empty())
+    return "its " + c;
   for (const StudyStage& st : held.stages) {
     if (st.pick.empty()) continue;
     const auto g = std::find_if(grown.stages.begin(), grown.stages.end(),
