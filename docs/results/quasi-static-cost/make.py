@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
 """The tables of docs/results/quasi-static-cost.md, from committed files.
 
-  python3 docs/results/quasi-static-cost/make.py collect runs/qs-cost
+  python3 docs/results/quasi-static-cost/make.py collect runs/qs-cost [A]
       copies each finished run's summary.json and series.csv (and each sample's summary.json and
-      compaction.csv) of run.sh's directory to docs/results/quasi-static-cost/runs/;
-  python3 docs/results/quasi-static-cost/make.py
-      reads that copy and the references in ../quasi-static-limit/small-B-seeds/runs/, checks
-      that the reference ladder's certificate is reproduced (convergence.csv), and writes
-      tables.md and cost.csv.
+      compaction.csv) of run.sh's directory to docs/results/quasi-static-cost/runs/ (Sample A's:
+      runs-A/);
+  python3 docs/results/quasi-static-cost/make.py [A]
+      reads that copy and the references in ../quasi-static-limit/small-B-seeds/runs/ (A's:
+      ../quasi-static-limit/A/runs/), checks that the reference ladder's change is reproduced
+      (convergence.csv), and writes tables.md and cost.csv (A's: tables-A.md, cost-A.csv).
 
 The error of a method against a reference is docs/analysis.md 11's change between two rungs, with
 the method in place of the faster rung (src/qsdem/study/convergence.cpp, `change`, computed the
@@ -21,15 +22,52 @@ import shutil
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-RUNS = os.path.join(HERE, "runs")
-LIMIT = os.path.join(HERE, "..", "quasi-static-limit", "small-B-seeds")
-SEEDS = [1, 2, 3, 4, 5, 6]
 PHI_TOL, EV_TOL = 0.5, 0.001  # the certificate's tolerances (analysis.md 11), fixed before the runs
 SLACK = 1e-9  # a strain this close to a curve's end is on it (study_analysis.cpp)
-PAPER_STEPS_KEY = "nd 0.40 % at 1e-6"
+
+# Each sample's study: where its runs and reference ladders are, its seeds, nd's ratio directory,
+# its references (name: (model, xi directory, rate, title)), its ladders' rates, its new methods.
+SAMPLES = {
+    "B-small": {
+        "runs": "runs", "limit": os.path.join("..", "quasi-static-limit", "small-B-seeds"), "seeds": [1, 2, 3, 4, 5, 6],
+        "nd_xi": "xi-0.4%", "nd_text": "nd 0.40 %", "tables": "tables.md", "cost": "cost.csv",
+        "refs": {"L_nd": ("nd", "xi-0.4%", "3.16228e-07", "L_nd (nd 0.40 % at 3.16e-7)"),
+                 "L_c": ("none", "xi-0%", "1e-06", "L_c (undamped at 1e-6)")},
+        "nd_rates": ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"), "none_rates": ("1e-05", "3.16228e-06", "1e-06"),
+        "paper": "nd-1e-06", "wall_note": "small-B-seeds study (energy ledger on, another load of the machine)",
+        "new": [("nd-scaled-1e-06", "nd, inertia scaled, at 1e-6"),
+                ("nd-scaled-3.16e-06", "nd, inertia scaled, at 3.16e-6"),
+                ("none-scaled-1e-05", "undamped, inertia scaled, at 1e-5"),
+                ("nd-control-imom-1%", "nd, rate controller, IMom 1 %"),
+                ("nd-control-imom-0.3%", "nd, rate controller, IMom 0.3 %"),
+                ("fire-0.1%", "FIRE, increments of 0.1 %"),
+                ("fire-0.05%", "FIRE, increments of 0.05 %"),
+                ("fire-0.02%", "FIRE, increments of 0.02 %"),
+                ("fire-0.05%-scaled", "FIRE 0.05 %, inertia scaled")],
+        "scaled_pairs": [],
+    },
+    "A": {
+        "runs": "runs-A", "limit": os.path.join("..", "quasi-static-limit", "A"), "seeds": [1, 2, 3],
+        "nd_xi": "xi-0.51%", "nd_text": "nd 0.51 %", "tables": "tables-A.md", "cost": "cost-A.csv",
+        "refs": {"S_nd": ("nd", "xi-0.51%", "3.16228e-07", "S_nd (nd 0.51 % at 3.16e-7, not certified)"),
+                 "S_c": ("none", "xi-0%", "3.16228e-07", "S_c (undamped at 3.16e-7, not certified)")},
+        "nd_rates": ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"),
+        "none_rates": ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"),
+        "paper": "nd-1e-06", "wall_note": "quasi-static-limit/A study (another load of the machine)",
+        "new": [(f"{m}-scaled-{r}", f"{t}, inertia scaled, at {float(r):.3g}")
+                for r in ("1e-6", "3.16228e-7", "1e-7") for m, t in (("nd", "nd"), ("none", "undamped"))]
+               + [("nd-scaled-3.16228e-8", "nd, inertia scaled, at 3.16e-8"),
+                  ("fire-0.05%", "FIRE, increments of 0.05 %"),
+                  ("fire-0.02%", "FIRE, increments of 0.02 %")],
+        # (scaled run, the unscaled ladder's model, xi directory and rate): decision 1
+        "scaled_pairs": [(f"{m}-scaled-{r}", m, xi, lr) for r, lr in (("1e-6", "1e-06"), ("3.16228e-7", "3.16228e-07"))
+                         for m, xi in (("nd", "xi-0.51%"), ("none", "xi-0%"))],
+    },
+}
 
 
-def collect(src):
+def collect(src, cfg):
+    RUNS = os.path.join(HERE, cfg["runs"])
     if os.path.exists(RUNS):
         shutil.rmtree(RUNS)
     for label in sorted(os.listdir(src)):
@@ -117,35 +155,27 @@ def summary(directory):
         return json.load(f)
 
 
-def ladder_dir(seed, model, xi, rate):
-    return os.path.join(LIMIT, "runs", f"B-small-seed{seed}", model, xi, f"rate-{rate}")
+def ladder_dir(cfg, seed, model, xi, rate):
+    return os.path.join(HERE, cfg["limit"], "runs", f"{cfg['name']}-seed{seed}", model, xi, f"rate-{rate}")
 
 
-def methods():
+def methods(cfg):
     """(label, description, [run directory per seed]) in the design's order."""
     m = []
-    for rate in ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"):
-        m.append((f"nd-{rate}", f"nd 0.40 % at {float(rate):.3g}", [ladder_dir(s, "nd", "xi-0.4%", rate) for s in SEEDS]))
-    for rate in ("1e-05", "3.16228e-06", "1e-06"):
-        m.append((f"none-{rate}", f"undamped at {float(rate):.3g}", [ladder_dir(s, "none", "xi-0%", rate) for s in SEEDS]))
-    new = [("nd-scaled-1e-06", "nd, inertia scaled, at 1e-6"),
-           ("nd-scaled-3.16e-06", "nd, inertia scaled, at 3.16e-6"),
-           ("none-scaled-1e-05", "undamped, inertia scaled, at 1e-5"),
-           ("nd-control-imom-1%", "nd, rate controller, IMom 1 %"),
-           ("nd-control-imom-0.3%", "nd, rate controller, IMom 0.3 %"),
-           ("fire-0.1%", "FIRE, increments of 0.1 %"),
-           ("fire-0.05%", "FIRE, increments of 0.05 %"),
-           ("fire-0.02%", "FIRE, increments of 0.02 %"),
-           ("fire-0.05%-scaled", "FIRE 0.05 %, inertia scaled")]
-    for label, text in new:
-        m.append((label, text, [os.path.join(RUNS, label, f"B-small-seed{s}") for s in SEEDS]))
+    for rate in cfg["nd_rates"]:
+        m.append((f"nd-{rate}", f"{cfg['nd_text']} at {float(rate):.3g}",
+                  [ladder_dir(cfg, s, "nd", cfg["nd_xi"], rate) for s in cfg["seeds"]]))
+    for rate in cfg["none_rates"]:
+        m.append((f"none-{rate}", f"undamped at {float(rate):.3g}", [ladder_dir(cfg, s, "none", "xi-0%", rate) for s in cfg["seeds"]]))
+    for label, text in cfg["new"]:
+        m.append((label, text, [os.path.join(HERE, cfg["runs"], label, f"{cfg['name']}-seed{s}") for s in cfg["seeds"]]))
     return m
 
 
-def check_reference_certificate(nd_runs, nd_ref, grid):
+def check_reference_certificate(cfg, nd_runs, nd_ref, grid):
     """The nd ladder's change 1e-6 -> 3.16e-7 must equal convergence.csv's (this script's change
     against the engine's)."""
-    with open(os.path.join(LIMIT, "analysis", "convergence.csv")) as f:
+    with open(os.path.join(HERE, cfg["limit"], "analysis", "convergence.csv")) as f:
         row = next(r for r in csv.DictReader(f) if r["model"] == "nd" and r["rate"] == "1e-06")
     phi = change(nd_runs, nd_ref, 1, grid)
     ev = change(nd_runs, nd_ref, 2, grid)
@@ -158,12 +188,12 @@ def check_reference_certificate(nd_runs, nd_ref, grid):
     return got
 
 
-def check_run_start():
+def check_run_start(cfg):
     """check-nd-1e-05: the committed rung run again from this study's samples, byte for byte."""
     same = []
-    for s in SEEDS:
-        a = os.path.join(RUNS, "check-nd-1e-05", f"B-small-seed{s}", "series.csv")
-        b = os.path.join(ladder_dir(s, "nd", "xi-0.4%", "1e-05"), "series.csv")
+    for s in cfg["seeds"]:
+        a = os.path.join(HERE, cfg["runs"], "check-nd-1e-05", f"{cfg['name']}-seed{s}", "series.csv")
+        b = os.path.join(ladder_dir(cfg, s, "nd", cfg["nd_xi"], "1e-05"), "series.csv")
         if os.path.exists(a):
             same.append(open(a, "rb").read() == open(b, "rb").read())
     return same
@@ -173,15 +203,17 @@ def fmt(x, digits=2):
     return "—" if not math.isfinite(x) else f"{x:.{digits}f}"
 
 
-def main():
-    refs = {"L_nd": [curve(ladder_dir(s, "nd", "xi-0.4%", "3.16228e-07")) for s in SEEDS],
-            "L_c": [curve(ladder_dir(s, "none", "xi-0%", "1e-06")) for s in SEEDS]}
+def main(cfg):
+    seeds = cfg["seeds"]
+    refs = {k: [curve(ladder_dir(cfg, s, model, xi, rate)) for s in seeds] for k, (model, xi, rate, _) in cfg["refs"].items()}
+    nd_ref = next(iter(refs))
     grids = {k: [p[0] for p in v[0]] for k, v in refs.items()}
-    checked = check_reference_certificate([curve(ladder_dir(s, "nd", "xi-0.4%", "1e-06")) for s in SEEDS],
-                                          refs["L_nd"], grids["L_nd"])
-    same = check_run_start()
+    checked = check_reference_certificate(cfg, [curve(ladder_dir(cfg, s, "nd", cfg["nd_xi"], "1e-06")) for s in seeds],
+                                          [curve(ladder_dir(cfg, s, "nd", cfg["nd_xi"], "3.16228e-07")) for s in seeds],
+                                          grids[nd_ref])
+    same = check_run_start(cfg)
     rows = []
-    for label, text, dirs in methods():
+    for label, text, dirs in methods(cfg):
         if not all(os.path.exists(os.path.join(d, "summary.json")) for d in dirs):
             rows.append({"label": label, "method": text, "finished": sum(os.path.exists(os.path.join(d, "summary.json")) for d in dirs)})
             continue
@@ -203,7 +235,7 @@ def main():
         row["ev_end"] = mean_se([c[-1][2] for c in curves])
         rows.append(row)
 
-    paper = next(r for r in rows if r["label"] == "nd-1e-06")["steps"]
+    paper = next(r for r in rows if r["label"] == cfg["paper"])["steps"]
     out = ["<!-- written by docs/results/quasi-static-cost/make.py from the committed runs; do not edit -->", ""]
     out.append("Check of this script against the engine: the nd ladder's change 1e-6 → 3.16e-7, "
                f"φ {checked[0]:.4f}° (standard error {checked[1]:.4f}°, beyond the noise {checked[2]:.4f}°), "
@@ -211,33 +243,33 @@ def main():
                "convergence.csv's to 1e-8.")
     out.append("")
     out.append("Wall times: one thread a run, two runs at a time. The rows of the committed ladders (nd and undamped "
-               "at constant rate) come from the small-B-seeds study (energy ledger on, another load of the machine); "
+               f"at constant rate) come from the {cfg['wall_note']}; "
                "compare their steps, not their wall times, with the other rows.")
     out.append("")
     out.append(f"Start check: `check-nd-1e-05` equals the committed rung byte for byte on {sum(same)} of {len(same)} seeds.")
     out.append("")
-    for name, title in (("L_nd", "against L_nd (nd 0.40 % at 3.16e-7)"), ("L_c", "against L_c (undamped at 1e-6)")):
-        out.append(f"### Error {title}")
+    for name, (_, _, _, title) in cfg["refs"].items():
+        out.append(f"### Error against {title}")
         out.append("")
         out.append("| method | force evaluations per run | / paper's method | wall per run (s) | Δφ beyond the noise ± s.e. (°) | Δεv beyond the noise ± s.e. (%) | Δεv at 10 % (%) | within |")
         out.append("| --- | ---: | ---: | ---: | --- | --- | --- | --- |")
         for r in rows:
             if "steps" not in r:
-                out.append(f"| {r['method']} | {r['finished']} of 6 seeds finished | | | | | | |")
+                out.append(f"| {r['method']} | {r['finished']} of {len(seeds)} seeds finished | | | | | | |")
                 continue
             e = r[name]
             out.append(f"| {r['method']} | {r['steps']:,.0f} | {paper / r['steps']:.2f}× fewer | {r['wall_s']:.1f} | "
                        f"{fmt(e['phi'][2])} ± {fmt(e['phi'][1])} | {fmt(100 * e['ev'][2], 3)} ± {fmt(100 * e['ev'][1], 3)} | "
                        f"{100 * e['ev_end'][0]:+.2f} ± {100 * e['ev_end'][1]:.2f} | {'**yes**' if e['within'] else 'no'} |")
         out.append("")
-    out.append("### The nd runs against the constant-rate curve of the same cost (L_nd)")
+    out.append(f"### The nd runs against the constant-rate curve of the same cost ({nd_ref})")
     out.append("")
     out.append("The constant-rate nd ladder's error beyond the noise, interpolated linearly in log(steps) "
                "between its rungs at each method's steps, beside the method's own.")
     out.append("")
     out.append("| method | force evaluations | Δφ (°): method, constant rate | Δεv (%): method, constant rate |")
     out.append("| --- | ---: | --- | --- |")
-    ladder = sorted((r["steps"], r["L_nd"]["phi"][2], r["L_nd"]["ev"][2]) for r in rows
+    ladder = sorted((r["steps"], r[nd_ref]["phi"][2], r[nd_ref]["ev"][2]) for r in rows
                     if r["label"] in ("nd-1e-05", "nd-3.16228e-06", "nd-1e-06"))
 
     def on_ladder(steps, k):
@@ -248,8 +280,8 @@ def main():
         return math.nan
 
     for r in rows:
-        if r["label"].startswith("nd-") and "steps" in r and r["label"] not in ("nd-1e-05", "nd-3.16228e-06", "nd-1e-06", "nd-3.16228e-07"):
-            e = r["L_nd"]
+        if r["label"].startswith("nd-") and "steps" in r and r["label"] in dict(cfg["new"]):
+            e = r[nd_ref]
             out.append(f"| {r['method']} | {r['steps']:,.0f} | {fmt(e['phi'][2])}, {fmt(on_ladder(r['steps'], 0))} | "
                        f"{fmt(100 * e['ev'][2], 3)}, {fmt(100 * on_ladder(r['steps'], 1), 3)} |")
     out.append("")
@@ -259,7 +291,7 @@ def main():
     out.append("")
     out.append("| increments | Δφ beyond the noise ± s.e. (°) | Δεv beyond the noise ± s.e. (%) |")
     out.append("| --- | --- | --- |")
-    fire = {r["label"]: [curve(d) for d in dirs] for r, (_, _, dirs) in zip(rows, methods())
+    fire = {r["label"]: [curve(d) for d in dirs] for r, (_, _, dirs) in zip(rows, methods(cfg))
             if r["label"].startswith("fire-") and "steps" in r}
     for a, b in (("fire-0.1%", "fire-0.05%"), ("fire-0.05%", "fire-0.02%"), ("fire-0.1%", "fire-0.02%")):
         if a in fire and b in fire:
@@ -267,20 +299,20 @@ def main():
             phi, ev = change(fire[a], fire[b], 1, g), change(fire[a], fire[b], 2, g)
             out.append(f"| {a[5:]} → {b[5:]} | {fmt(phi[2])} ± {fmt(phi[1])} | {fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} |")
     out.append("")
-    out.append("### Where along the strain the rate acts (nd, against L_nd)")
+    out.append(f"### Where along the strain the rate acts (nd, against {nd_ref})")
     out.append("")
-    out.append("The change of the constant-rate nd runs from L_nd over windows of axial strain (the same "
+    out.append(f"The change of the constant-rate nd runs from {nd_ref} over windows of axial strain (the same "
                "computation on the grid points in each window): beyond the noise ± standard error.")
     out.append("")
     windows = [(0, 0.005), (0.005, 0.01), (0.01, 0.02), (0.02, 0.04), (0.04, 0.07), (0.07, 0.1 + SLACK)]
     out.append("| rate | " + " | ".join(f"ε1 {100 * lo:g}-{100 * min(hi, 0.1):g} %: Δφ (°), Δεv (%)" for lo, hi in windows) + " |")
     out.append("| --- |" + " --- |" * len(windows))
     for rate in ("1e-05", "3.16228e-06", "1e-06"):
-        runs = [curve(ladder_dir(s, "nd", "xi-0.4%", rate)) for s in SEEDS]
+        runs = [curve(ladder_dir(cfg, s, "nd", cfg["nd_xi"], rate)) for s in seeds]
         cells = []
         for lo, hi in windows:
-            g = [x for x in grids["L_nd"] if lo <= x < hi]
-            phi, ev = change(runs, refs["L_nd"], 1, g), change(runs, refs["L_nd"], 2, g)
+            g = [x for x in grids[nd_ref] if lo <= x < hi]
+            phi, ev = change(runs, refs[nd_ref], 1, g), change(runs, refs[nd_ref], 2, g)
             cells.append(f"{phi[2]:.2f} ± {phi[1]:.2f}, {100 * ev[2]:.3f} ± {100 * ev[1]:.3f}")
         out.append(f"| {float(rate):.3g} | " + " | ".join(cells) + " |")
     out.append("")
@@ -293,9 +325,36 @@ def main():
             out.append(f"| {r['method']} | {r['peak_phi'][0]:.2f} ± {r['peak_phi'][1]:.2f} | "
                        f"{100 * r['ev_end'][0]:+.2f} ± {100 * r['ev_end'][1]:.2f} | {r['builds']} |")
     out.append("")
-    with open(os.path.join(HERE, "tables.md"), "w") as f:
+    if cfg["scaled_pairs"]:
+        out.append("### Inertia scaling against the unscaled run at the same rate")
+        out.append("")
+        out.append("Seed-paired change of the scaled run from the unscaled ladder's run of the same model and rate "
+                   "(its first seed's strains as the grid): decision 1 of the design.")
+        out.append("")
+        out.append("| scaled run | force evaluations: scaled, unscaled | Δφ beyond the noise ± s.e. (°) | "
+                   "Δεv beyond the noise ± s.e. (%) | Δεv at 10 % (%) | within |")
+        out.append("| --- | --- | --- | --- | --- | --- |")
+        for label, model, xi, rate in cfg["scaled_pairs"]:
+            r = next(x for x in rows if x["label"] == label)
+            if "steps" not in r:
+                out.append(f"| {r['method']} | {r['finished']} of {len(seeds)} seeds finished | | | | |")
+                continue
+            dirs = dict((m[0], m[2]) for m in methods(cfg))[label]
+            runs = [curve(d) for d in dirs]
+            base_dirs = [ladder_dir(cfg, s, model, xi, rate) for s in seeds]
+            base = [curve(d) for d in base_dirs]
+            base_steps = sum(summary(d)["steps"] for d in base_dirs) / len(base_dirs)
+            g = [p[0] for p in base[0]]
+            phi, ev = change(runs, base, 1, g), change(runs, base, 2, g)
+            end = mean_se([at(c, min(c[-1][0], b[-1][0]), 2) - at(b, min(c[-1][0], b[-1][0]), 2) for c, b in zip(runs, base)])
+            within = phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
+            out.append(f"| {r['method']} | {r['steps']:,.0f}, {base_steps:,.0f} | {fmt(phi[2])} ± {fmt(phi[1])} | "
+                       f"{fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} | {100 * end[0]:+.2f} ± {100 * end[1]:.2f} | "
+                       f"{'**yes**' if within else 'no'} |")
+        out.append("")
+    with open(os.path.join(HERE, cfg["tables"]), "w") as f:
         f.write("\n".join(out))
-    with open(os.path.join(HERE, "cost.csv"), "w", newline="") as f:
+    with open(os.path.join(HERE, cfg["cost"]), "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(["method", "label", "steps_per_run", "wall_s_per_run", "reference", "phi_rms_deg", "phi_error_deg",
                     "phi_excess_deg", "ev_rms", "ev_error", "ev_excess", "ev_end_diff", "ev_end_diff_error", "within"])
@@ -310,7 +369,12 @@ def main():
 
 
 if __name__ == "__main__":
-    if len(sys.argv) >= 3 and sys.argv[1] == "collect":
-        collect(sys.argv[2])
+    collecting = len(sys.argv) >= 3 and sys.argv[1] == "collect"
+    name = (sys.argv[3] if len(sys.argv) >= 4 else "B-small") if collecting else (sys.argv[1] if len(sys.argv) >= 2 else "B-small")
+    if name not in SAMPLES:
+        sys.exit(f"make.py: the sample is one of {', '.join(SAMPLES)}, not '{name}'")
+    config = dict(SAMPLES[name], name=name)
+    if collecting:
+        collect(sys.argv[2], config)
     else:
-        main()
+        main(config)
