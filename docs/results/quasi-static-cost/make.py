@@ -264,13 +264,14 @@ def main(cfg):
         out.append("")
     out.append(f"### The nd runs against the constant-rate curve of the same cost ({nd_ref})")
     out.append("")
-    out.append("The constant-rate nd ladder's error beyond the noise, interpolated linearly in log(steps) "
-               "between its rungs at each method's steps, beside the method's own.")
+    out.append("The constant-rate nd ladder's error beyond the noise and its standard error, interpolated linearly in "
+               "log(steps) between its rungs at each method's steps, beside the method's own; \"lower\" when the "
+               "method's error is below the ladder's by more than the two standard errors together.")
     out.append("")
-    out.append("| method | force evaluations | Δφ (°): method, constant rate | Δεv (%): method, constant rate |")
-    out.append("| --- | ---: | --- | --- |")
-    ladder = sorted((r["steps"], r[nd_ref]["phi"][2], r[nd_ref]["ev"][2]) for r in rows
-                    if r["label"] in ("nd-1e-05", "nd-3.16228e-06", "nd-1e-06"))
+    out.append("| method | force evaluations | Δφ (°): method, constant rate | Δεv (%): method, constant rate | lower |")
+    out.append("| --- | ---: | --- | --- | --- |")
+    ladder = sorted((r["steps"], r[nd_ref]["phi"][2], r[nd_ref]["ev"][2], r[nd_ref]["phi"][1], r[nd_ref]["ev"][1])
+                    for r in rows if r["label"] in ("nd-1e-05", "nd-3.16228e-06", "nd-1e-06"))
 
     def on_ladder(steps, k):
         for (s0, *y0), (s1, *y1) in zip(ladder, ladder[1:]):
@@ -279,11 +280,19 @@ def main(cfg):
                 return y0[k] + t * (y1[k] - y0[k])
         return math.nan
 
+    def lower(e, steps, k):
+        own, own_se = e["phi" if k == 0 else "ev"][2], e["phi" if k == 0 else "ev"][1]
+        return own + own_se + on_ladder(steps, k + 2) < on_ladder(steps, k)
+
     for r in rows:
         if r["label"].startswith("nd-") and "steps" in r and r["label"] in dict(cfg["new"]):
             e = r[nd_ref]
-            out.append(f"| {r['method']} | {r['steps']:,.0f} | {fmt(e['phi'][2])}, {fmt(on_ladder(r['steps'], 0))} | "
-                       f"{fmt(100 * e['ev'][2], 3)}, {fmt(100 * on_ladder(r['steps'], 1), 3)} |")
+            verdict = "—" if not math.isfinite(on_ladder(r["steps"], 0)) else \
+                ", ".join(f"{name} {'yes' if lower(e, r['steps'], k) else 'no'}" for k, name in ((0, "φ"), (1, "εv")))
+            out.append(f"| {r['method']} | {r['steps']:,.0f} | {fmt(e['phi'][2])} ± {fmt(e['phi'][1])}, "
+                       f"{fmt(on_ladder(r['steps'], 0))} ± {fmt(on_ladder(r['steps'], 2))} | "
+                       f"{fmt(100 * e['ev'][2], 3)} ± {fmt(100 * e['ev'][1], 3)}, {fmt(100 * on_ladder(r['steps'], 1), 3)} ± "
+                       f"{fmt(100 * on_ladder(r['steps'], 3), 3)} | {verdict} |")
     out.append("")
     out.append("### FIRE against itself: the change between increments")
     out.append("")
