@@ -2,10 +2,12 @@
 # The runs of docs/results/quasi-static-cost.md, on one sample:
 #   B-small: paper-B-small, seeds 1-6 (the samples of quasi-static-limit/small-B-seeds: the same
 #            compaction.csv, byte for byte);
-#   A:       paper-A (8000 spheroids), seeds 1-3 (the samples of quasi-static-limit/A).
+#   A:       paper-A (8000 spheroids), seeds 1-3 (the samples of quasi-static-limit/A);
+#   A-small: paper-A-small (2001 spheroids), seeds 1-3 (the samples of quasi-static-limit/small:
+#            the same compaction.csv in every column that file has).
 # Each method runs on the samples that `qsdem prepare` makes of the sample's case. Run from the
 # repository's root:
-#   bash docs/results/quasi-static-cost/run.sh [OUT] [SAMPLE]     (OUT: runs/qs-cost; SAMPLE: B-small)
+#   bash docs/results/quasi-static-cost/run.sh [OUT] [SAMPLE]     (OUT: runs/qs-cost; SAMPLE: B-small, A or A-small)
 # QSDEM names the binary (build/qsdem); JOBS runs at a time (2), one thread each; SAMPLES a
 # directory of prepared samples to use instead (SAMPLES/<sample>-seed<s>). A finished run (its
 # summary.json) is kept, so running it again continues.
@@ -34,20 +36,21 @@ B-small)
     echo "fire-0.02%|$FIRE|phase.1.solver.strain_increment=0.0002"
     echo "fire-0.05%-scaled|$FIRE|phase.1.solver.strain_increment=0.0005 phase.1.inertia_scaling.target=coarsest"
   } ;;
-A)
-  CASE=examples/paper-A.toml SEEDS="1 2 3"
+A | A-small)
+  CASE=examples/paper-$SAMPLE.toml SEEDS="1 2 3"
   methods() {
-    # a committed rung run again from these samples: its series.csv must equal quasi-static-limit/A's bytes
+    # a committed rung run again from these samples: its series.csv must equal quasi-static-limit/A's
+    # (small's: in every column that file has)
     echo "check-nd-1e-05|$CASE|damping.model=nd damping.ratio=0.0051 triaxial.strain_rate=1e-5"
     for r in 1e-6 3.16228e-7 1e-7; do
       echo "nd-scaled-$r|$CASE|damping.model=nd damping.ratio=0.0051 triaxial.strain_rate=$r triaxial.inertia_scaling.target=coarsest"
       echo "none-scaled-$r|$CASE|damping.model=none triaxial.strain_rate=$r triaxial.inertia_scaling.target=coarsest"
     done
-    echo "fire-0.05%|$FIRE|name=paper-A-fire phase.1.solver.strain_increment=0.0005"
-    echo "fire-0.02%|$FIRE|name=paper-A-fire phase.1.solver.strain_increment=0.0002"
+    echo "fire-0.05%|$FIRE|name=paper-$SAMPLE-fire phase.1.solver.strain_increment=0.0005"
+    echo "fire-0.02%|$FIRE|name=paper-$SAMPLE-fire phase.1.solver.strain_increment=0.0002"
     echo "nd-scaled-3.16228e-8|$CASE|damping.model=nd damping.ratio=0.0051 triaxial.strain_rate=3.16228e-8 triaxial.inertia_scaling.target=coarsest"
   } ;;
-*) echo "run.sh: SAMPLE is B-small or A, not '$SAMPLE'" >&2; exit 2 ;;
+*) echo "run.sh: SAMPLE is B-small, A or A-small, not '$SAMPLE'" >&2; exit 2 ;;
 esac
 mkdir -p "$OUT/samples"
 
