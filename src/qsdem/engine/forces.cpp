@@ -683,15 +683,19 @@ void gather_contact_stiffness(const PairList& pairs, const Schedule& schedule, S
     }
 }
 
-std::vector<Vec3> contact_forces_by_pair(const State& state) {
-  const PairList& pairs = state.pairs;
-  std::vector<Vec3> by_pair(pairs.size(), Vec3::Zero());
+ContactForceByPair::ContactForceByPair(const State& state)
+    : slot_(state.pairs.size(), none), force_(state.pairs.contact_force.data()) {
   // The contact slots are those of the last force evaluation: on a list built since, they are stale.
   if (!state.blocks.empty() && state.contacts_build != state.neighbor.builds)
-    throw std::logic_error("contact_forces_by_pair: the pair list changed since the last force evaluation");
+    throw std::logic_error("contact forces by pair: the pair list changed since the last force evaluation");
   for (const ForceBlock& b : state.blocks)
-    for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m)
-      by_pair[pairs.contact_pairs[m]] = pairs.contact_force[m];
+    for (std::uint32_t m = b.first_contact; m < b.first_contact + b.contacts; ++m) slot_[state.pairs.contact_pairs[m]] = m;
+}
+
+std::vector<Vec3> contact_forces_by_pair(const State& state) {
+  const ContactForceByPair force(state);
+  std::vector<Vec3> by_pair(state.pairs.size());
+  for (std::size_t k = 0; k < by_pair.size(); ++k) by_pair[k] = force[k];
   return by_pair;
 }
 

@@ -17,7 +17,21 @@ namespace qsdem {
 void compute_contact_forces(const Model& model, State& state, Schedule& schedule);
 
 // The contact forces on the j ends of the last evaluation by pair (PairList keeps them by
-// contact), zero for a pair that is not a contact. For measures and checks; it allocates.
+// contact), zero for a pair that is not a contact: each pair's slot in PairList::contact_force,
+// 4 bytes a pair where a copy of the forces would take 24. For measures and checks; it allocates.
+class ContactForceByPair {
+ public:
+  explicit ContactForceByPair(const State& state);
+  static constexpr std::uint32_t none = ~0u;  // the pair is not a contact
+  std::uint32_t slot(std::size_t k) const { return slot_[k]; }
+  Vec3 operator[](std::size_t k) const { return slot_[k] == none ? Vec3(Vec3::Zero()) : force_[slot_[k]]; }
+
+ private:
+  std::vector<std::uint32_t> slot_;
+  const Vec3* force_;
+};
+
+// The same as a copy, one force per pair.
 std::vector<Vec3> contact_forces_by_pair(const State& state);
 
 // Adds the pairs where each particle is the j end, after compute_contact_forces with the same

@@ -63,32 +63,43 @@ std::pair<double, double> network(const Vec6& e, double total) {
 
 // The contact fabrics of SPEC 7.1 from the contact forces by pair: phi over all contacts, over the
 // strong and the weak network, and weighted by f_n. Per pair in parallel, summed in fixed blocks.
-void contact_fabric(const State& state, const std::vector<Vec3>& force, Measures& m) {
+// The normals and f_n are kept per contact, numbered in pair order: most pairs of a list are not
+// contacts, and these arrays set the peak memory of a large run.
+void contact_fabric(const State& state, const ContactForceByPair& force, Measures& m) {
   const PairList& pairs = state.pairs;
   const std::size_t np = pairs.size();
-  std::vector<Vec3> normal(np, Vec3::Zero());
-  std::vector<double> fn(np, 0.0);
+  constexpr std::uint32_t none = ContactForceByPair::none;
+  // A pair with overlap > 0 and no contact slot (no force) has f_n 0; its normal is taken when summed.
+  std::vector<std::uint32_t> ordinal(np, none);
+  std::uint32_t nc = 0;
+  for (std::size_t k = 0; k < np; ++k)
+    if (pairs.overlap[k] > 0 && force.slot(k) != none) ordinal[k] = nc++;
+  std::vector<Vec3> normal(nc);
+  std::vector<double> fn(nc);
 #pragma omp parallel for schedule(static) if (np > parallel_threshold)
   for (std::size_t k = 0; k < np; ++k) {
-    if (pairs.overlap[k] <= 0) continue;
-    normal[k] = contact_normal(state, k);
-    fn[k] = force[k].dot(normal[k]);  // F on j, n from i to j: compression positive
+    if (ordinal[k] == none) continue;
+    normal[ordinal[k]] = contact_normal(state, k);
+    fn[ordinal[k]] = force[k].dot(normal[ordinal[k]]);  // F on j, n from i to j: compression positive
   }
+  const auto fn_of = [&](std::size_t k) { return ordinal[k] == none ? 0.0 : fn[ordinal[k]]; };
+  const auto normal_of = [&](std::size_t k) { return ordinal[k] == none ? contact_normal(state, k) : normal[ordinal[k]]; };
   using Sums = Eigen::Matrix<double, 27, 1>;  // all, strong, weak, f_n-weighted (6 each); n_c, n_strong, sum f_n
   const Vec3 counts = blocked_sum<Vec3>(np, Vec3::Zero(), [&](std::size_t k) {
-    return pairs.overlap[k] > 0 ? Vec3(1.0, fn[k], 0.0) : Vec3(Vec3::Zero());
+    return pairs.overlap[k] > 0 ? Vec3(1.0, fn_of(k), 0.0) : Vec3(Vec3::Zero());
   });
   if (!(counts[0] > 0)) return;
   const double mean_fn = counts[1] / counts[0];
   const Sums s = blocked_sum<Sums>(np, Sums::Zero(), [&](std::size_t k) {
     Sums r = Sums::Zero();
     if (pairs.overlap[k] <= 0) return r;
-    const Vec6 d = dyad(normal[k], 1.0);
-    const bool strong = fn[k] > mean_fn;  // Radjai et al. (1998): strong above the mean, weak the rest
+    const double f = fn_of(k);
+    const Vec6 d = dyad(normal_of(k), 1.0);
+    const bool strong = f > mean_fn;  // Radjai et al. (1998): strong above the mean, weak the rest
     r.segment<6>(0) = d;
     r.segment<6>(strong ? 6 : 12) = d;
-    r.segment<6>(18) = fn[k] * d;
-    r[24] = 1, r[25] = strong ? 1 : 0, r[26] = fn[k];
+    r.segment<6>(18) = f * d;
+    r[24] = 1, r[25] = strong ? 1 : 0, r[26] = f;
     return r;
   });
   m.fabric = tensor(s.segment<6>(0), s[24]);
@@ -160,7 +171,7 @@ Measures measure(const State& state) {
   m.principal_tilt_deg = std::acos(std::min(1.0, std::abs(frame.eigenvectors()(2, 2)))) * 180 / pi;
 
   // Contact sums: n_c, sum |f_c|, sum |f_c|^2, in pair order (for any thread count).
-  const std::vector<Vec3> force = contact_forces_by_pair(state);
+  const ContactForceByPair force(state);
   const Vec3 c = blocked_sum<Vec3>(pairs.size(), Vec3::Zero(), [&](std::size_t k) {
     if (pairs.overlap[k] <= 0) return Vec3(Vec3::Zero());
     const double f2 = force[k].squaredNorm();
@@ -218,7 +229,7 @@ std::vector<ClassMeasures> class_measures(const State& state, const std::vector<
   // Per contact: its ends' contact counts, and f_c . l_c (3 V its share of p, SPEC 7's
   // Love-Weber sum), half to each end's class.
   std::vector<std::uint32_t> contacts(n, 0);
-  const std::vector<Vec3> force = contact_forces_by_pair(state);
+  const ContactForceByPair force(state);
   double total = 0;
   for (std::size_t k = 0; k < pairs.size(); ++k) {
     if (pairs.overlap[k] <= 0) continue;
