@@ -211,6 +211,14 @@ def check_run_start(cfg):
     return same
 
 
+def build_name(summary):
+    """The build that wrote a run: its version, "(dirty)" when the tree differed from its commit (a
+    summary.json older than the `build` record gives its version alone, e.g. 0.1.0+43bfc46-dirty)."""
+    if "build" not in summary:
+        return summary["version"]
+    return summary["build"]["version"] + ("" if summary["build"]["tree_clean"] else " (dirty)")
+
+
 def fmt(x, digits=2):
     return "—" if not math.isfinite(x) else f"{x:.{digits}f}"
 
@@ -233,7 +241,7 @@ def main(cfg):
         sums = [summary(d) for d in dirs]
         steps = [s["steps"] for s in sums]
         walls = [s["wall_s"] for s in sums]
-        builds = sorted({s["build"]["version"] + ("" if s["build"]["tree_clean"] else " (dirty)") for s in sums})
+        builds = sorted({build_name(s) for s in sums})
         row = {"label": label, "method": text, "finished": len(dirs), "steps": sum(steps) / len(steps),
                "wall_s": sum(walls) / len(walls), "builds": ", ".join(builds)}
         for name, ref in refs.items():
