@@ -15,6 +15,7 @@ the method in place of the faster rung (src/qsdem/study/convergence.cpp, `change
 same way here). Python 3 standard library only.
 """
 import csv
+import gzip
 import json
 import math
 import os
@@ -35,7 +36,7 @@ def a_design(name, limit, study):
                  "S_c": ("none", "xi-0%", "3.16228e-07", "S_c (undamped at 3.16e-7, not certified)")},
         "nd_rates": ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"),
         "none_rates": ("1e-05", "3.16228e-06", "1e-06", "3.16228e-07"),
-        "paper": "nd-1e-06", "wall_note": f"{study} study (another load of the machine)",
+        "paper": "nd-1e-06", "wall_note": f"{study} study (another load of the machine)", "fines": True,
         "new": [(f"{m}-scaled-{r}", f"{t}, inertia scaled, at {float(r):.3g}")
                 for r in ("1e-6", "3.16228e-7", "1e-7") for m, t in (("nd", "nd"), ("none", "undamped"))]
                + [("nd-scaled-3.16228e-8", "nd, inertia scaled, at 3.16e-8"),
@@ -90,6 +91,10 @@ def collect(src, cfg):
             for f in keep:
                 if os.path.exists(os.path.join(d, f)):
                     shutil.copy(os.path.join(d, f), os.path.join(RUNS, label, seed_dir, f))
+            if cfg.get("fines") and label != "samples" and os.path.exists(os.path.join(d, "classes.csv")):
+                with open(os.path.join(d, "classes.csv"), "rb") as fi, \
+                        gzip.GzipFile(os.path.join(RUNS, label, seed_dir, "classes.csv.gz"), "wb", mtime=0) as fo:
+                    shutil.copyfileobj(fi, fo)
 
 
 def curve(directory):
@@ -209,6 +214,20 @@ def check_run_start(cfg):
             columns = len(ra) == len(rb) and all(x[k] == y[k] for x, y in zip(ra, rb) for k in y)
             same.append((open(a, "rb").read() == open(b, "rb").read(), columns))
     return same
+
+
+def fines_in_contact(directory):
+    """The share of the smallest size class's particles in contact, averaged over the test's rows at
+    e1 1-10 % (classes.csv.gz; quasi-static-limit.md's "fines in contact"); NaN without the file."""
+    path = os.path.join(directory, "classes.csv.gz")
+    if not os.path.exists(path):
+        return math.nan
+    with gzip.open(path, "rt") as f:
+        rows = [r for r in csv.DictReader(f) if r["phase"] != "compaction"]
+    smallest = min(float(r["radius_mm"]) for r in rows)
+    shares = [float(r["in_contact"]) for r in rows
+              if float(r["radius_mm"]) == smallest and 0.01 <= float(r["e1"]) <= 0.1 + SLACK]
+    return sum(shares) / len(shares) if shares else math.nan
 
 
 def build_name(summary):
@@ -352,12 +371,22 @@ def main(cfg):
     out.append("")
     out.append("### The responses")
     out.append("")
-    out.append("| method | peak φ (°) | εv at 10 % (%) | builds |")
-    out.append("| --- | --- | --- | --- |")
+    fines = cfg.get("fines", False)
+    if fines:
+        out.append("Fines in contact: the share of the smallest size class's particles with a contact, "
+                   "over the rows at ε1 1-10 % (classes.csv.gz), mean over the seeds.")
+        out.append("")
+    out.append("| method | peak φ (°) | εv at 10 % (%) |" + (" fines in contact |" if fines else "") + " builds |")
+    out.append("| --- | --- | --- |" + (" --- |" if fines else "") + " --- |")
+    dirs_of = {m[0]: m[2] for m in methods(cfg)}
     for r in rows:
         if "steps" in r:
+            share = ""
+            if fines:
+                f = [fines_in_contact(d) for d in dirs_of[r["label"]]]
+                share = f" {100 * sum(f) / len(f):.1f} % |" if all(math.isfinite(x) for x in f) else " — |"
             out.append(f"| {r['method']} | {r['peak_phi'][0]:.2f} ± {r['peak_phi'][1]:.2f} | "
-                       f"{100 * r['ev_end'][0]:+.2f} ± {100 * r['ev_end'][1]:.2f} | {r['builds']} |")
+                       f"{100 * r['ev_end'][0]:+.2f} ± {100 * r['ev_end'][1]:.2f} |{share} {r['builds']} |")
     out.append("")
     if cfg["scaled_pairs"]:
         out.append("### Inertia scaling against the unscaled run at the same rate")
