@@ -1,14 +1,16 @@
 #!/usr/bin/env python3
 """The tables of docs/results/quasi-static-cost.md, from committed files.
 
-  python3 docs/results/quasi-static-cost/make.py collect runs/qs-cost [A]
+  python3 docs/results/quasi-static-cost/make.py collect runs/qs-cost [SAMPLE]
       copies each finished run's summary.json and series.csv (and each sample's summary.json and
-      compaction.csv) of run.sh's directory to docs/results/quasi-static-cost/runs/ (Sample A's:
-      runs-A/);
-  python3 docs/results/quasi-static-cost/make.py [A]
+      compaction.csv) of run.sh's directory to docs/results/quasi-static-cost/runs/ (SAMPLE B-small,
+      the default; A and A-small: runs-A/, runs-A-small/, with each run's classes.csv gzipped);
+  python3 docs/results/quasi-static-cost/make.py [--check] [SAMPLE]
       reads that copy and the references in ../quasi-static-limit/small-B-seeds/runs/ (A's:
-      ../quasi-static-limit/A/runs/), checks that the reference ladder's change is reproduced
-      (convergence.csv), and writes tables.md and cost.csv (A's: tables-A.md, cost-A.csv).
+      ../quasi-static-limit/A/runs/, A-small's: ../quasi-static-limit/small/runs/), checks that the
+      reference ladder's change is reproduced (convergence.csv), and writes tables.md and cost.csv
+      (A's: tables-A.md, cost-A.csv; A-small's likewise); with
+      --check it writes nothing and fails unless the committed tables are what it would write.
 
 The error of a method against a reference is docs/analysis.md 11's change between two rungs, with
 the method in place of the faster rung (src/qsdem/study/convergence.cpp, `change`, computed the
@@ -16,6 +18,7 @@ same way here). Python 3 standard library only.
 """
 import csv
 import gzip
+import io
 import json
 import math
 import os
@@ -242,7 +245,7 @@ def fmt(x, digits=2):
     return "—" if not math.isfinite(x) else f"{x:.{digits}f}"
 
 
-def main(cfg):
+def main(cfg, check=False):
     seeds = cfg["seeds"]
     refs = {k: [curve(ladder_dir(cfg, s, model, xi, rate)) for s in seeds] for k, (model, xi, rate, _) in cfg["refs"].items()}
     nd_ref = next(iter(refs))
@@ -415,29 +418,41 @@ def main(cfg):
                        f"{fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} | {100 * end[0]:+.2f} ± {100 * end[1]:.2f} | "
                        f"{'**yes**' if within else 'no'} |")
         out.append("")
-    with open(os.path.join(HERE, cfg["tables"]), "w") as f:
-        f.write("\n".join(out))
-    with open(os.path.join(HERE, cfg["cost"]), "w", newline="") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(["method", "label", "steps_per_run", "wall_s_per_run", "reference", "phi_rms_deg", "phi_error_deg",
-                    "phi_excess_deg", "ev_rms", "ev_error", "ev_excess", "ev_end_diff", "ev_end_diff_error", "within"])
-        for r in rows:
-            if "steps" not in r:
-                continue
-            for name in refs:
-                e = r[name]
-                w.writerow([r["method"], r["label"], f"{r['steps']:.1f}", f"{r['wall_s']:.2f}", name]
-                           + [f"{v:.6g}" for v in e["phi"] + e["ev"] + e["ev_end"]] + [str(e["within"]).lower()])
-    print("\n".join(out))
+    cost = io.StringIO(newline="")
+    w = csv.writer(cost, lineterminator="\n")
+    w.writerow(["method", "label", "steps_per_run", "wall_s_per_run", "reference", "phi_rms_deg", "phi_error_deg",
+                "phi_excess_deg", "ev_rms", "ev_error", "ev_excess", "ev_end_diff", "ev_end_diff_error", "within"])
+    for r in rows:
+        if "steps" not in r:
+            continue
+        for name in refs:
+            e = r[name]
+            w.writerow([r["method"], r["label"], f"{r['steps']:.1f}", f"{r['wall_s']:.2f}", name]
+                       + [f"{v:.6g}" for v in e["phi"] + e["ev"] + e["ev_end"]] + [str(e["within"]).lower()])
+    files = {cfg["tables"]: "\n".join(out), cfg["cost"]: cost.getvalue()}
+    if check:
+        for name, text in files.items():
+            with open(os.path.join(HERE, name), newline="") as f:
+                if f.read() != text:
+                    sys.exit(f"make.py: {name} is not what the committed runs give (run make.py {cfg['name']})")
+        print(f"make.py: {', '.join(files)} are what the committed runs give")
+        return
+    for name, text in files.items():
+        with open(os.path.join(HERE, name), "w", newline="") as f:
+            f.write(text)
+    print(files[cfg["tables"]])
 
 
 if __name__ == "__main__":
-    collecting = len(sys.argv) >= 3 and sys.argv[1] == "collect"
-    name = (sys.argv[3] if len(sys.argv) >= 4 else "B-small") if collecting else (sys.argv[1] if len(sys.argv) >= 2 else "B-small")
+    args = sys.argv[1:]
+    collecting = len(args) >= 2 and args[0] == "collect"
+    checking = not collecting and args[:1] == ["--check"]
+    rest = args[2:] if collecting else args[1:] if checking else args
+    name = rest[0] if rest else "B-small"
     if name not in SAMPLES:
         sys.exit(f"make.py: the sample is one of {', '.join(SAMPLES)}, not '{name}'")
     config = dict(SAMPLES[name], name=name)
     if collecting:
-        collect(sys.argv[2], config)
+        collect(args[1], config)
     else:
-        main(config)
+        main(config, check=checking)
