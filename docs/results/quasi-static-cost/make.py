@@ -45,6 +45,10 @@ def a_design(name, limit, study):
                + [("nd-scaled-3.16228e-8", "nd, inertia scaled, at 3.16e-8"),
                   ("fire-0.05%", "FIRE, increments of 0.05 %"),
                   ("fire-0.02%", "FIRE, increments of 0.02 %")],
+        # each scaled ladder, fastest rung first (its certificate's changes: reported, not a decision)
+        "scaled_ladders": [("nd, inertia scaled", ["nd-scaled-1e-6", "nd-scaled-3.16228e-7", "nd-scaled-1e-7",
+                                                   "nd-scaled-3.16228e-8"]),
+                           ("undamped, inertia scaled", ["none-scaled-1e-6", "none-scaled-3.16228e-7", "none-scaled-1e-7"])],
         # (scaled run, the unscaled ladder's model, xi directory and rate): decision 1
         "scaled_pairs": [(f"{m}-scaled-{r}", m, xi, lr) for r, lr in (("1e-6", "1e-06"), ("3.16228e-7", "3.16228e-07"))
                          for m, xi in (("nd", "xi-0.51%"), ("none", "xi-0%"))],
@@ -355,6 +359,36 @@ def main(cfg, check=False):
             phi, ev = change(fire[a], fire[b], 1, g), change(fire[a], fire[b], 2, g)
             out.append(f"| {a[5:]} → {b[5:]} | {fmt(phi[2])} ± {fmt(phi[1])} | {fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} |")
     out.append("")
+    if cfg.get("scaled_ladders"):
+        out.append("### The inertia-scaled ladders against themselves")
+        out.append("")
+        out.append("The certificate's change (analysis.md 11) of each scaled rung to the slowest scaled rung of the "
+                   "same model, and to the next slower one; \"within\" at the certificate's tolerance (0.5°, 0.1 %, "
+                   "resolved) for the change to the next rung.")
+        out.append("")
+        out.append("| ladder | rung | Δφ to the slowest ± s.e. (°) | Δεv to the slowest ± s.e. (%) | "
+                   "Δφ to the next ± s.e. (°) | Δεv to the next ± s.e. (%) | within |")
+        out.append("| --- | --- | --- | --- | --- | --- | --- |")
+        runs_of = {r["label"]: r for r in rows}
+        dirs_of = {m[0]: m[2] for m in methods(cfg)}
+        for title, labels in cfg["scaled_ladders"]:
+            done = [x for x in labels if "steps" in runs_of[x]]
+            if len(done) < 2:
+                out.append(f"| {title} | fewer than two rungs finished | | | | | |")
+                continue
+            curves = {x: [curve(d) for d in dirs_of[x]] for x in done}
+            slow = curves[done[-1]]
+            for a, b in zip(done, done[1:]):
+                g_slow, g_next = [p[0] for p in slow[0]], [p[0] for p in curves[b][0]]
+                to_slow = (change(curves[a], slow, 1, g_slow), change(curves[a], slow, 2, g_slow))
+                to_next = (change(curves[a], curves[b], 1, g_next), change(curves[a], curves[b], 2, g_next))
+                phi, ev = to_next
+                within = phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
+                out.append(f"| {title} | {runs_of[a]['method'].split(', at ')[-1]} | "
+                           f"{fmt(to_slow[0][2])} ± {fmt(to_slow[0][1])} | {fmt(100 * to_slow[1][2], 3)} ± {fmt(100 * to_slow[1][1], 3)} | "
+                           f"{fmt(phi[2])} ± {fmt(phi[1])} | {fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} | "
+                           f"{'**yes**' if within else 'no'} |")
+        out.append("")
     out.append(f"### Where along the strain the rate acts (nd, against {nd_ref})")
     out.append("")
     out.append(f"The change of the constant-rate nd runs from {nd_ref} over windows of axial strain (the same "
