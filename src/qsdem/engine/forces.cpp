@@ -123,12 +123,21 @@ QSDEM_CLONES void sphere_geometry(ContactLanes<Law>& c) {
                   g.aix[a], g.aiy[a], g.aiz[a], g.ajx[a], g.ajy[a], g.ajz[a], g.radius[a]);
 }
 
+// Where the lanes' geometry is: their own, lane by lane, or `slots`, at the slots they name (BySlot).
+// The own geometry as c's member: through a reference of its own the lanes' loops are longer.
+template <bool BySlot, class Law, class Slots>
+[[gnu::always_inline]] inline const auto& lanes_geometry(const ContactLanes<Law>& c, const Slots& slots) {
+  if constexpr (BySlot) return slots;
+  else return c.geometry;
+}
+
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
 // (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4) with the law's own, and the contact's
-// terms of the sums. The geometry is g's slot a, or slot[a] (BySlot). Built for AVX2 and the x86-64
-// baseline, chosen at load time; no FMA, so the same bits.
-template <bool BySlot, class Law, class Geometry>
-QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c, const Geometry& g) {
+// terms of the sums. Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the
+// same bits.
+template <bool BySlot, class Law, class Slots>
+QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c, const Slots& slots) {
+  const auto& g = lanes_geometry<BySlot>(c, slots);
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
     const std::int64_t s = BySlot ? c.slot[a] : a;
@@ -199,10 +208,11 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
 
 // The lanes' contacts, in order: the contact's results for its j end, the pair's history, i's
 // resultant, the block's contact list, stress and stiffness sums.
-template <bool BySlot, class Law, class Geometry>
-void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, const Geometry& g, Particles& p,
+template <bool BySlot, class Law, class Slots>
+void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, const Slots& slots, Particles& p,
                      PairList& pairs, ForceBlock& acc) {
   constexpr int width = ContactLanes<Law>::width;
+  const auto& g = lanes_geometry<BySlot>(c, slots);
   // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
   // loaded and stored every sum at every contact (a store through a double* may alias them).
   double stress[9], stiffness[3], shear_stiffness[3];
@@ -265,13 +275,13 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, con
   acc.max_overlap_pair = max_overlap_pair;
 }
 
-// Evaluates and commits the lanes' contacts, whose geometry is in g's slots (ContactLanes::slot),
+// Evaluates and commits the lanes' contacts, whose geometry is at their slots (ContactLanes::slot),
 // and empties them.
-template <class Law, class Geometry>
-inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, const Geometry& g, Particles& p,
+template <class Law, class Slots>
+inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, const Slots& slots, Particles& p,
                            PairList& pairs, ForceBlock& acc) {
-  evaluate_contacts<true>(in.law, in.dt, c, g);
-  commit_contacts<true>(in, c, g, p, pairs, acc);
+  evaluate_contacts<true>(in.law, in.dt, c, slots);
+  commit_contacts<true>(in, c, slots, p, pairs, acc);
   c.size = 0;
 }
 
