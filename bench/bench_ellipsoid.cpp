@@ -131,7 +131,7 @@ void BM_EllipsoidContactBatchWarm(benchmark::State& bs) {
       pairs[first + static_cast<std::size_t>(a)].lambda = batch.lambda[a];
       contacts += batch.touching[a];
     }
-    benchmark::DoNotOptimize(batch.g[0]);
+    benchmark::DoNotOptimize(batch.geometry);
     first += EllipsoidContactBatch::capacity;
     if (first == kPairs) first = 0, state ^= 1;
   }

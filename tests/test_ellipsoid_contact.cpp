@@ -672,7 +672,7 @@ TEST(EllipsoidContact, BatchLanesMatchLonePairs) {
       EXPECT_EQ(sb.mu2, st.mu2);
       EXPECT_EQ(sb.gap_bound, st.gap_bound);
       if (alone) {
-        const ContactGeometry& gb = batch.g[a];
+        const ContactGeometry gb = batch.contact(a);
         EXPECT_EQ(gb.normal, g.normal);
         EXPECT_EQ(gb.overlap, g.overlap);
         EXPECT_EQ(gb.arm_i, g.arm_i);

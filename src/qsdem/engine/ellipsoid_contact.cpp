@@ -163,7 +163,7 @@ bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidS
   batch.add(l, si, sj, lambda);
   ellipsoid_contacts(batch);
   lambda = batch.lambda[0];
-  g = batch.g[0];
+  if (batch.touching[0]) g = batch.contact(0);
   stats = batch.stats[0];
   return batch.touching[0];
 }
@@ -380,9 +380,10 @@ struct PwOutcome {
 }
 
 // 3. Overlap and 4. effective radius (header comment) of the lanes with mu^2 < 1, in one loop.
+// The results go straight to the batch's geometry slots, where the law's lanes read them.
 [[gnu::always_inline]] inline void overlap_and_curvature(EllipsoidContactBatch& b, PwLanes& pw) {
-  constexpr int cap = PwLanes::cap;
-  alignas(64) double o_n[3][cap], o_arm[3][cap], o_delta[cap], o_radius[cap];
+  auto& o = b.geometry;
+  const int f = b.first;
 #pragma omp simd
   for (int a = 0; a < pw.no; ++a) {
     const Sym Qi{pw.c_Qi[0][a], pw.c_Qi[1][a], pw.c_Qi[2][a], pw.c_Qi[3][a], pw.c_Qi[4][a], pw.c_Qi[5][a]};
@@ -422,9 +423,11 @@ struct PwOutcome {
     const double tj = far_root(n_x * wj_x + n_y * wj_y + n_z * wj_z, -(n_x * Mdj_x + n_y * Mdj_y + n_z * Mdj_z),
                                dj_x * Mdj_x + dj_y * Mdj_y + dj_z * Mdj_z - 1);  // along -n
     const double half = 0.5 * (ti - tj);
-    o_n[0][a] = n_x, o_n[1][a] = n_y, o_n[2][a] = n_z;
-    o_delta[a] = ti + tj;
-    o_arm[0][a] = di_x + half * n_x, o_arm[1][a] = di_y + half * n_y, o_arm[2][a] = di_z + half * n_z;
+    const double ai_x = di_x + half * n_x, ai_y = di_y + half * n_y, ai_z = di_z + half * n_z;
+    o.nx[f + a] = n_x, o.ny[f + a] = n_y, o.nz[f + a] = n_z;
+    o.overlap[f + a] = ti + tj;
+    o.aix[f + a] = ai_x, o.aiy[f + a] = ai_y, o.aiz[f + a] = ai_z;
+    o.ajx[f + a] = ai_x - l_x, o.ajy[f + a] = ai_y - l_y, o.ajz[f + a] = ai_z - l_z;
     // 4. in the header comment: |M_i (p_i - c_i)|, |M_j (p_j - c_j)|, and adj(c A) = c^2 adj(A):
     // M_i/g_i + M_j/g_j scaled by g_i g_j to save two divisions.
     const double pi_x = Mdi_x + ti * wi_x, pi_y = Mdi_y + ti * wi_y, pi_z = Mdi_z + ti * wi_z;
@@ -434,18 +437,12 @@ struct PwOutcome {
     const Sym A = (Mi * gj + Mj * gi).adjugate();
     const double nAn = n_x * (A.xx * n_x + A.xy * n_y + A.xz * n_z) + n_y * (A.xy * n_x + A.yy * n_y + A.yz * n_z) +
                        n_z * (A.xz * n_x + A.yz * n_y + A.zz * n_z);
-    o_radius[a] = gi * gj / std::sqrt(nAn);
+    o.radius[f + a] = gi * gj / std::sqrt(nAn);
   }
   for (int a = 0; a < pw.no; ++a) {
     const int k = pw.ov[a];
-    if (!(o_delta[a] > 0)) continue;  // mu^2 within round-off of 1
-    ContactGeometry& g = b.g[k];
-    g.normal = {o_n[0][a], o_n[1][a], o_n[2][a]};
-    g.overlap = o_delta[a];
-    g.arm_i = {o_arm[0][a], o_arm[1][a], o_arm[2][a]};
-    g.arm_j = g.arm_i - b.l[k];
-    g.radius = o_radius[a];
-    b.touching[k] = true;
+    b.touching[k] = o.overlap[f + a] > 0;  // not when mu^2 is within round-off of 1
+    b.slot[k] = f + a;
   }
 }
 

@@ -104,11 +104,18 @@ struct EllipsoidContactBatch {
   double lambda[capacity];  // in/out: the warm start, as for ellipsoid_contact
   // Out.
   bool touching[capacity];
-  ContactGeometry g[capacity];  // where touching
+  int slot[capacity];  // where touching: the slot of its geometry in `geometry`
   EllipsoidContactStats stats[capacity];
+  // The geometry of the lanes tested for overlap, in slots first, first + 1, ... (at most `size`).
+  // Room for two calls: a caller that alternates `first` between 0 and capacity still has the
+  // last call's geometry (the force stage's law lanes hold contacts of both).
+  int first = 0;
+  ContactGeometrySlots<2 * capacity> geometry;
 
   // Appends a pair (size < capacity) and returns its lane.
   int add(const Vec3& branch, const EllipsoidShape& si, const EllipsoidShape& sj, double warm_start);
+  // A touching lane's geometry.
+  ContactGeometry contact(int k) const { return geometry.get(slot[k]); }
 };
 void ellipsoid_contacts(EllipsoidContactBatch& batch);
 

@@ -47,11 +47,12 @@ struct ForceInputs {
 // The pair driver: written once, instantiated per contact law (contact/law.hpp).
 //
 // The contacts of a chunk of pairs (SPEC 4), in lanes (structure of arrays): `add` takes a
-// contact's pair, velocities and history, `set_geometry` its ellipsoid geometry or
-// `sphere_geometry` computes the spheres'; `evaluate_contacts` runs the relative velocity, the law
-// and the contact's torques and sum terms on all lanes at once (vector lanes: one contact is a long
-// chain of dependent operations); `commit_contacts` writes the results in pair order (the order of
-// every sum, as one contact at a time: the same bits).
+// contact's pair, velocities and history; its geometry is either the lanes' own (`sphere_geometry`
+// computes the spheres') or, in force_block, in the slot `slot[a]` of the Perram-Wertheim batch's
+// geometry; `evaluate_contacts` runs the relative velocity, the law and the contact's torques and
+// sum terms on all lanes at once (vector lanes: one contact is a long chain of dependent
+// operations); `commit_contacts` writes the results in pair order (the order of every sum, as one
+// contact at a time: the same bits).
 template <class Law>
 struct ContactLanes {
   static constexpr int width = Law::history.width;  // the law's history per contact
@@ -62,11 +63,11 @@ struct ContactLanes {
   static constexpr int stride = capacity + 8;
   int size = 0;
   std::uint32_t pair[stride], first[stride], second[stride];  // k, i, j
-  // In: branch l, geometry (normal, overlap, radius, arms), the spheres' |l| and radii (for
-  // sphere_geometry), velocities and spins of i and j, the affine velocity L l, the history.
+  // In: branch l, geometry (the lanes' own, or its slot in another's), the spheres' |l| and radii
+  // (for sphere_geometry), velocities and spins of i and j, the affine velocity L l, the history.
   double lx[stride], ly[stride], lz[stride];
-  double nx[stride], ny[stride], nz[stride], overlap[stride], radius[stride];
-  double aix[stride], aiy[stride], aiz[stride], ajx[stride], ajy[stride], ajz[stride];
+  ContactGeometrySlots<stride> geometry;
+  std::int64_t slot[stride];  // 64 bits: GCC runs the loads by slot in vector lanes only with 64-bit indices
   double distance[stride], ri[stride], rj[stride];
   double r_min[stride];  // min(R_i, R_j), for the largest overlap ratio
   double vix[stride], viy[stride], viz[stride], vjx[stride], vjy[stride], vjz[stride];
@@ -107,11 +108,6 @@ struct ContactLanes {
     r_min[a] = std::min(p.equiv_radius[i], p.equiv_radius[j]);
     return a;
   }
-  void set_geometry(int a, const ContactGeometry& g) {
-    nx[a] = g.normal.x(), ny[a] = g.normal.y(), nz[a] = g.normal.z(), overlap[a] = g.overlap, radius[a] = g.radius;
-    aix[a] = g.arm_i.x(), aiy[a] = g.arm_i.y(), aiz[a] = g.arm_i.z();
-    ajx[a] = g.arm_j.x(), ajy[a] = g.arm_j.y(), ajz[a] = g.arm_j.z();
-  }
   void set_spheres(int a, double d, double radius_i, double radius_j) {
     distance[a] = d, ri[a] = radius_i, rj[a] = radius_j;
   }
@@ -120,26 +116,37 @@ struct ContactLanes {
 // sphere_sphere (contact/geometry.hpp) on every lane.
 template <class Law>
 QSDEM_CLONES void sphere_geometry(ContactLanes<Law>& c) {
+  auto& g = c.geometry;
 #pragma omp simd
   for (int a = 0; a < c.size; ++a)
-    sphere_sphere(c.lx[a], c.ly[a], c.lz[a], c.distance[a], c.ri[a], c.rj[a], c.nx[a], c.ny[a], c.nz[a], c.overlap[a],
-                  c.aix[a], c.aiy[a], c.aiz[a], c.ajx[a], c.ajy[a], c.ajz[a], c.radius[a]);
+    sphere_sphere(c.lx[a], c.ly[a], c.lz[a], c.distance[a], c.ri[a], c.rj[a], g.nx[a], g.ny[a], g.nz[a], g.overlap[a],
+                  g.aix[a], g.aiy[a], g.aiz[a], g.ajx[a], g.ajy[a], g.ajz[a], g.radius[a]);
+}
+
+// Where the lanes' geometry is: their own, lane by lane, or `slots`, at the slots they name (BySlot).
+// The own geometry as c's member: through a reference of its own the lanes' loops are longer.
+template <bool BySlot, class Law, class Slots>
+[[gnu::always_inline]] inline const auto& lanes_geometry(const ContactLanes<Law>& c, const Slots& slots) {
+  if constexpr (BySlot) return slots;
+  else return c.geometry;
 }
 
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
 // (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4) with the law's own, and the contact's
 // terms of the sums. Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the
 // same bits.
-template <class Law>
-QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c) {
+template <bool BySlot, class Law, class Slots>
+QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c, const Slots& slots) {
+  const auto& g = lanes_geometry<BySlot>(c, slots);
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
-    const double nx = c.nx[a], ny = c.ny[a], nz = c.nz[a];
-    const double aix = c.aix[a], aiy = c.aiy[a], aiz = c.aiz[a], ajx = c.ajx[a], ajy = c.ajy[a], ajz = c.ajz[a];
+    const std::int64_t s = BySlot ? c.slot[a] : a;
+    const double nx = g.nx[s], ny = g.ny[s], nz = g.nz[s];
+    const double aix = g.aix[s], aiy = g.aiy[s], aiz = g.aiz[s], ajx = g.ajx[s], ajy = g.ajy[s], ajz = g.ajz[s];
     // v_j + w_j x arm_j - v_i - w_i x arm_i + L l, summed left to right as Eigen does.
     const double wjx = c.wjx[a], wjy = c.wjy[a], wjz = c.wjz[a], wix = c.wix[a], wiy = c.wiy[a], wiz = c.wiz[a];
     ContactInput in;
-    in.nx = nx, in.ny = ny, in.nz = nz, in.overlap = c.overlap[a], in.radius = c.radius[a];
+    in.nx = nx, in.ny = ny, in.nz = nz, in.overlap = g.overlap[s], in.radius = g.radius[s];
     in.vx = c.vjx[a] + (wjy * ajz - wjz * ajy) - c.vix[a] - (wiy * aiz - wiz * aiy) + c.ux[a];
     in.vy = c.vjy[a] + (wjz * ajx - wjx * ajz) - c.viy[a] - (wiz * aix - wix * aiz) + c.uy[a];
     in.vz = c.vjz[a] + (wjx * ajy - wjy * ajx) - c.viz[a] - (wix * aiy - wiy * aix) + c.uz[a];
@@ -201,10 +208,11 @@ QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>
 
 // The lanes' contacts, in order: the contact's results for its j end, the pair's history, i's
 // resultant, the block's contact list, stress and stiffness sums.
-template <class Law>
-void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, Particles& p, PairList& pairs,
-                     ForceBlock& acc) {
+template <bool BySlot, class Law, class Slots>
+void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, const Slots& slots, Particles& p,
+                     PairList& pairs, ForceBlock& acc) {
   constexpr int width = ContactLanes<Law>::width;
+  const auto& g = lanes_geometry<BySlot>(c, slots);
   // The sums in locals and the arrays through local pointers: through acc and the vectors GCC
   // loaded and stored every sum at every contact (a store through a double* may alias them).
   double stress[9], stiffness[3], shear_stiffness[3];
@@ -224,11 +232,12 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, Par
   Vec3* const torque = p.torque.data();
   for (int a = 0; a < c.size; ++a) {
     const std::uint32_t k = c.pair[a], i = c.first[a], j = c.second[a];
-    overlap[k] = c.overlap[a];
+    const double delta = g.overlap[BySlot ? c.slot[a] : a];
+    overlap[k] = delta;
     contact_j[a] = j;
     contact_pairs[a] = k;
-    if (c.overlap[a] > max_overlap * c.r_min[a]) {  // delta / R_min > max, without a division per contact
-      max_overlap = c.overlap[a] / c.r_min[a];
+    if (delta > max_overlap * c.r_min[a]) {  // delta / R_min > max, without a division per contact
+      max_overlap = delta / c.r_min[a];
       max_overlap_pair = k;
     }
     for (int m = 0; m < width; ++m) history[width * k + m] = c.history[m][a];
@@ -266,21 +275,24 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, Par
   acc.max_overlap_pair = max_overlap_pair;
 }
 
-// Evaluates and commits the lanes' contacts (their geometry set), and empties them.
-template <class Law>
-inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
-                           ForceBlock& acc) {
-  evaluate_contacts(in.law, in.dt, c);
-  commit_contacts(in, c, p, pairs, acc);
+// Evaluates and commits the lanes' contacts, whose geometry is at their slots (ContactLanes::slot),
+// and empties them.
+template <class Law, class Slots>
+inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, const Slots& slots, Particles& p,
+                           PairList& pairs, ForceBlock& acc) {
+  evaluate_contacts<true>(in.law, in.dt, c, slots);
+  commit_contacts<true>(in, c, slots, p, pairs, acc);
   c.size = 0;
 }
 
-// The same for sphere contacts, whose geometry is computed here (ContactLanes::set_spheres).
+// The same for sphere contacts, whose geometry is computed here in the lanes (ContactLanes::set_spheres).
 template <class Law>
 inline void flush_sphere_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
                                   ForceBlock& acc) {
   sphere_geometry(c);
-  flush_contacts(in, c, p, pairs, acc);
+  evaluate_contacts<false>(in.law, in.dt, c, c.geometry);
+  commit_contacts<false>(in, c, c.geometry, p, pairs, acc);
+  c.size = 0;
 }
 
 // A pair that is apart: no force; a contact just lost releases its history (the law's released
@@ -368,6 +380,12 @@ ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs
     for (std::uint32_t m0 = 0; m0 < nl; m0 += capacity) {
       const int nt = static_cast<int>(std::min<std::uint32_t>(capacity, nl - m0));
       const std::uint32_t* const tested = listed + m0;
+      // The batch writes its geometry in the other half of its slots: the lanes may still hold the
+      // last batch's contacts. Any left from the batch before, whose half is reused (after batches
+      // of few contacts), are evaluated first.
+      batch.first = capacity - batch.first;
+      if (contacts.size > 0 && (contacts.slot[0] < capacity) == (batch.first == 0))
+        flush_contacts(in, contacts, batch.geometry, p, pairs, acc);
       batch.size = 0;
       for (int m = 0; m < nt; ++m) {
         const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
@@ -381,24 +399,27 @@ ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs
       // Narrow phase (SPEC 4): Perram-Wertheim for any pair with an ellipsoid; exact for spheres.
       ellipsoid_contacts(batch);
       for (int a = 0; a < batch.size; ++a) acc.pw_iterations += batch.stats[a].iterations;
+      int sphere_slot = batch.first + batch.size;  // two spheres' geometry: the slots after the batch's
       for (int m = 0; m < nt; ++m) {
         const std::uint32_t kt = tested[m], i = pairs.i[kt], j = pairs.j[kt];
         const Vec3& l = branch[m];
-        ContactGeometry g;
+        int slot = -1;
         bool touching;
         if (lane[m] < 0) {
           const double ri = p.bound_radius[i], rj = p.bound_radius[j];
           touching = l.squaredNorm() < (ri + rj) * (ri + rj);
           if (touching) {
-            g = sphere_sphere(l, ri, rj);
+            const ContactGeometry g = sphere_sphere(l, ri, rj);
             touching = g.overlap > 0;  // a contact always has overlap > 0 (PairList::overlap)
+            slot = sphere_slot++;
+            batch.geometry.set(slot, g);
           }
         } else {
           const int a = lane[m];
           pairs.pw_lambda[kt] = batch.lambda[a];
           touching = batch.touching[a];
           if (touching) {
-            g = batch.g[a];
+            slot = batch.slot[a];
           } else {
             // Not tested again until the surfaces may have closed the proven gap; the margin covers
             // the round-off of mu (1e-9 of the minor axes, far above it).
@@ -410,12 +431,12 @@ ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs
           mark_apart<Law>(pairs, kt);
           continue;
         }
-        contacts.set_geometry(contacts.add(in, p, pairs, kt, i, j, l), g);
-        if (contacts.size == ContactLanes<Law>::capacity) flush_contacts(in, contacts, p, pairs, acc);
+        contacts.slot[contacts.add(in, p, pairs, kt, i, j, l)] = slot;
+        if (contacts.size == ContactLanes<Law>::capacity) flush_contacts(in, contacts, batch.geometry, p, pairs, acc);
       }
     }
   }
-  flush_contacts(in, contacts, p, pairs, acc);
+  flush_contacts(in, contacts, batch.geometry, p, pairs, acc);
   group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
   return acc;
 }

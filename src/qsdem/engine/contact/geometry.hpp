@@ -17,6 +17,24 @@ struct ContactGeometry {
   double radius;    // effective Hertz radius R_e (m)
 };
 
+// The geometry of N contacts by components, one contact per slot (structure of arrays): the
+// narrow phases write it and the law's lanes read it in place (forces.cpp), with no record between.
+template <int N>
+struct alignas(64) ContactGeometrySlots {
+  static constexpr int capacity = N;
+  double nx[N], ny[N], nz[N], overlap[N], radius[N];
+  double aix[N], aiy[N], aiz[N], ajx[N], ajy[N], ajz[N];
+
+  void set(int s, const ContactGeometry& g) {
+    nx[s] = g.normal.x(), ny[s] = g.normal.y(), nz[s] = g.normal.z(), overlap[s] = g.overlap, radius[s] = g.radius;
+    aix[s] = g.arm_i.x(), aiy[s] = g.arm_i.y(), aiz[s] = g.arm_i.z();
+    ajx[s] = g.arm_j.x(), ajy[s] = g.arm_j.y(), ajz[s] = g.arm_j.z();
+  }
+  ContactGeometry get(int s) const {
+    return {{nx[s], ny[s], nz[s]}, overlap[s], {aix[s], aiy[s], aiz[s]}, {ajx[s], ajy[s], ajz[s]}, radius[s]};
+  }
+};
+
 // Exact sphere-sphere geometry for the branch l from i to j; overlap <= 0 means apart. On
 // components, with selects, so that the pair loop (forces.cpp) runs it in vector lanes; the
 // ContactGeometry form below calls it. d = |l| (the caller's, when it has it).
