@@ -169,6 +169,17 @@ def at(c, x, k):
     return interpolate([(p[0], p[k]) for p in c], x)
 
 
+def within(phi, ev):
+    """The certificate's verdict on a change (phi and ev as `change` returns them): beyond the noise
+    and its standard error both within the tolerances."""
+    return phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
+
+
+def end_difference(runs, refs):
+    """ev at the end of the shorter of each seed's two curves, run minus reference: mean, s.e."""
+    return mean_se([at(c, min(c[-1][0], r[-1][0]), 2) - at(r, min(c[-1][0], r[-1][0]), 2) for c, r in zip(runs, refs)])
+
+
 def summary(directory):
     with open(os.path.join(directory, "summary.json")) as f:
         return json.load(f)
@@ -269,13 +280,11 @@ def main(cfg, check=False):
         walls = [s["wall_s"] for s in sums]
         builds = sorted({build_name(s) for s in sums})
         row = {"label": label, "method": text, "finished": len(dirs), "steps": sum(steps) / len(steps),
-               "wall_s": sum(walls) / len(walls), "builds": ", ".join(builds)}
+               "wall_s": sum(walls) / len(walls), "builds": ", ".join(builds), "dirs": dirs, "curves": curves}
         for name, ref in refs.items():
             phi = change(curves, ref, 1, grids[name])
             ev = change(curves, ref, 2, grids[name])
-            end = mean_se([at(c, min(c[-1][0], r[-1][0]), 2) - at(r, min(c[-1][0], r[-1][0]), 2) for c, r in zip(curves, ref)])
-            within = phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
-            row[name] = {"phi": phi, "ev": ev, "ev_end": end, "within": within}
+            row[name] = {"phi": phi, "ev": ev, "ev_end": end_difference(curves, ref), "within": within(phi, ev)}
         peak = mean_se([max(p[1] for p in c) for c in curves])
         row["peak_phi"] = peak
         row["ev_end"] = mean_se([c[-1][2] for c in curves])
@@ -351,8 +360,7 @@ def main(cfg, check=False):
     out.append("")
     out.append("| increments | Δφ beyond the noise ± s.e. (°) | Δεv beyond the noise ± s.e. (%) |")
     out.append("| --- | --- | --- |")
-    fire = {r["label"]: [curve(d) for d in dirs] for r, (_, _, dirs) in zip(rows, methods(cfg))
-            if r["label"].startswith("fire-") and "steps" in r}
+    fire = {r["label"]: r["curves"] for r in rows if r["label"].startswith("fire-") and "steps" in r}
     for a, b in (("fire-0.1%", "fire-0.05%"), ("fire-0.05%", "fire-0.02%"), ("fire-0.1%", "fire-0.02%")):
         if a in fire and b in fire:
             g = [p[0] for p in fire[b][0]]
@@ -370,24 +378,22 @@ def main(cfg, check=False):
                    "Δφ to the next ± s.e. (°) | Δεv to the next ± s.e. (%) | within |")
         out.append("| --- | --- | --- | --- | --- | --- | --- |")
         runs_of = {r["label"]: r for r in rows}
-        dirs_of = {m[0]: m[2] for m in methods(cfg)}
         for title, labels in cfg["scaled_ladders"]:
             done = [x for x in labels if "steps" in runs_of[x]]
             if len(done) < 2:
                 out.append(f"| {title} | fewer than two rungs finished | | | | | |")
                 continue
-            curves = {x: [curve(d) for d in dirs_of[x]] for x in done}
+            curves = {x: runs_of[x]["curves"] for x in done}
             slow = curves[done[-1]]
             for a, b in zip(done, done[1:]):
                 g_slow, g_next = [p[0] for p in slow[0]], [p[0] for p in curves[b][0]]
                 to_slow = (change(curves[a], slow, 1, g_slow), change(curves[a], slow, 2, g_slow))
                 to_next = (change(curves[a], curves[b], 1, g_next), change(curves[a], curves[b], 2, g_next))
                 phi, ev = to_next
-                within = phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
                 out.append(f"| {title} | {runs_of[a]['method'].split(', at ')[-1]} | "
                            f"{fmt(to_slow[0][2])} ± {fmt(to_slow[0][1])} | {fmt(100 * to_slow[1][2], 3)} ± {fmt(100 * to_slow[1][1], 3)} | "
                            f"{fmt(phi[2])} ± {fmt(phi[1])} | {fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} | "
-                           f"{'**yes**' if within else 'no'} |")
+                           f"{'**yes**' if within(phi, ev) else 'no'} |")
         out.append("")
     out.append(f"### Where along the strain the rate acts (nd, against {nd_ref})")
     out.append("")
@@ -415,12 +421,11 @@ def main(cfg, check=False):
         out.append("")
     out.append("| method | peak φ (°) | εv at 10 % (%) |" + (" fines in contact |" if fines else "") + " builds |")
     out.append("| --- | --- | --- |" + (" --- |" if fines else "") + " --- |")
-    dirs_of = {m[0]: m[2] for m in methods(cfg)}
     for r in rows:
         if "steps" in r:
             share = ""
             if fines:
-                f = [fines_in_contact(d) for d in dirs_of[r["label"]]]
+                f = [fines_in_contact(d) for d in r["dirs"]]
                 share = f" {100 * sum(f) / len(f):.1f} % |" if all(math.isfinite(x) for x in f) else " — |"
             out.append(f"| {r['method']} | {r['peak_phi'][0]:.2f} ± {r['peak_phi'][1]:.2f} | "
                        f"{100 * r['ev_end'][0]:+.2f} ± {100 * r['ev_end'][1]:.2f} |{share} {r['builds']} |")
@@ -439,18 +444,16 @@ def main(cfg, check=False):
             if "steps" not in r:
                 out.append(f"| {r['method']} | {r['finished']} of {len(seeds)} seeds finished | | | | |")
                 continue
-            dirs = dict((m[0], m[2]) for m in methods(cfg))[label]
-            runs = [curve(d) for d in dirs]
+            runs = r["curves"]
             base_dirs = [ladder_dir(cfg, s, model, xi, rate) for s in seeds]
             base = [curve(d) for d in base_dirs]
             base_steps = sum(summary(d)["steps"] for d in base_dirs) / len(base_dirs)
             g = [p[0] for p in base[0]]
             phi, ev = change(runs, base, 1, g), change(runs, base, 2, g)
-            end = mean_se([at(c, min(c[-1][0], b[-1][0]), 2) - at(b, min(c[-1][0], b[-1][0]), 2) for c, b in zip(runs, base)])
-            within = phi[2] <= PHI_TOL and ev[2] <= EV_TOL and phi[1] <= PHI_TOL and ev[1] <= EV_TOL
+            end = end_difference(runs, base)
             out.append(f"| {r['method']} | {r['steps']:,.0f}, {base_steps:,.0f} | {fmt(phi[2])} ± {fmt(phi[1])} | "
                        f"{fmt(100 * ev[2], 3)} ± {fmt(100 * ev[1], 3)} | {100 * end[0]:+.2f} ± {100 * end[1]:.2f} | "
-                       f"{'**yes**' if within else 'no'} |")
+                       f"{'**yes**' if within(phi, ev) else 'no'} |")
         out.append("")
     cost = io.StringIO(newline="")
     w = csv.writer(cost, lineterminator="\n")
