@@ -22,11 +22,10 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
 class ContactForceByPair {
  public:
   explicit ContactForceByPair(const State& state);
-  static constexpr std::uint32_t none = ~0u;  // the pair is not a contact
-  std::uint32_t slot(std::size_t k) const { return slot_[k]; }
   Vec3 operator[](std::size_t k) const { return slot_[k] == none ? Vec3(Vec3::Zero()) : force_[slot_[k]]; }
 
  private:
+  static constexpr std::uint32_t none = ~0u;  // the pair is not a contact
   std::vector<std::uint32_t> slot_;
   const Vec3* force_;
 };

@@ -68,12 +68,11 @@ std::pair<double, double> network(const Vec6& e, double total) {
 void contact_fabric(const State& state, const ContactForceByPair& force, Measures& m) {
   const PairList& pairs = state.pairs;
   const std::size_t np = pairs.size();
-  constexpr std::uint32_t none = ContactForceByPair::none;
-  // A pair with overlap > 0 and no contact slot (no force) has f_n 0; its normal is taken when summed.
-  std::vector<std::uint32_t> ordinal(np, none);
+  constexpr std::uint32_t none = ~0u;
+  std::vector<std::uint32_t> ordinal(np, none);  // of the pairs with overlap > 0, in pair order
   std::uint32_t nc = 0;
   for (std::size_t k = 0; k < np; ++k)
-    if (pairs.overlap[k] > 0 && force.slot(k) != none) ordinal[k] = nc++;
+    if (pairs.overlap[k] > 0) ordinal[k] = nc++;
   std::vector<Vec3> normal(nc);
   std::vector<double> fn(nc);
 #pragma omp parallel for schedule(static) if (np > parallel_threshold)
@@ -82,19 +81,17 @@ void contact_fabric(const State& state, const ContactForceByPair& force, Measure
     normal[ordinal[k]] = contact_normal(state, k);
     fn[ordinal[k]] = force[k].dot(normal[ordinal[k]]);  // F on j, n from i to j: compression positive
   }
-  const auto fn_of = [&](std::size_t k) { return ordinal[k] == none ? 0.0 : fn[ordinal[k]]; };
-  const auto normal_of = [&](std::size_t k) { return ordinal[k] == none ? contact_normal(state, k) : normal[ordinal[k]]; };
   using Sums = Eigen::Matrix<double, 27, 1>;  // all, strong, weak, f_n-weighted (6 each); n_c, n_strong, sum f_n
   const Vec3 counts = blocked_sum<Vec3>(np, Vec3::Zero(), [&](std::size_t k) {
-    return pairs.overlap[k] > 0 ? Vec3(1.0, fn_of(k), 0.0) : Vec3(Vec3::Zero());
+    return pairs.overlap[k] > 0 ? Vec3(1.0, fn[ordinal[k]], 0.0) : Vec3(Vec3::Zero());
   });
   if (!(counts[0] > 0)) return;
   const double mean_fn = counts[1] / counts[0];
   const Sums s = blocked_sum<Sums>(np, Sums::Zero(), [&](std::size_t k) {
     Sums r = Sums::Zero();
     if (pairs.overlap[k] <= 0) return r;
-    const double f = fn_of(k);
-    const Vec6 d = dyad(normal_of(k), 1.0);
+    const double f = fn[ordinal[k]];
+    const Vec6 d = dyad(normal[ordinal[k]], 1.0);
     const bool strong = f > mean_fn;  // Radjai et al. (1998): strong above the mean, weak the rest
     r.segment<6>(0) = d;
     r.segment<6>(strong ? 6 : 12) = d;
