@@ -275,13 +275,13 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, con
   acc.max_overlap_pair = max_overlap_pair;
 }
 
-// Evaluates and commits the lanes' contacts, whose geometry is at their slots (ContactLanes::slot),
-// and empties them.
-template <class Law, class Slots>
+// Evaluates and commits the lanes' contacts, whose geometry is at their slots (ContactLanes::slot)
+// of `slots`, or with BySlot false the lanes' own, and empties them.
+template <bool BySlot = true, class Law, class Slots>
 inline void flush_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, const Slots& slots, Particles& p,
                            PairList& pairs, ForceBlock& acc) {
-  evaluate_contacts<true>(in.law, in.dt, c, slots);
-  commit_contacts<true>(in, c, slots, p, pairs, acc);
+  evaluate_contacts<BySlot>(in.law, in.dt, c, slots);
+  commit_contacts<BySlot>(in, c, slots, p, pairs, acc);
   c.size = 0;
 }
 
@@ -290,9 +290,7 @@ template <class Law>
 inline void flush_sphere_contacts(const ForceInputs<Law>& in, ContactLanes<Law>& c, Particles& p, PairList& pairs,
                                   ForceBlock& acc) {
   sphere_geometry(c);
-  evaluate_contacts<false>(in.law, in.dt, c, c.geometry);
-  commit_contacts<false>(in, c, c.geometry, p, pairs, acc);
-  c.size = 0;
+  flush_contacts<false>(in, c, c.geometry, p, pairs, acc);
 }
 
 // A pair that is apart: no force; a contact just lost releases its history (the law's released
