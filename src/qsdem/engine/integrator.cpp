@@ -265,6 +265,15 @@ struct QuatParts {
           (a.w * b.y + a.y * b.w) + (a.z * b.x - a.x * b.z), (a.w * b.z - a.y * b.x) + (a.z * b.w + a.x * b.y)};
 }
 
+// q e with e = (c, s u_K), a turn about the body axis K: multiply(q, e) without the products with
+// e's zero components (each only adds or subtracts a signed zero: the same bits for a nonzero sum).
+template <int K>
+[[gnu::always_inline]] inline QuatParts multiply_axis(const QuatParts& a, double c, double s) {
+  if constexpr (K == 0) return {a.w * c - a.x * s, a.w * s + a.x * c, a.y * c + a.z * s, a.z * c - a.y * s};
+  else if constexpr (K == 1) return {a.w * c - a.y * s, a.x * c - a.z * s, a.w * s + a.y * c, a.z * c + a.x * s};
+  else return {a.w * c - a.z * s, a.y * s + a.x * c, a.y * c - a.x * s, a.w * s + a.z * c};
+}
+
 // Column K of R(q): the body axis K in the world frame.
 template <int K>
 [[gnu::always_inline]] inline void body_axis(const QuatParts& q, double& ax, double& ay, double& az) {
@@ -306,8 +315,7 @@ template <int K, bool taylor_only>
   }
   sp *= inv_l;
   const QuatParts about_l{cp, sp * lx, sp * ly, sp * lz};
-  const QuatParts about_axis{cs, K == 0 ? ss : 0.0, K == 1 ? ss : 0.0, K == 2 ? ss : 0.0};
-  const QuatParts r = multiply(multiply(about_l, q), about_axis);
+  const QuatParts r = multiply_axis<K>(multiply(about_l, q), cs, ss);
   // |r|^2 = 1 + O(ulps) (unit factors): one Newton step for |r|^-1, 1.5 - |r|^2/2, is exact to
   // round-off there and needs no square root or division.
   // (Summed as Eigen sums a 4-vector: (x^2 + z^2) + (y^2 + w^2).)
@@ -335,8 +343,9 @@ inline QuatParts spheroid_rotation(int k, const QuatParts& q, double inv_s, doub
   return spheroid_rotation<2, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
 }
 
-// The symmetry axis of a body with two equal moments (-1: three distinct moments). Equal moments
-// are computed by the same expression (ellipsoid_inertia), so b == c gives bit-equal I_b, I_c.
+// The symmetry axis of a body with two equal moments (-1: three distinct moments), from the
+// moments or their inverses. Equal moments are computed by the same expression (ellipsoid_inertia),
+// so b == c gives bit-equal I_b, I_c and inverses; the spheroid's flow reads only the inverses.
 inline int symmetry_axis(const Vec3& inertia) {
   if (inertia.y() == inertia.z()) return 0;
   if (inertia.x() == inertia.y()) return 2;
@@ -371,10 +380,16 @@ template <int K, bool taylor_only>
   t.ox[a] = inv_perp * lx + f * ex, t.oy[a] = inv_perp * ly + f * ey, t.oz[a] = inv_perp * lz + f * ez;
   t.qw[a] = q.w, t.qx[a] = q.x, t.qy[a] = q.y, t.qz[a] = q.z;
   // Chord |q - q_old| of the shorter arc (q and -q are one turn), summed as Eigen sums a 4-vector.
+  // Within the Taylor range (half angles below 0.05) q_old . q > 0: the arc from q_old is the shorter.
   const double dx = q.x - old.x, dy = q.y - old.y, dz = q.z - old.z, dw = q.w - old.w;
-  const double sx = q.x + old.x, sy = q.y + old.y, sz = q.z + old.z, sw = q.w + old.w;
-  const double minus = (dx * dx + dz * dz) + (dy * dy + dw * dw), plus = (sx * sx + sz * sz) + (sy * sy + sw * sw);
-  t.chord2[a] = plus < minus ? plus : minus;
+  const double minus = (dx * dx + dz * dz) + (dy * dy + dw * dw);
+  if constexpr (taylor_only) {
+    t.chord2[a] = minus;
+  } else {
+    const double sx = q.x + old.x, sy = q.y + old.y, sz = q.z + old.z, sw = q.w + old.w;
+    const double plus = (sx * sx + sz * sz) + (sy * sy + sw * sw);
+    t.chord2[a] = plus < minus ? plus : minus;
+  }
   t.outside[a] = outside ? 1.0 : 0.0;
 }
 
@@ -494,7 +509,6 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   Vec3* const pos = p.s.data();
   const Vec3* const vel = p.v.data();
   const ShapeKind* const shape = p.shape.data();
-  const Vec3* const inertia = p.inertia.data();
   double* const path = surface_path.data();
   const SpinArrays spin{p.q.data(), p.angmom.data(), p.inv_inertia.data(), p.omega.data(), p.bound_radius.data(),
                         track ? path : nullptr};
@@ -514,7 +528,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
       if (track) path[i] += dt * vel[i].norm();
     }
     if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
-    if (const int k = symmetry_axis(inertia[i]); k >= 0) {
+    if (const int k = symmetry_axis(spin.inv_inertia[i]); k >= 0) {  // (the inverses: one array less to read)
       if (resting(spin.angmom[i])) {
         spin.omega[i] = resting_omega(k, spin.q[i], spin.angmom[i], spin.inv_inertia[i]);
         continue;
