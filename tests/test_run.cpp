@@ -154,6 +154,9 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
     State st = start;
     Schedule schedule;  // kept from step to step: the cuts after the first follow the blocks' times
     for (int k = 0; k < 30; ++k) step(model, st, schedule);
+    if (threads > 1) {  // and the update region's ranges its owners' times
+      EXPECT_EQ(schedule.owner_rate.size(), static_cast<std::size_t>(threads)) << threads << " threads";
+    }
     return std::make_pair(st, measure(st));
   };
   const auto [s1, m1] = run(1);
@@ -203,6 +206,47 @@ TEST(Run, ThreadCountDoesNotChangeTheEnergyLedger) {
   EXPECT_GT(s1.energy.damping, 0.0) << "nd damps the packing";
   EXPECT_EQ(particles_differing(s1, untracked), 0u) << "the ledger changes no result";
   EXPECT_TRUE(s1.stress == untracked.stress);
+}
+
+// The update region's ranges (assign_owners): once timed, shares of equal expected time, cut on
+// multiples of 8 particles, each at least a quarter of an even share; the rates smoothed from
+// step to step (record_owner_times), kept through a step that did not time every owner.
+TEST(Run, UpdateRangesFollowTheOwnersTimes) {
+  PairList pairs;
+  pairs.block_first = {0, 100, 200};
+  Schedule s;
+  s.block_cut = {0, 1, 2};
+  assign_owners(s, pairs, 8000, 2, 2);
+  EXPECT_EQ(s.owner_first, (std::vector<std::size_t>{0, 100, 8000})) << "untimed: the particles of the blocks";
+  EXPECT_EQ(s.contact_owner_first.size(), 2u * 3u);
+
+  s.owner_rate = {1e-9, 3e-9};  // owner 1 takes 3 times as long per particle
+  assign_owners(s, pairs, 8000, 2, 2);
+  EXPECT_EQ(s.owner_first, (std::vector<std::size_t>{0, 6000, 8000}));
+  s.owner_rate = {1e-9, 1e-5};
+  assign_owners(s, pairs, 8000, 2, 2);
+  EXPECT_EQ(s.owner_first, (std::vector<std::size_t>{0, 7000, 8000})) << "a quarter of an even share at least";
+  s.owner_rate = {2e-9, 2e-9, 2e-9};
+  assign_owners(s, pairs, 9010, 3, 3);
+  EXPECT_EQ(s.owner_first, (std::vector<std::size_t>{0, 3000, 6000, 9010})) << "multiples of 8";
+  assign_owners(s, pairs, 8000, 2, 2);
+  EXPECT_TRUE(s.owner_rate.empty()) << "rates of another thread count";
+  EXPECT_EQ(s.owner_first, (std::vector<std::size_t>{0, 100, 8000}));
+
+  s.owner_first = {0, 6000, 8000};
+  s.owner_seconds = {6e-6, 4e-6};
+  record_owner_times(s);
+  ASSERT_EQ(s.owner_rate.size(), 2u);
+  EXPECT_DOUBLE_EQ(s.owner_rate[0], 1e-9) << "the first timed step's rates";
+  EXPECT_DOUBLE_EQ(s.owner_rate[1], 2e-9);
+  s.owner_seconds = {12e-6, 4e-6};
+  record_owner_times(s);
+  EXPECT_DOUBLE_EQ(s.owner_rate[0], 0.8 * 1e-9 + 0.2 * 2e-9);
+  EXPECT_DOUBLE_EQ(s.owner_rate[1], 2e-9);
+  const std::vector<double> kept = s.owner_rate;
+  s.owner_seconds = {12e-6, 0};
+  record_owner_times(s);
+  EXPECT_EQ(s.owner_rate, kept) << "an owner without a time";
 }
 
 // A thread done with its blocks takes those left at the end of another thread's range

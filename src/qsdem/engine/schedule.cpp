@@ -35,13 +35,46 @@ void share_blocks(Schedule& s, const PairList& pairs, long builds, int nthreads)
 
 void assign_owners(Schedule& s, const PairList& pairs, std::size_t n, std::size_t owners, int nthreads) {
   s.owner_first.resize(owners + 1);
+  s.contact_owner_first.resize((pairs.block_first.size() - 1) * (owners + 1));
+  if (s.owner_rate.size() != owners) s.owner_rate.clear();  // another thread count: not timed
+  if (owners > 1 && !s.owner_rate.empty()) {
+    // Shares proportional to each owner's particles per second, each at least a quarter of an
+    // even share (so that every owner stays timed); the cuts on multiples of 8 particles (a Vec3
+    // array's cache lines start together every 8).
+    double speed = 0;
+    for (const double rate : s.owner_rate) speed += 1 / rate;
+    const std::size_t least = n / (4 * owners);
+    double before = 0;
+    s.owner_first[0] = 0;
+    for (std::size_t t = 1; t < owners; ++t) {
+      before += 1 / s.owner_rate[t - 1];
+      const auto cut = static_cast<std::size_t>(static_cast<double>(n) * before / speed) / 8 * 8;
+      s.owner_first[t] = std::clamp(cut, s.owner_first[t - 1] + least, n - (owners - t) * least);
+    }
+    s.owner_first[owners] = n;
+    return;
+  }
   for (std::size_t t = 0; t <= owners; ++t)
     s.owner_first[t] = t == 0        ? 0
                        : t == owners ? n
                        : owners == static_cast<std::size_t>(nthreads)
                            ? std::min<std::size_t>(n, pairs.block_first[s.block_cut[t]])
                            : n * t / owners;
-  s.contact_owner_first.resize((pairs.block_first.size() - 1) * (owners + 1));
+}
+
+void record_owner_times(Schedule& s) {
+  const std::size_t owners = s.owners();
+  if (owners < 2 || s.owner_seconds.size() != owners) return;
+  // Rates only from a step that timed every owner on particles of its own.
+  for (std::size_t t = 0; t < owners; ++t)
+    if (s.owner_first[t + 1] == s.owner_first[t] || !(s.owner_seconds[t] > 0)) return;
+  const bool timed = s.owner_rate.size() == owners;
+  s.owner_rate.resize(owners);
+  for (std::size_t t = 0; t < owners; ++t) {
+    const double rate = s.owner_seconds[t] / static_cast<double>(s.owner_first[t + 1] - s.owner_first[t]);
+    // Smoothed: one step's times carry the machine's noise.
+    s.owner_rate[t] = timed ? 0.8 * s.owner_rate[t] + 0.2 * rate : rate;
+  }
 }
 
 void assign_single_owner(Schedule& s, const State& state) {

@@ -30,6 +30,9 @@ struct Schedule {
   // contact_owner_first + b (owners + 1).
   std::vector<std::size_t> owner_first;
   std::vector<std::uint32_t> contact_owner_first;
+  // Per owner: its seconds in the update region this step (gather, kick, drift), and its recent
+  // seconds per particle smoothed (what sets the next steps' ranges).
+  std::vector<double> owner_seconds, owner_rate;
 
   std::size_t owners() const { return owner_first.size() - 1; }
   // True when the owners describe the contacts of `state`'s last force evaluation.
@@ -41,10 +44,17 @@ struct Schedule {
 // `timed` is set), else (right after a list build) their pair counts.
 void share_blocks(Schedule& s, const PairList& pairs, long builds, int nthreads);
 
-// The update region's ranges of n particles for `owners` threads: with as many owners as the
-// force stage's threads, thread t owns the particles of its blocks (their i-side sums are in its
-// cache); else an even split. Sizes contact_owner_first for the blocks.
+// The update region's ranges of n particles for `owners` threads, sized contact_owner_first
+// for the blocks. Once the update region has timed its owners (owner_rate), ranges of equal
+// expected time: a range's particles cost more than others' when they have more contacts to
+// gather or more spheroids turning, and the same particles cost more on one core than the other
+// (their force-stage sums were written by the other core). Before that: with as many owners as
+// the force stage's threads, thread t owns the particles of its blocks; else an even split.
 void assign_owners(Schedule& s, const PairList& pairs, std::size_t n, std::size_t owners, int nthreads);
+
+// The update region's owners took owner_seconds for their ranges this step: their smoothed
+// seconds per particle.
+void record_owner_times(Schedule& s);
 
 // One owner for all: every particle and, per block, all its contacts (ForceBlock::first_contact,
 // contacts) of `state`'s last force evaluation. The update stage's split when the force stage

@@ -51,6 +51,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   }
   double v2max = 0;
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
+  schedule.owner_seconds.assign(owners, 0.0);
   const double start = omp_get_wtime();
   // Thread r takes the particles the force stage gave it (Schedule::owner_first: those of its blocks,
   // whose i-side sums are in its cache) and reads only their contacts, which the force stage
@@ -72,6 +73,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);
       const double t3 = omp_get_wtime();
       mine[0] += t1 - t0, mine[1] += t2 - t1, mine[2] += t3 - t2;
+      schedule.owner_seconds[r] = t3 - t0;
     }
 #pragma omp critical(qsdem_update_particles)
     {
@@ -79,6 +81,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       for (std::size_t k = 0; k < 3; ++k) busy[k] += mine[k];
     }
   }
+  record_owner_times(schedule);  // the next steps' ranges (assign_owners)
   const double wall = omp_get_wtime() - start, sum = busy[0] + busy[1] + busy[2];
   constexpr std::array stages{Stage::gather, Stage::integrate, Stage::advance};
   for (std::size_t k = 0; k < 3; ++k)
