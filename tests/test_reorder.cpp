@@ -6,11 +6,13 @@
 #include <omp.h>
 
 #include <array>
+#include <cmath>
 #include <map>
 #include <tuple>
 
 #include "qsdem/engine/contact/hertz_mindlin.hpp"
 #include "qsdem/engine/model.hpp"
+#include "qsdem/engine/neighbor.hpp"
 #include "qsdem/engine/reorder.hpp"
 #include "qsdem/engine/step.hpp"
 #include "qsdem/run/generate.hpp"
@@ -22,13 +24,14 @@ namespace {
 // The tangential force on j that pair k stores (the Hertz-Mindlin history).
 Vec3 stored_shear(const State& st, std::size_t k) { return HertzMindlin::tangential_force(st.pairs.history.of(k)); }
 
-State random_sample(std::uint64_t seed) {
+// `count` particles at random in a cell sized for 220 of them per 24 x 26 x 25 mm.
+State random_sample(std::uint64_t seed, std::uint32_t count = 220) {
   Random rng(seed);
   State st;
-  st.cell = make_cell(Vec3(24e-3, 26e-3, 25e-3).asDiagonal());
+  st.cell = make_cell((std::cbrt(count / 220.0) * Vec3(24e-3, 26e-3, 25e-3)).asDiagonal());
   const std::vector<Vec3> shapes = {Vec3(1.5e-3, 1e-3, 1e-3), Vec3::Constant(1.2e-3), Vec3(4e-3, 3e-3, 3e-3),
                                     Vec3(1.6e-3, 1.2e-3, 0.9e-3)};
-  for (std::uint32_t id = 0; id < 220; ++id) {
+  for (std::uint32_t id = 0; id < count; ++id) {
     const Vec3& ax = shapes[id % shapes.size()];
     st.particles.add(id, ax.x() == ax.z() ? ShapeKind::sphere : ShapeKind::ellipsoid, ax, 2650,
                      Vec3(rng.uniform(), rng.uniform(), rng.uniform()) + Vec3(id % 3 == 0 ? 1 : 0, 0, 0),
@@ -165,4 +168,56 @@ TEST(Reorder, PairValuesFollowTheirLayoutsRules) {
   }
   EXPECT_EQ(kept, before);
   EXPECT_EQ(fresh, st.pairs.size() - before);
+}
+
+// Above parallel_threshold the sorts (particles by Morton key, candidates and pairs by key), the
+// permutations and the merge of the old list's values run on the threads (parallel_sort.hpp,
+// list_with_history): the list, its values and the particles' order must be those of one thread,
+// bit for bit, through a sort with values to carry and a build that keeps them.
+TEST(Reorder, ThreadsGiveTheOneThreadListAndOrder) {
+  static constexpr HistoryLayout layout{"test", 2, {7, 8}, {OnSwap::negate, OnSwap::mirror_unit}};
+  const State start = random_sample(11, 6000);
+  const Model model = model_for(start);
+  const auto run = [&](int threads) {
+    const int saved = omp_get_max_threads();
+    omp_set_num_threads(threads);
+    State st = start;
+    build_pairs(st.particles, st.cell, model.skin, st.pairs, st.neighbor);
+    st.pairs.history.layout = &layout;
+    st.pairs.history.values.resize(2 * st.pairs.size());
+    for (std::size_t k = 0; k < st.pairs.size(); ++k) {
+      const double wi = st.particles.id[st.pairs.i[k]] + 1.0, wj = st.particles.id[st.pairs.j[k]] + 1.0;
+      st.pairs.history.of(k)[0] = wi - wj;
+      st.pairs.history.of(k)[1] = wj / (wi + wj);
+    }
+    EXPECT_TRUE(sort_particles(st));
+    for (Vec3& s : st.particles.s) s += Vec3(1e-4, -2e-4, 1e-4);
+    build_pairs(st.particles, st.cell, 2 * model.skin, st.pairs, st.neighbor);
+    omp_set_num_threads(saved);
+    return st;
+  };
+  const State one = run(1), two = run(2);
+  ASSERT_GT(one.pairs.size(), parallel_threshold) << "the pair sorts and the merge must run in parallel";
+  EXPECT_EQ(one.particles.id, two.particles.id);
+  EXPECT_EQ(one.pairs.i, two.pairs.i);
+  EXPECT_EQ(one.pairs.j, two.pairs.j);
+  EXPECT_TRUE(one.pairs.image == two.pairs.image);
+  EXPECT_EQ(one.pairs.history.values, two.pairs.history.values);
+  EXPECT_EQ(one.pairs.first_i, two.pairs.first_i);
+  std::size_t kept = 0;
+  for (std::size_t k = 0; k < two.pairs.size(); ++k) {
+    if (k > 0) {
+      EXPECT_TRUE(key_less(two.pairs.i[k - 1], two.pairs.j[k - 1], two.pairs.image[k - 1], two.pairs.i[k],
+                           two.pairs.j[k], two.pairs.image[k]))
+          << "pair " << k;
+    }
+    const double wi = two.particles.id[two.pairs.i[k]] + 1.0, wj = two.particles.id[two.pairs.j[k]] + 1.0;
+    if (two.pairs.history.of(k)[0] != 7) {  // listed before the wider build: its values followed it
+      ++kept;
+      EXPECT_EQ(two.pairs.history.of(k)[0], wi - wj) << "pair " << k;
+      EXPECT_NEAR(two.pairs.history.of(k)[1], wj / (wi + wj), 1e-15) << "pair " << k;
+    }
+  }
+  EXPECT_GT(kept, parallel_threshold);
+  EXPECT_LT(kept, two.pairs.size());
 }

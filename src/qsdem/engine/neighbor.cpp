@@ -9,6 +9,8 @@
 #include <numeric>
 #include <tuple>
 
+#include "qsdem/engine/parallel_sort.hpp"
+
 namespace qsdem {
 namespace {
 
@@ -17,10 +19,6 @@ struct Candidate {
   Vec3i image;
 };
 
-bool key_less(std::uint32_t ai, std::uint32_t aj, const Vec3i& ak, std::uint32_t bi, std::uint32_t bj,
-              const Vec3i& bk) {
-  return std::tie(ai, aj, ak.x(), ak.y(), ak.z()) < std::tie(bi, bj, bk.x(), bk.y(), bk.z());
-}
 
 int floor_div(int a, int n) { return (a >= 0) ? a / n : -((-a + n - 1) / n); }
 
@@ -261,7 +259,7 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
   checked = count;
   std::vector<Candidate> all;
   for (auto& f : found) all.insert(all.end(), f.begin(), f.end());
-  std::sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {
+  parallel_sort(all.begin(), all.end(), [](const Candidate& a, const Candidate& b) {  // each pair found once
     return key_less(a.i, a.j, a.image, b.i, b.j, b.image);
   });
   return all;
@@ -280,22 +278,38 @@ PairList list_with_history(const std::vector<Candidate>& all, const PairList& pa
   for_each_pair_field([&](const HistoryLayout& layout, PairField, std::vector<double>& values) {
     values = released_values(layout, np);
   }, next);
-  // The old pair of each new pair that was listed before (or none).
+  // The old pair of each new pair that was listed before (or none): both lists merged by key, in
+  // chunks of the new list, each from the first old pair not below its first key.
   constexpr std::size_t none = SIZE_MAX;
   std::vector<std::size_t> before(np, none);
-  std::size_t o = 0;
-  for (std::size_t k = 0; k < np; ++k) {
-    const Candidate& c = all[k];
-    next.i[k] = c.i;
-    next.j[k] = c.j;
-    next.image[k] = c.image;
-    while (o < pairs.size() && key_less(pairs.i[o], pairs.j[o], pairs.image[o], c.i, c.j, c.image)) ++o;
-    if (o < pairs.size() && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) before[k] = o;
+  const std::size_t old_np = pairs.size();
+  const std::size_t chunks = np > parallel_threshold ? 4 * static_cast<std::size_t>(omp_get_max_threads()) : 1;
+#pragma omp parallel for schedule(static) if (chunks > 1)
+  for (std::size_t chunk = 0; chunk < chunks; ++chunk) {
+    const std::size_t k0 = np * chunk / chunks, k1 = np * (chunk + 1) / chunks;
+    if (k0 == k1) continue;
+    std::size_t o = 0, count = old_np;  // lower bound of all[k0] among the old keys
+    while (count > 0) {
+      const std::size_t half = count / 2, m = o + half;
+      if (key_less(pairs.i[m], pairs.j[m], pairs.image[m], all[k0].i, all[k0].j, all[k0].image))
+        o = m + 1, count -= half + 1;
+      else
+        count = half;
+    }
+    for (std::size_t k = k0; k < k1; ++k) {
+      const Candidate& c = all[k];
+      next.i[k] = c.i;
+      next.j[k] = c.j;
+      next.image[k] = c.image;
+      while (o < old_np && key_less(pairs.i[o], pairs.j[o], pairs.image[o], c.i, c.j, c.image)) ++o;
+      if (o < old_np && pairs.i[o] == c.i && pairs.j[o] == c.j && pairs.image[o] == c.image) before[k] = o;
+    }
   }
   for_each_pair_field(
       [&](const HistoryLayout& layout, PairField field, std::vector<double>& values, const std::vector<double>& old) {
         const std::size_t w = static_cast<std::size_t>(layout.width);
-        if (!field.kept || old.size() != pairs.size() * w) return;  // not sized on the old list: none to keep
+        if (!field.kept || old.size() != old_np * w) return;  // not sized on the old list: none to keep
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
         for (std::size_t k = 0; k < np; ++k)
           if (before[k] != none) std::copy_n(old.data() + w * before[k], w, values.data() + w * k);
       },
@@ -309,6 +323,7 @@ PairList list_with_history(const std::vector<Candidate>& all, const PairList& pa
 std::vector<double> released_values(const HistoryLayout& layout, std::size_t np) {
   const std::size_t w = static_cast<std::size_t>(layout.width);
   std::vector<double> values(w * np);
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
   for (std::size_t k = 0; k < np; ++k) std::copy_n(layout.released.begin(), w, values.begin() + w * k);
   return values;
 }

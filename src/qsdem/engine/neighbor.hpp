@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <span>
 #include <string>
+#include <tuple>
 #include <type_traits>
 #include <vector>
 
@@ -19,6 +20,12 @@
 namespace qsdem {
 
 inline constexpr std::size_t pairs_per_block = 1024;  // force stage work unit (PairList::block_first)
+
+// The order of the pair keys: lexicographic in (i, j, image).
+inline bool key_less(std::uint32_t ai, std::uint32_t aj, const Vec3i& ak, std::uint32_t bi, std::uint32_t bj,
+                     const Vec3i& bk) {
+  return std::tie(ai, aj, ak.x(), ak.y(), ak.z()) < std::tie(bi, bj, bk.x(), bk.y(), bk.z());
+}
 
 // The per-pair arrays that are not the contact law's (the pair registry, for_each_pair_field).
 inline constexpr HistoryLayout no_history{"", 0, {}, {}};  // before a law has run on the list

@@ -5,6 +5,8 @@
 #include <numeric>
 #include <tuple>
 
+#include "qsdem/engine/parallel_sort.hpp"
+
 namespace qsdem {
 namespace {
 
@@ -21,14 +23,18 @@ std::uint32_t spread3(std::uint32_t x) {
 template <class T>
 void permute(std::vector<T>& v, const std::vector<std::uint32_t>& order) {
   std::vector<T> out(v.size());
-  for (std::size_t k = 0; k < order.size(); ++k) out[k] = v[order[k]];
+  const std::size_t n = order.size();
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t k = 0; k < n; ++k) out[k] = v[order[k]];
   v.swap(out);
 }
 
 // The same for w values per element.
 void permute(std::vector<double>& v, const std::vector<std::uint32_t>& order, std::size_t w) {
   std::vector<double> out(v.size());
-  for (std::size_t k = 0; k < order.size(); ++k) std::copy_n(v.data() + w * order[k], w, out.data() + w * k);
+  const std::size_t n = order.size();
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t k = 0; k < n; ++k) std::copy_n(v.data() + w * order[k], w, out.data() + w * k);
   v.swap(out);
 }
 
@@ -61,7 +67,7 @@ bool sort_particles(State& st) {
   std::vector<std::uint32_t> key(n), order(n);
   for (std::size_t i = 0; i < n; ++i) key[i] = morton_key(p.s[i]);
   std::iota(order.begin(), order.end(), 0u);
-  std::stable_sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) { return key[a] < key[b]; });
+  parallel_stable_sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) { return key[a] < key[b]; });
   bool identity = true;
   for (std::size_t k = 0; k < n && identity; ++k) identity = order[k] == k;
   if (identity) return false;
@@ -78,6 +84,7 @@ bool sort_particles(State& st) {
   for (std::size_t k = 0; k < n; ++k) inverse[order[k]] = static_cast<std::uint32_t>(k);
   PairList& pairs = st.pairs;
   const std::size_t np = pairs.size();
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
   for (std::size_t k = 0; k < np; ++k) {
     std::uint32_t i = inverse[pairs.i[k]], j = inverse[pairs.j[k]];
     if (i > j) {
@@ -93,10 +100,8 @@ bool sort_particles(State& st) {
   }
   std::vector<std::uint32_t> by_key(np);
   std::iota(by_key.begin(), by_key.end(), 0u);
-  std::sort(by_key.begin(), by_key.end(), [&](std::uint32_t a, std::uint32_t b) {
-    const Vec3i &ka = pairs.image[a], &kb = pairs.image[b];
-    return std::tie(pairs.i[a], pairs.j[a], ka.x(), ka.y(), ka.z()) <
-           std::tie(pairs.i[b], pairs.j[b], kb.x(), kb.y(), kb.z());
+  parallel_sort(by_key.begin(), by_key.end(), [&](std::uint32_t a, std::uint32_t b) {  // a pair's key is unique
+    return key_less(pairs.i[a], pairs.j[a], pairs.image[a], pairs.i[b], pairs.j[b], pairs.image[b]);
   });
   permute(pairs.i, by_key);
   permute(pairs.j, by_key);
