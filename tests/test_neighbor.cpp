@@ -223,18 +223,25 @@ TEST(NeighborList, WideGradingCostsBinsByParticlesAndStaysExact) {
 
 // A blown-up state (a NaN position, or one beyond an int's count of cell images) is a RunError
 // naming the particle, not a cast of NaN to int (undefined behaviour, found by the loaders' fuzzer).
+// Above parallel_threshold the positions are wrapped on the threads: the error still names the
+// first such particle.
 TEST(NeighborList, BlownUpPositionIsARunError) {
-  for (const double bad : {std::numeric_limits<double>::quiet_NaN(), 1e272}) {
-    State st = random_sample(50, 1.0, Mat3::Identity(), 0.5, 1);
-    st.particles.s[7].y() = bad;
-    try {
-      build_pairs(st.particles, st.cell, kSkin, st.pairs, st.neighbor);
-      ADD_FAILURE() << "no error for " << bad;
-    } catch (const RunError& e) {
-      EXPECT_NE(std::string(e.what()).find(fmt::format("particle id {}", st.particles.id[7])), std::string::npos)
-          << e.what();
+  const int saved = omp_get_max_threads();
+  omp_set_num_threads(2);
+  for (const std::size_t n : {std::size_t{50}, parallel_threshold + 904})
+    for (const double bad : {std::numeric_limits<double>::quiet_NaN(), 1e272}) {
+      State st = random_sample(n, 1.0, Mat3::Identity(), 0.5, 1);
+      st.particles.s[7].y() = bad;
+      st.particles.s[n - 3].x() = bad;
+      try {
+        build_pairs(st.particles, st.cell, kSkin, st.pairs, st.neighbor);
+        ADD_FAILURE() << "no error for " << bad;
+      } catch (const RunError& e) {
+        EXPECT_NE(std::string(e.what()).find(fmt::format("particle id {} ", st.particles.id[7])), std::string::npos)
+            << e.what();
+      }
     }
-  }
+  omp_set_num_threads(saved);
 }
 
 // SPEC 4: the Verlet list stays valid while particles move and the cell deforms (compression,

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <limits>
 #include <numeric>
 #include <tuple>
@@ -58,19 +59,19 @@ Eigen::Vector3i grid_bins(const Vec3& w, double r_max, double skin, std::size_t 
 // Size classes: greedy groups of bounding radii within a factor 2, smallest first.
 std::vector<int> size_classes(const Particles& p, std::vector<double>& class_rmax) {
   std::vector<double> radii = p.bound_radius;
-  std::sort(radii.begin(), radii.end());
+  parallel_sort(radii.begin(), radii.end(), std::less<>());
   radii.erase(std::unique(radii.begin(), radii.end()), radii.end());
   std::vector<double> lower;  // lower bound of each class
-  for (double r : radii)
-    if (lower.empty() || r > 2 * lower.back()) lower.push_back(r);
-  class_rmax.assign(lower.size(), 0.0);
-  std::vector<int> cls(p.size());
-  for (std::size_t i = 0; i < p.size(); ++i) {
-    const double r = p.bound_radius[i];
-    const int c = static_cast<int>(std::upper_bound(lower.begin(), lower.end(), r) - lower.begin()) - 1;
-    cls[i] = c;
-    class_rmax[c] = std::max(class_rmax[c], r);
+  class_rmax.clear();         // the largest radius of each class: its last in ascending order
+  for (double r : radii) {
+    if (lower.empty() || r > 2 * lower.back()) lower.push_back(r), class_rmax.push_back(r);
+    class_rmax.back() = r;
   }
+  const std::size_t n = p.size();
+  std::vector<int> cls(n);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t i = 0; i < n; ++i)
+    cls[i] = static_cast<int>(std::upper_bound(lower.begin(), lower.end(), p.bound_radius[i]) - lower.begin()) - 1;
   return cls;
 }
 
@@ -162,16 +163,22 @@ WrappedPositions wrap_positions(const Particles& p) {
   const std::size_t n = p.size();
   WrappedPositions w{std::vector<Vec3>(n), std::vector<Vec3i>(n)};
   constexpr double reach = std::numeric_limits<int>::max();
+  std::size_t blown = n;  // the first particle whose position is not one
+#pragma omp parallel for schedule(static) reduction(min : blown) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) {
     const Vec3 f = p.s[i].array().floor();
     // An image count beyond int (or NaN) is a blown-up state, not a position: stop before the cast.
-    if (!(f.array().abs() < reach).all())
-      throw RunError(fmt::format("particle id {} is at ({}, {}, {}) in cell coordinates: the state has blown up "
-                                 "and cannot be stepped",
-                                 p.id[i], p.s[i].x(), p.s[i].y(), p.s[i].z()));
+    if (!(f.array().abs() < reach).all()) {
+      blown = std::min(blown, i);
+      continue;
+    }
     w.wrap[i] = f.cast<int>();
     w.s[i] = p.s[i] - f;
   }
+  if (blown < n)
+    throw RunError(fmt::format("particle id {} is at ({}, {}, {}) in cell coordinates: the state has blown up "
+                               "and cannot be stepped",
+                               p.id[blown], p.s[blown].x(), p.s[blown].y(), p.s[blown].z()));
   return w;
 }
 

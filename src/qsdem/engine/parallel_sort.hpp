@@ -1,7 +1,8 @@
 // Sorts on the OpenMP threads: libstdc++'s parallel mode (a multiway merge sort) from
 // parallel_threshold elements up, std:: below. The order does not depend on the thread count:
-// parallel_sort requires unique keys (`less` a strict total order on the range: the order is
-// the one std::sort gives), parallel_stable_sort is stable (the order std::stable_sort gives).
+// parallel_sort requires that elements comparing equal are the same bits (unique keys, or plain
+// values: the order is the one std::sort gives), parallel_stable_sort is stable (the order
+// std::stable_sort gives).
 #pragma once
 #include <parallel/algorithm>
 

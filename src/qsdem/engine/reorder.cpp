@@ -65,6 +65,7 @@ bool sort_particles(State& st) {
   Particles& p = st.particles;
   const std::size_t n = p.size();
   std::vector<std::uint32_t> key(n), order(n);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
   for (std::size_t i = 0; i < n; ++i) key[i] = morton_key(p.s[i]);
   std::iota(order.begin(), order.end(), 0u);
   parallel_stable_sort(order.begin(), order.end(), [&](std::uint32_t a, std::uint32_t b) { return key[a] < key[b]; });
@@ -81,6 +82,7 @@ bool sort_particles(State& st) {
   // stored tangential force on j becomes the force on the other end, and the PW parameter lambda
   // (weight of j's shape) 1 - lambda.
   std::vector<std::uint32_t> inverse(n);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
   for (std::size_t k = 0; k < n; ++k) inverse[order[k]] = static_cast<std::uint32_t>(k);
   PairList& pairs = st.pairs;
   const std::size_t np = pairs.size();
