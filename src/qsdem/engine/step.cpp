@@ -53,9 +53,8 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
   schedule.owner_seconds.assign(owners, 0.0);
   const double start = omp_get_wtime();
-  // Thread r takes the particles the force stage gave it (Schedule::owner_first: those of its blocks,
-  // whose i-side sums are in its cache) and reads only their contacts, which the force stage
-  // grouped by owner.
+  // Thread r takes the particles the force stage assigned it (Schedule::owner_first, cut by the
+  // owners' measured times) and reads only their contacts, which the force stage grouped by owner.
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
   {
     const int team = omp_get_num_threads();
