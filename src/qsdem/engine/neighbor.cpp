@@ -8,7 +8,6 @@
 #include <functional>
 #include <limits>
 #include <numeric>
-#include <ranges>
 #include <tuple>
 
 #include "qsdem/engine/parallel_sort.hpp"
@@ -296,9 +295,16 @@ PairList list_with_history(const std::vector<Candidate>& all, const PairList& pa
   for (std::size_t chunk = 0; chunk < chunks; ++chunk) {
     const std::size_t k0 = np * chunk / chunks, k1 = np * (chunk + 1) / chunks;
     if (k0 == k1) continue;
-    std::size_t o = *std::ranges::partition_point(std::views::iota(std::size_t{0}, old_np), [&](std::size_t m) {
-      return key_less(pairs.i[m], pairs.j[m], pairs.image[m], all[k0].i, all[k0].j, all[k0].image);
-    });  // the first old key not below all[k0]
+    // The first old key not below all[k0], by bisection (std::ranges::partition_point over an
+    // iota view does not build with the fuzzer's clang and libstdc++ 12).
+    std::size_t o = 0, count = old_np;
+    while (count > 0) {
+      const std::size_t half = count / 2, m = o + half;
+      if (key_less(pairs.i[m], pairs.j[m], pairs.image[m], all[k0].i, all[k0].j, all[k0].image))
+        o = m + 1, count -= half + 1;
+      else
+        count = half;
+    }
     for (std::size_t k = k0; k < k1; ++k) {
       const Candidate& c = all[k];
       next.i[k] = c.i;
