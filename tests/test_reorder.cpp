@@ -171,7 +171,7 @@ TEST(Reorder, PairValuesFollowTheirLayoutsRules) {
 }
 
 // Above parallel_threshold the sorts (particles by Morton key, candidates and pairs by key), the
-// permutations and the merge of the old list's values run on the threads (parallel_sort.hpp,
+// permutations and the merge of the old list's values run on the threads (parallel_algorithms.hpp,
 // list_with_history): the list, its values and the particles' order must be those of one thread,
 // bit for bit, through a sort with values to carry and a build that keeps them.
 TEST(Reorder, ThreadsGiveTheOneThreadListAndOrder) {
@@ -220,4 +220,48 @@ TEST(Reorder, ThreadsGiveTheOneThreadListAndOrder) {
   }
   EXPECT_GT(kept, parallel_threshold);
   EXPECT_LT(kept, two.pairs.size());
+}
+
+// The incidence (build_incidence, on the threads from parallel_threshold pairs) against a plain
+// count: first_i[a] is the number of pairs whose i is below a, and the blocks are cut greedily,
+// each at the first particle that brings it to pairs_per_block pairs. Lists with particles without
+// pairs at either end and in runs, one particle with more pairs than a block, and no pairs.
+TEST(Reorder, IncidenceIsThePlainCount) {
+  const auto reference = [](const PairList& pairs, std::size_t n) {
+    std::vector<std::uint32_t> first(n + 1, 0);
+    for (std::uint32_t i : pairs.i) ++first[i + 1];
+    for (std::size_t a = 0; a < n; ++a) first[a + 1] += first[a];
+    std::vector<std::uint32_t> blocks{0};
+    for (std::size_t a = 0; a < n; ++a)
+      if (first[a + 1] - first[blocks.back()] >= pairs_per_block) blocks.push_back(static_cast<std::uint32_t>(a + 1));
+    if (blocks.back() != n) blocks.push_back(static_cast<std::uint32_t>(n));
+    return std::pair{first, blocks};
+  };
+  const auto list = [](const std::vector<std::uint32_t>& pairs_of) {
+    PairList pairs;
+    for (std::uint32_t a = 0; a < pairs_of.size(); ++a)
+      for (std::uint32_t m = 0; m < pairs_of[a]; ++m) {
+        pairs.i.push_back(a);
+        pairs.j.push_back(a + m + 1);
+        pairs.image.push_back(Vec3i::Zero());
+      }
+    return pairs;
+  };
+  std::vector<std::uint32_t> pairs_of(5000);
+  for (std::uint32_t a = 0; a < pairs_of.size(); ++a) pairs_of[a] = a < 40 || a > 4950 ? 0 : (a * 7) % 13 % 9;
+  pairs_of[2500] = 3 * pairs_per_block;  // a particle alone fills three blocks
+  const std::vector<std::vector<std::uint32_t>> cases{pairs_of, std::vector<std::uint32_t>(300, 0),
+                                                      std::vector<std::uint32_t>(10, 2)};
+  for (const auto& c : cases)
+    for (int threads : {1, 2}) {
+      PairList pairs = list(c);
+      const int saved = omp_get_max_threads();
+      omp_set_num_threads(threads);
+      build_incidence(pairs, c.size());
+      omp_set_num_threads(saved);
+      const auto [first, blocks] = reference(pairs, c.size());
+      EXPECT_EQ(pairs.first_i, first) << c.size() << " particles, " << threads << " threads";
+      EXPECT_EQ(pairs.block_first, blocks) << c.size() << " particles, " << threads << " threads";
+    }
+  EXPECT_GT(list(pairs_of).size(), parallel_threshold) << "the parallel loop must run";
 }

@@ -10,7 +10,7 @@
 #include <numeric>
 #include <tuple>
 
-#include "qsdem/engine/parallel_sort.hpp"
+#include "qsdem/engine/parallel_algorithms.hpp"
 
 namespace qsdem {
 namespace {
@@ -27,12 +27,19 @@ int floor_div(int a, int n) { return (a >= 0) ? a / n : -((-a + n - 1) / n); }
 struct Grid {
   Eigen::Vector3i n = Eigen::Vector3i::Ones();   // bins per axis
   double r_max = 0;                              // largest bounding radius in the class
-  std::vector<std::uint32_t> start, members;     // CSR: bin -> particles
+  std::size_t first_bin = 0;                     // its bins' place in the numbering of all (Grids)
 
   std::size_t bins() const { return std::size_t(n.x()) * std::size_t(n.y()) * std::size_t(n.z()); }
   std::size_t bin_index(const Eigen::Vector3i& b) const {
-    return (std::size_t(b.z()) * std::size_t(n.y()) + std::size_t(b.y())) * std::size_t(n.x()) + std::size_t(b.x());
+    return first_bin +
+           (std::size_t(b.z()) * std::size_t(n.y()) + std::size_t(b.y())) * std::size_t(n.x()) + std::size_t(b.x());
   }
+};
+
+// The grids of the size classes, their bins numbered class after class, with one CSR of all bins.
+struct Grids {
+  std::vector<Grid> classes;
+  std::vector<std::uint32_t> start, members;  // bin b holds members[start[b], start[b + 1]), ascending
 };
 
 // Bins per axis of a class's grid: at least 2 r_max + skin wide, so that a bin's neighbours hold
@@ -140,15 +147,29 @@ bool needs_rebuild(NeighborState& ns, const Particles& p, const Cell& cell, bool
 
 void build_incidence(PairList& pairs, std::size_t n) {
   const std::size_t np = pairs.size();
-  pairs.first_i.assign(n + 1, 0);
-  for (std::size_t k = 0; k < np; ++k) ++pairs.first_i[pairs.i[k] + 1];
-  std::partial_sum(pairs.first_i.begin(), pairs.first_i.end(), pairs.first_i.begin());
+  pairs.first_i.resize(n + 1);
+  const std::uint32_t* const pair_i = pairs.i.data();
+  std::uint32_t* const first = pairs.first_i.data();
+  // The pairs are in key order, so in order of i: pair k (or the end, k = np) is the first of
+  // every particle a in (i[k - 1], i[k]] (from 0 for the first pair, to n for the end). Each a is
+  // written once.
+#pragma omp parallel for schedule(static) if (np > parallel_threshold)
+  for (std::size_t k = 0; k <= np; ++k) {
+    const std::size_t from = k == 0 ? 0 : std::size_t(pair_i[k - 1]) + 1, to = k == np ? n : pair_i[k];
+    for (std::size_t a = from; a <= to; ++a) first[a] = static_cast<std::uint32_t>(k);
+  }
   // Blocks of whole particles (as i) holding at least pairs_per_block pairs: each block owns the
-  // i-side sums of its particles, and the blocks depend on the list only, not on the threads.
+  // i-side sums of its particles, and the blocks depend on the list only, not on the threads. A
+  // block starting at particle b ends at the first particle m with first_i[m] >= first_i[b] +
+  // pairs_per_block (a search in first_i, which rises with m), or at n.
   pairs.block_first.assign(1, 0);
-  for (std::size_t a = 0; a < n; ++a)
-    if (pairs.first_i[a + 1] - pairs.first_i[pairs.block_first.back()] >= pairs_per_block)
-      pairs.block_first.push_back(static_cast<std::uint32_t>(a + 1));
+  for (;;) {
+    const std::uint32_t b = pairs.block_first.back();
+    const auto m = std::lower_bound(pairs.first_i.begin() + b + 1, pairs.first_i.end(), first[b] + pairs_per_block);
+    if (m == pairs.first_i.end()) break;
+    pairs.block_first.push_back(static_cast<std::uint32_t>(m - pairs.first_i.begin()));
+    if (pairs.block_first.back() == n) break;
+  }
   if (pairs.block_first.back() != n) pairs.block_first.push_back(static_cast<std::uint32_t>(n));
 }
 
@@ -182,33 +203,61 @@ WrappedPositions wrap_positions(const Particles& p) {
   return w;
 }
 
-// One grid per size class (size_classes), bins as grid_bins sizes them.
-std::vector<Grid> make_grids(const Particles& p, const std::vector<Vec3>& sw, const std::vector<int>& cls,
-                             const std::vector<double>& class_rmax, const Vec3& w, double skin) {
+// One grid per size class (size_classes), bins as grid_bins sizes them, filled by a counting sort
+// on the threads: each particle's bin, the bins' counts and their prefix sums, each particle put
+// in its bin's next slot. Those slots follow the threads' timing, so each bin's members are then
+// sorted (a bin holds a few): the grids do not depend on the thread count.
+Grids make_grids(const Particles& p, const std::vector<Vec3>& sw, const std::vector<int>& cls,
+                 const std::vector<double>& class_rmax, const Vec3& w, double skin) {
   const std::size_t n = p.size();
-  const int nclass = static_cast<int>(class_rmax.size());
-  std::vector<Grid> grids(nclass);
+  const std::size_t nclass = class_rmax.size();
   std::vector<std::size_t> members(nclass, 0);
-  for (std::size_t i = 0; i < n; ++i) ++members[cls[i]];
-  std::vector<Eigen::Vector3i> bin_of(n);
-  for (int c = 0; c < nclass; ++c) {
-    Grid& g = grids[c];
+#pragma omp parallel if (n > parallel_threshold)
+  {
+    std::vector<std::size_t> mine(nclass, 0);
+#pragma omp for schedule(static) nowait
+    for (std::size_t i = 0; i < n; ++i) ++mine[static_cast<std::size_t>(cls[i])];
+#pragma omp critical(qsdem_grid_members)
+    for (std::size_t c = 0; c < nclass; ++c) members[c] += mine[c];
+  }
+  Grids grids;
+  grids.classes.resize(nclass);
+  std::size_t bins = 0;
+  for (std::size_t c = 0; c < nclass; ++c) {
+    Grid& g = grids.classes[c];
     g.r_max = class_rmax[c];
     g.n = grid_bins(w, g.r_max, skin, members[c]);
-    g.start.assign(g.bins() + 1, 0);
-    for (std::size_t i = 0; i < n; ++i) {
-      if (cls[i] != c) continue;
-      Eigen::Vector3i b;
-      for (int k = 0; k < 3; ++k) b[k] = std::min(g.n[k] - 1, static_cast<int>(sw[i][k] * g.n[k]));
-      bin_of[i] = b;
-      ++g.start[g.bin_index(b) + 1];
-    }
-    std::partial_sum(g.start.begin(), g.start.end(), g.start.begin());
-    g.members.resize(g.start.back());
-    std::vector<std::uint32_t> fill(g.start.begin(), g.start.end() - 1);
-    for (std::size_t i = 0; i < n; ++i)
-      if (cls[i] == c) g.members[fill[g.bin_index(bin_of[i])]++] = static_cast<std::uint32_t>(i);
+    g.first_bin = bins;
+    bins += g.bins();
   }
+  std::vector<std::uint32_t> bin_of(n), count(bins + 1, 0);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t i = 0; i < n; ++i) {
+    const Grid& g = grids.classes[static_cast<std::size_t>(cls[i])];
+    Eigen::Vector3i b;
+    for (int k = 0; k < 3; ++k) b[k] = std::min(g.n[k] - 1, static_cast<int>(sw[i][k] * g.n[k]));
+    const std::size_t at = g.bin_index(b);
+    bin_of[i] = static_cast<std::uint32_t>(at);
+#pragma omp atomic
+    ++count[at + 1];
+  }
+  grids.start.resize(bins + 1);
+  parallel_partial_sum(count.begin(), count.end(), grids.start.begin());
+  std::vector<std::uint32_t>& next = count;  // each bin's next slot
+#pragma omp parallel for schedule(static) if (bins > parallel_threshold)
+  for (std::size_t b = 0; b < bins; ++b) next[b] = grids.start[b];
+  grids.members.resize(n);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t i = 0; i < n; ++i) {
+    std::uint32_t slot;
+#pragma omp atomic capture
+    slot = next[bin_of[i]]++;
+    grids.members[slot] = static_cast<std::uint32_t>(i);
+  }
+#pragma omp parallel for schedule(static) if (bins > parallel_threshold)
+  for (std::size_t b = 0; b < bins; ++b)
+    if (grids.start[b + 1] - grids.start[b] > 1)
+      std::sort(grids.members.begin() + grids.start[b], grids.members.begin() + grids.start[b + 1]);
   return grids;
 }
 
@@ -216,7 +265,7 @@ std::vector<Grid> make_grids(const Particles& p, const std::vector<Vec3>& sw, co
 // its own class (partners of higher index) and every smaller class, so that each pair is found
 // once, from the side of the larger particle. `checked` counts the distances computed.
 std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, double skin, const WrappedPositions& wp,
-                                       const std::vector<int>& cls, const std::vector<Grid>& grids, long& checked) {
+                                       const std::vector<int>& cls, const Grids& grids, long& checked) {
   const std::size_t n = p.size();
   const Vec3 w = cell.widths();
   const std::vector<Vec3>& sw = wp.s;
@@ -229,7 +278,7 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
     for (std::size_t i = 0; i < n; ++i) {
       const double ri = p.bound_radius[i];
       for (int c = 0; c <= cls[i]; ++c) {
-        const Grid& g = grids[c];
+        const Grid& g = grids.classes[static_cast<std::size_t>(c)];
         const double reach = ri + g.r_max + skin;
         Eigen::Vector3i lo, hi;
         for (int k = 0; k < 3; ++k) {
@@ -246,8 +295,8 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
                 bin[k] = u[k] - img[k] * g.n[k];
               }
               const std::size_t b = g.bin_index(bin);
-              for (std::uint32_t m = g.start[b]; m < g.start[b + 1]; ++m) {
-                const std::uint32_t j = g.members[m];
+              for (std::uint32_t m = grids.start[b]; m < grids.start[b + 1]; ++m) {
+                const std::uint32_t j = grids.members[m];
                 if (c == cls[i] && j <= i) continue;
                 ++count;
                 const Vec3 l = cell.h * (sw[j] + img.cast<double>() - sw[i]);
@@ -350,9 +399,8 @@ void build_pairs(const Particles& p, const Cell& cell, double skin, PairList& pa
   const WrappedPositions wp = wrap_positions(p);
   std::vector<double> class_rmax;
   const std::vector<int> cls = size_classes(p, class_rmax);
-  const std::vector<Grid> grids = make_grids(p, wp.s, cls, class_rmax, cell.widths(), skin);
-  std::size_t bins = 0;
-  for (const Grid& g : grids) bins += g.bins();
+  const Grids grids = make_grids(p, wp.s, cls, class_rmax, cell.widths(), skin);
+  const std::size_t bins = grids.start.size() - 1;
   long checked = 0;
   const std::vector<Candidate> all = find_candidates(p, cell, skin, wp, cls, grids, checked);
   PairList next = list_with_history(all, pairs);

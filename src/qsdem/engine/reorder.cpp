@@ -5,7 +5,7 @@
 #include <numeric>
 #include <tuple>
 
-#include "qsdem/engine/parallel_sort.hpp"
+#include "qsdem/engine/parallel_algorithms.hpp"
 
 namespace qsdem {
 namespace {
