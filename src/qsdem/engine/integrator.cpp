@@ -311,22 +311,20 @@ template <int K, bool taylor_only>
   const double rate = 0.5 * dt * inv_perp;
   const double x2 = rate * rate * l2;
   double sp, cp, ss, cs;
-  if constexpr (taylor_only) {
-    outside = !(x2 <= 0.05 * 0.05) | !(std::abs(spin) <= 0.05);
+  if (taylor_only || x2 <= 0.05 * 0.05) {  // (no branch in the lanes: taylor_only is a constant)
     sinc_cos_taylor(x2, sp, cp);
     sp *= rate;
+  } else {
+    const double inv_l = 1 / std::sqrt(l2);
+    const double x = 0.5 * dt * l2 * inv_l * inv_perp;
+    sp = std::sin(x) * inv_l;
+    cp = std::cos(x);
+  }
+  if constexpr (taylor_only) {
+    outside = !(x2 <= 0.05 * 0.05) | !(std::abs(spin) <= 0.05);
     sin_cos_taylor(spin, ss, cs);
   } else {
     outside = false;
-    if (x2 <= 0.05 * 0.05) {
-      sinc_cos_taylor(x2, sp, cp);
-      sp *= rate;
-    } else {
-      const double inv_l = 1 / std::sqrt(l2);
-      const double x = 0.5 * dt * l2 * inv_l * inv_perp;
-      sp = std::sin(x) * inv_l;
-      cp = std::cos(x);
-    }
     sin_cos(spin, ss, cs);
   }
   const QuatParts about_l{cp, sp * lx, sp * ly, sp * lz};
