@@ -17,9 +17,15 @@
 
 namespace qsdem {
 
+// A range run on the threads: from parallel_threshold elements up.
+template <class It>
+bool on_threads(It first, It last) {
+  return static_cast<std::size_t>(std::distance(first, last)) >= parallel_threshold;
+}
+
 template <class It, class Less>
 void parallel_sort(It first, It last, Less less) {
-  if (static_cast<std::size_t>(std::distance(first, last)) < parallel_threshold)
+  if (!on_threads(first, last))
     std::sort(first, last, less);
   else
     __gnu_parallel::sort(first, last, less, __gnu_parallel::multiway_mergesort_tag());
@@ -27,7 +33,7 @@ void parallel_sort(It first, It last, Less less) {
 
 template <class It, class Less>
 void parallel_stable_sort(It first, It last, Less less) {
-  if (static_cast<std::size_t>(std::distance(first, last)) < parallel_threshold)
+  if (!on_threads(first, last))
     std::stable_sort(first, last, less);
   else
     __gnu_parallel::stable_sort(first, last, less, __gnu_parallel::multiway_mergesort_tag());
@@ -37,7 +43,7 @@ void parallel_stable_sort(It first, It last, Less less) {
 template <class In, class Out>
   requires std::integral<typename std::iterator_traits<In>::value_type>
 void parallel_partial_sum(In first, In last, Out out) {
-  if (static_cast<std::size_t>(std::distance(first, last)) < parallel_threshold)
+  if (!on_threads(first, last))
     std::partial_sum(first, last, out);
   else
     __gnu_parallel::partial_sum(first, last, out, std::plus<>());
