@@ -79,8 +79,8 @@ State evaluate_pair(const Mat3& h, double ri, double rj, const Vec3& si, const V
   p.v[1] = mo.vj;
   p.omega[0] = mo.wi;
   p.omega[1] = mo.wj;
-  p.angmom[0] = p.inertia[0].x() * mo.wi;
-  p.angmom[1] = p.inertia[1].x() * mo.wj;
+  p.angmom.set(0, p.inertia[0].x() * mo.wi);
+  p.angmom.set(1, p.inertia[1].x() * mo.wj);
   evaluate_forces(model, st);
   return st;
 }
@@ -128,7 +128,7 @@ void add_random_motion(State& st, std::uint64_t seed) {
   for (std::size_t i = 0; i < p.size(); ++i) {
     p.v[i] = Vec3(u(), u(), u());
     p.omega[i] = 500 * Vec3(u(), u(), u());
-    p.angmom[i] = p.inertia[i].x() * p.omega[i];
+    p.angmom.set(i, p.inertia[i].x() * p.omega[i]);
   }
   st.cell.L << 30, -20, 10,  //
       15, -40, 25,           //

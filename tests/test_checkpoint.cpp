@@ -512,7 +512,7 @@ TEST(CheckpointFile, InconsistentContentsAreRefused) {
       {"NaN velocity", [](Checkpoint& c) { c.state.particles.v[3].x() = std::nan(""); },
        "the velocity of particle 3 is not finite"},
       {"far centre", [](Checkpoint& c) { c.state.particles.s[4].y() = 1e9; }, "10^6 cell lengths"},
-      {"quaternion", [](Checkpoint& c) { c.state.particles.q[2].coeffs() *= 2; }, "unit quaternion"},
+      {"quaternion", [](Checkpoint& c) { c.state.particles.q.set(2, Quat(2 * c.state.particles.q[2].coeffs())); }, "unit quaternion"},
       {"semi-axes", [](Checkpoint& c) { c.state.particles.semi_axes[5].setZero(); }, "semi-axes"},
       {"array length", [](Checkpoint& c) { c.state.particles.mass.pop_back(); }, "the particles' mass has"},
       {"inertia scale", [](Checkpoint& c) { c.state.particles.inertia_scale[2] = 0.5; },

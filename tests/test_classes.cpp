@@ -56,7 +56,7 @@ TEST(ClassMeasures, TwoSizesInAKnownArrangement) {
                      Quat::Identity());
     st.particles.v[k] = b.v;
     st.particles.omega[k] = b.w;
-    st.particles.angmom[k] = 0.4 * st.particles.mass[k] * b.r * b.r * b.w;
+    st.particles.angmom.set(k, 0.4 * st.particles.mass[k] * b.r * b.r * b.w);
   }
   Model model;
   model.contact_law = make_contact_law(model.material, 0.5);

@@ -76,7 +76,7 @@ void place_j(State& st, const Vec3& branch) { st.particles.s[1] = st.cell.h_inv 
 // Sets a sphere's angular velocity (and the angular momentum it is derived from).
 void set_spin(Particles& p, std::size_t k, const Vec3& w) {
   p.omega[k] = w;
-  p.angmom[k] = p.inertia[k].x() * w;
+  p.angmom.set(k, p.inertia[k].x() * w);
 }
 
 // Unit vectors (n, t, b), right-handed: n x t = b, t x b = n, b x n = t.
@@ -355,7 +355,7 @@ EnergyTrace run_and_trace(const Model& model, State& st, int steps) {
   bool in_contact_prev = false;
   for (int n = 0; n < steps; ++n) {
     v_prev = p.v;
-    l_prev = p.angmom;
+    l_prev = p.angmom.interleaved();
     step(model, st);
     double ekin = 0, force_term = 0;
     for (std::size_t k = 0; k < np; ++k) {
@@ -588,7 +588,7 @@ TEST(ContactLaw, FrictionlessSpheroidCollisionConservesMomentaAndEnergy) {
   p.v[0] = Vec3(0.6, 0.05, -0.02);
   p.v[1] = Vec3(-0.4, 0.0, 0.03);
   for (std::size_t k = 0; k < 2; ++k) {
-    p.angmom[k] = p.inertia[k].cwiseProduct(Vec3(30, -20, 45) * (k == 0 ? 1.0 : -0.5));
+    p.angmom.set(k, p.inertia[k].cwiseProduct(Vec3(30, -20, 45) * (k == 0 ? 1.0 : -0.5)));
     p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
   }
   const auto momentum = [&] { return Vec3(p.mass[0] * p.v[0] + p.mass[1] * p.v[1]); };
@@ -612,12 +612,12 @@ TEST(ContactLaw, FrictionlessSpheroidCollisionConservesMomentaAndEnergy) {
     a_scale += (st.cell.h * p.s[k]).norm() * p.mass[k] * p.v[k].norm() + p.angmom[k].norm();
   }
   const Vec3 spin0 = p.angmom[0];
-  const double e0 = kinetic(p.v, p.angmom);
+  const double e0 = kinetic(p.v, p.angmom.interleaved());
   double max_dev = 0, max_force_term = 0, max_p = 0, max_a = 0, max_overlap = 0;
   int contact_steps = 0;
   bool separated = false;
   for (int n = 0; n < 20000 && !separated; ++n) {
-    const std::vector<Vec3> v_prev = p.v, l_prev = p.angmom;
+    const std::vector<Vec3> v_prev = p.v, l_prev = p.angmom.interleaved();
     step(model, st);
     const bool touching = st.pairs.size() > 0 && st.pairs.overlap[0] > 0;
     contact_steps += touching ? 1 : 0;
@@ -647,7 +647,7 @@ TEST(ContactLaw, FrictionlessSpheroidCollisionConservesMomentaAndEnergy) {
   EXPECT_LE(max_a, 1e-12 * a_scale);
   const double geometric = max_overlap / axes.z();
   EXPECT_LE(max_dev, 2 * max_force_term + geometric * e0) << "relative " << max_dev / e0;
-  const double e_end = kinetic(p.v, p.angmom);
+  const double e_end = kinetic(p.v, p.angmom.interleaved());
   std::printf("[ info ] %d contact steps; |dp| %.2g, |dA| %.2g of their scales; energy: through the impact %.2g, "
               "across it %.2g of E; O(dt^2) bound %.2g; largest overlap %.3g of the minor semi-axis\n",
               contact_steps, max_p / p_scale, max_a / a_scale, max_dev / e0, (e_end - e0) / e0,

@@ -165,12 +165,12 @@ TEST(LocalDamping, ActsOnLeavesTheOtherMotionUntouched) {
     assign_damping(model, p);
     for (std::size_t k = 0; k < 2; ++k) {
       p.v[k] = Vec3(0.01, -0.02, 0.005);
-      p.angmom[k] = p.inertia[k].cwiseProduct(Vec3(30, 10, -20));
+      p.angmom.set(k, p.inertia[k].cwiseProduct(Vec3(30, 10, -20)));
       p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
       p.force[k] = Vec3(-2.0, -1.0, 3.0);  // against v in x, along v in y and z
       p.torque[k] = Vec3(-1e-4, 2e-4, 3e-4);
     }
-    const std::vector<Vec3> v0 = p.v, l0 = p.angmom, w0 = p.omega;
+    const std::vector<Vec3> v0 = p.v, l0 = p.angmom.interleaved(), w0 = p.omega;
     integrate_velocities(model, p);
     for (std::size_t k = 0; k < 2; ++k) {
       const Vec3 free_v = v0[k] + dt * (p.force[k] * p.inv_mass[k]);
@@ -229,7 +229,7 @@ TEST(LocalDamping, KickIsThePlainSignFormulaBitForBit) {
         p.force[k] = Vec3(f, -f, v) * 1e-3;
         p.v[k] = Vec3(v, v, -f) * 1e-2;
         p.torque[k] = Vec3(f, v, -v) * 1e-9;
-        p.angmom[k] = Vec3(-v, v, f) * 1e-12;
+        p.angmom.set(k, Vec3(-v, v, f) * 1e-12);
         p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
       }
       const Particles before = p;
@@ -367,11 +367,11 @@ TEST(StiffnessDamping, ActsOnAndRattlers) {
     p.add(4, ShapeKind::sphere, Vec3::Constant(1e-3), kRho, Vec3(0.5, 0.1, 0.1), Quat::Identity());  // a rattler
     p.v[4] = Vec3(1e-4, -2e-4, 0);
     for (std::size_t k = 0; k < 5; ++k) {
-      p.angmom[k] = p.inertia[k].cwiseProduct(Vec3(30, -10, 20));
+      p.angmom.set(k, p.inertia[k].cwiseProduct(Vec3(30, -10, 20)));
       p.omega[k] = p.angmom[k] * p.inv_inertia[k].x();
     }
     const Vec3 rattler_x = p.s[4], rattler_l = p.angmom[4];
-    const std::vector<Vec3> l0 = p.angmom;
+    const std::vector<Vec3> l0 = p.angmom.interleaved();
     constexpr int steps = 400;
     for (int n = 0; n < steps; ++n) step(ring.model, ring.state);
     ASSERT_EQ(ring.state.pairs.size(), 4u) << "the ring's contacts; none for the rattler";

@@ -135,7 +135,7 @@ TEST(EnergyLedger, FreeParticlesLoseTheirKineticEnergyToTheDamping) {
                        Quat(Eigen::AngleAxisd(0.3, Vec3(1, 2, 3).normalized())));
       Particles& p = st.particles;
       p.v[0] = Vec3(0.02, -0.01, 0.005);
-      p.angmom[0] = p.inertia[0].x() * Vec3(3, 1, -2);
+      p.angmom.set(0, p.inertia[0].x() * Vec3(3, 1, -2));
       p.omega[0] = angular_velocity(p.q[0], p.inertia[0], p.angmom[0]);
       assign_damping(m, p);
       const double k0 = kinetic_energy(p);
@@ -193,7 +193,7 @@ Collision collide(bool spheroids, const std::string& model, double ratio, double
   m.damping = resolve_damping(model, {ratio, m.material.wave_speed(), r1 * m.step_gain});
   p.v[0] = 0.1 * n + 0.05 * t;
   p.v[1] = -0.2 * n - 0.04 * t;
-  p.angmom[0] = p.inertia[0].x() * 40 * Vec3(0.3, -1, 0.5);
+  p.angmom.set(0, p.inertia[0].x() * 40 * Vec3(0.3, -1, 0.5));
   for (std::size_t i = 0; i < 2; ++i) p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
   assign_damping(m, p);
   const double k0 = kinetic_energy(p);

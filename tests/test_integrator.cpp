@@ -244,10 +244,10 @@ TEST(Integrator, DampingActsOnTranslationRotationOrBoth) {
     Particles& p = st.particles;
     for (std::size_t k = 0; k < 2; ++k) {
       p.v[k] = Vec3(0.01, -0.02, 0.005);
-      p.angmom[k] = p.inertia[k].cwiseProduct(Vec3(30, 10, -20));
+      p.angmom.set(k, p.inertia[k].cwiseProduct(Vec3(30, 10, -20)));
       p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
     }
-    const std::vector<Vec3> v0 = p.v, l0 = p.angmom;
+    const std::vector<Vec3> v0 = p.v, l0 = p.angmom.interleaved();
     Model model = damped_model("nd", 0.05, acts_on);
     model.contact_law = make_contact_law(model.material, 0.5);
     model.dt = 0.32 * 2 * kRmin * std::sqrt(kRho / paper_material().young_modulus);
@@ -297,11 +297,11 @@ TEST(Integrator, RattlerMomentaSettleToZeroWithoutSubnormals) {
       for (std::size_t i = 0; i < 3; ++i) {
         p.damping_translation[i] = p.damping_rotation[i] = a;
         p.v[i] = 0x1p-500 * Vec3(1, -0.5, 0.25);
-        p.angmom[i] = 0x1p-500 * Vec3(-0.25, 1, 0.5);
+        p.angmom.set(i, 0x1p-500 * Vec3(-0.25, 1, 0.5));
       }
       p.v[2] = Vec3(1e-310, 0.1, 0);  // a normal component beside a subnormal one: not settled
-      p.angmom[2] = Vec3(0, 1e-310, 1e-6);
-      if (local) p.v[0] = Vec3(0x1p-541, 0, -0x1p-541), p.angmom[1] = Vec3(0, 0x1p-541, 0);  // kept as they are
+      p.angmom.set(2, Vec3(0, 1e-310, 1e-6));
+      if (local) p.v[0] = Vec3(0x1p-541, 0, -0x1p-541), p.angmom.set(1, Vec3(0, 0x1p-541, 0));  // kept as they are
       std::vector<double> dissipated(3), kinetic(3);
       const KickEnergy energy = track ? KickEnergy{dissipated.data(), kinetic.data()} : KickEnergy{};
       bool settled_v = false, settled_l = false;

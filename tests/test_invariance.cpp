@@ -52,8 +52,8 @@ State random_sample(std::uint64_t seed) {
     const ShapeKind kind = ax.x() == ax.z() ? ShapeKind::sphere : ShapeKind::ellipsoid;
     st.particles.add(id, kind, ax, 2650, Vec3(rng.uniform(), rng.uniform(), rng.uniform()), rng.orientation());
     st.particles.v.back() = 0.05 * Vec3(rng.uniform() - 0.5, rng.uniform() - 0.5, rng.uniform() - 0.5);
-    st.particles.angmom.back() =
-        st.particles.inertia.back().x() * 50 * Vec3(rng.uniform() - 0.5, rng.uniform() - 0.5, rng.uniform() - 0.5);
+    st.particles.angmom.set(
+        id, st.particles.inertia.back().x() * 50 * Vec3(rng.uniform() - 0.5, rng.uniform() - 0.5, rng.uniform() - 0.5));
   }
   return st;
 }
@@ -65,9 +65,9 @@ State rotated(const State& ref, const Mat3& R) {
   st.particles = ref.particles;
   const Quat qr(R);
   for (std::size_t i = 0; i < st.particles.size(); ++i) {
-    st.particles.q[i] = (qr * ref.particles.q[i]).normalized();
+    st.particles.q.set(i, (qr * ref.particles.q[i]).normalized());
     st.particles.v[i] = R * ref.particles.v[i];
-    st.particles.angmom[i] = R * ref.particles.angmom[i];
+    st.particles.angmom.set(i, R * ref.particles.angmom[i]);
   }
   return st;
 }

@@ -57,7 +57,7 @@ State make_state(const Vec3& box, const std::vector<Sphere>& spheres) {
                      s.x.cwiseQuotient(box), Quat::Identity());
     st.particles.v[k] = s.v;
     st.particles.omega[k] = s.w;
-    st.particles.angmom[k] = inertia_of(s.r) * s.w;  // L = I omega for a sphere
+    st.particles.angmom.set(k, inertia_of(s.r) * s.w);  // L = I omega for a sphere
   }
   return st;
 }

@@ -468,7 +468,7 @@ TEST(NeighborHistory, SampleKeepsShearAfterFaceCrossingsAndRebuild) {
   for (std::size_t i = 0; i < p.size(); ++i) {
     p.v[i] = Vec3(2 * rng.uniform() - 1, 2 * rng.uniform() - 1, 2 * rng.uniform() - 1);
     p.omega[i] = 300 * Vec3(2 * rng.uniform() - 1, 2 * rng.uniform() - 1, 2 * rng.uniform() - 1);
-    p.angmom[i] = p.inertia[i].x() * p.omega[i];
+    p.angmom.set(i, p.inertia[i].x() * p.omega[i]);
   }
   evaluate_forces(model, st);
   std::map<Key, Vec3> springs;
@@ -485,7 +485,7 @@ TEST(NeighborHistory, SampleKeepsShearAfterFaceCrossingsAndRebuild) {
   for (std::size_t i = 0; i < p.size(); ++i) {
     p.v[i].setZero();
     p.omega[i].setZero();
-    p.angmom[i].setZero();
+    p.angmom.set(i, Vec3::Zero());
   }
   const Vec3 ds = st.cell.h_inv * Vec3(7.3e-3, -4.1e-3, 11.9e-3);
   int crossed = 0;
@@ -718,7 +718,7 @@ static void check_skipping(State skipping, const char* what) {
   };
   for (std::size_t i = 0; i < p.size(); ++i) {
     p.v[i] = 5e-5 * r_min / dt * random_unit();                        // 5e-5 R_min per step
-    p.angmom[i] = 1e-4 / dt * p.inertia[i].maxCoeff() * random_unit();  // ~1e-4 rad per step
+    p.angmom.set(i, 1e-4 / dt * p.inertia[i].maxCoeff() * random_unit());  // ~1e-4 rad per step
     p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
   }
   Mat3 L;

@@ -51,7 +51,7 @@ State random_packing(std::uint64_t seed, std::size_t n, bool spheres_only,
                      2650, Vec3(u(rng), u(rng), u(rng)), q);
     Particles& p = st.particles;
     p.v[k] = 0.05 * Vec3(c(rng), c(rng), c(rng));
-    p.angmom[k] = p.inertia[k].cwiseProduct(50 * Vec3(c(rng), c(rng), c(rng)));
+    p.angmom.set(k, p.inertia[k].cwiseProduct(50 * Vec3(c(rng), c(rng), c(rng))));
     p.omega[k] = angular_velocity(p.q[k], p.inertia[k], p.angmom[k]);
   }
   build_pairs(st.particles, st.cell, 0.5e-3, st.pairs, st.neighbor);

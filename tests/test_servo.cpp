@@ -230,7 +230,7 @@ double check_affine_stiffness(State base, bool check_shears) {
   model.contact_law = make_contact_law(model.material, 1e6);
   for (std::size_t i = 0; i < base.particles.size(); ++i) {
     base.particles.v[i].setZero();
-    base.particles.angmom[i].setZero();
+    base.particles.angmom.set(i, Vec3::Zero());
     base.particles.omega[i].setZero();
   }
   base.cell.L.setZero();

@@ -257,7 +257,7 @@ State make_state(Model& model) {
   p.add(14, ShapeKind::sphere, Vec3::Constant(1 * mm), 2650, Vec3(-0.941, 0.41, 0.2), Quat::Identity());
   p.v[2] = Vec3(0.1, -0.2, 0.3);
   p.omega[3] = Vec3(0, 5, 0);  // about world y = body x: L = I_x omega
-  p.angmom[3] = p.inertia[3].x() * p.omega[3];
+  p.angmom.set(3, p.inertia[3].x() * p.omega[3]);
 
   // Material of SPEC 9 (Model defaults), no damping, fixed cell.
   model.r_min = smallest_equiv_radius(p);

@@ -68,7 +68,7 @@ inline void read_motion(const std::string& path, Particles& p, const Mat3& L, co
     const Vec3 x = cell.h * p.s[i];
     p.v[i] = v - L * x;  // the fluctuation velocity (SPEC 3.2)
     p.omega[i] = w;
-    p.angmom[i] = w.cwiseProduct(p.inertia[i]);  // spheres: L = I w
+    p.angmom.set(i, w.cwiseProduct(p.inertia[i]));  // spheres: L = I w
     ++i;
   }
   if (i != p.size()) throw InputError(fmt::format("{}: {} lines for {} particles", path, i, p.size()));

@@ -128,15 +128,16 @@ EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q) {
 }
 
 // In vector lanes where the CPU has AVX2 (chosen at load time; no FMA, so the same bits). The
-// arrays as doubles: through Vec3 and Quat GCC 12 does not vectorise the loop ("no vectype").
-QSDEM_CLONES void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out,
-                                                                std::size_t lo, std::size_t hi) {
-  static_assert(sizeof(Vec3) == 3 * sizeof(double) && sizeof(Quat) == 4 * sizeof(double), "packed arrays");
+// arrays as doubles: through Vec3 GCC 12 does not vectorise the loop ("no vectype").
+QSDEM_CLONES void ellipsoid_shapes(const Vec3* axes, const ComponentArrays<Quat>& q, EllipsoidShape* out,
+                                   std::size_t lo, std::size_t hi) {
+  static_assert(sizeof(Vec3) == 3 * sizeof(double), "packed arrays");
   const double* const ad = reinterpret_cast<const double*>(axes);  // a0 a1 a2 per particle
-  const double* const qd = reinterpret_cast<const double*>(q);     // x y z w per particle (Eigen's order)
+  const double *const qx = q.component(0), *const qy = q.component(1), *const qz = q.component(2),
+                      *const qw = q.component(3);
 #pragma omp simd
   for (std::size_t a = lo; a < hi; ++a)
-    shape_of(qd[4 * a + 3], qd[4 * a], qd[4 * a + 1], qd[4 * a + 2], ad[3 * a], ad[3 * a + 1], ad[3 * a + 2], out[a]);
+    shape_of(qw[a], qx[a], qy[a], qz[a], ad[3 * a], ad[3 * a + 1], ad[3 * a + 2], out[a]);
 }
 
 bool ellipsoid_contact(const Vec3& l, const Vec3& axes_i, const Quat& q_i, const Vec3& axes_j, const Quat& q_j,

@@ -24,6 +24,7 @@
 // Swapping i and j maps lambda -> 1 - lambda. At the maximiser lambda = h_i(n) / (h_i(n) + h_j(n)),
 // h_k(n) = sqrt(n^T Q_k n) the support function (distance from centre to tangent plane).
 #pragma once
+#include "qsdem/engine/component_arrays.hpp"
 #include "qsdem/engine/contact/geometry.hpp"
 #include "qsdem/engine/types.hpp"
 
@@ -82,7 +83,8 @@ struct alignas(64) EllipsoidShape {
 EllipsoidShape ellipsoid_shape(const Vec3& axes, const Quat& q);
 // The shapes of particles [lo, hi): out[a] = ellipsoid_shape(axes[a], q[a]), the same bits (one
 // loop over the particles, in vector lanes).
-void ellipsoid_shapes(const Vec3* axes, const Quat* q, EllipsoidShape* out, std::size_t lo, std::size_t hi);
+void ellipsoid_shapes(const Vec3* axes, const ComponentArrays<Quat>& q, EllipsoidShape* out, std::size_t lo,
+                      std::size_t hi);
 
 // The same contact from precomputed shapes (bit-identical to the overloads above).
 bool ellipsoid_contact(const Vec3& l, const EllipsoidShape& si, const EllipsoidShape& sj, double& lambda,

@@ -19,7 +19,7 @@ constexpr std::size_t block = 1024;
 // Every particle at rest: the velocities and angular momenta (and so omega) set to zero.
 void stop_particles(Particles& p) {
   std::fill(p.v.begin(), p.v.end(), Vec3::Zero());
-  std::fill(p.angmom.begin(), p.angmom.end(), Vec3::Zero());
+  p.angmom.fill(Vec3::Zero());
   std::fill(p.omega.begin(), p.omega.end(), Vec3::Zero());
 }
 
@@ -34,7 +34,7 @@ void mix_velocities(Particles& p, double alpha) {
   const double keep_v = f2 > 0 ? 1 - alpha : 1.0, keep_l = m2 > 0 ? 1 - alpha : 1.0;
   for (std::size_t i = 0; i < p.size(); ++i) {
     p.v[i] = keep_v * p.v[i] + vf * p.force[i];
-    p.angmom[i] = keep_l * p.angmom[i] + lm * p.torque[i];
+    p.angmom.set(i, keep_l * p.angmom[i] + lm * p.torque[i]);
     if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
   }
 }

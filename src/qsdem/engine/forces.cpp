@@ -620,7 +620,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
     {
       const std::size_t nt = static_cast<std::size_t>(omp_get_num_threads());
       const std::size_t t = static_cast<std::size_t>(omp_get_thread_num());
-      ellipsoid_shapes(p.semi_axes.data(), p.q.data(), state.shapes.data(), n * t / nt, n * (t + 1) / nt);
+      ellipsoid_shapes(p.semi_axes.data(), p.q, state.shapes.data(), n * t / nt, n * (t + 1) / nt);
     }
   }
   // Skipping provably apart pairs needs the motion bounds of the current list (neighbor.hpp).

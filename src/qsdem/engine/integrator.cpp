@@ -64,17 +64,25 @@ QSDEM_CLONES_WIDE double local_kick_translation(const double* inv_mass, const Ve
 }
 
 // Rotation, spheres only: omega = L / I has the signs of L(t - dt/2) + dt/2 M.
-QSDEM_CLONES_WIDE void local_kick_spheres(const Vec3* inv_inertia, const Vec3* torque, Vec3* angmom, Vec3* omega,
-                                     std::size_t lo, std::size_t hi, double dt, double alpha) {
+// The angular momentum's component arrays, through local pointers (as the kick's other arrays).
+struct AngmomArrays {
+  double *x, *y, *z;
+  explicit AngmomArrays(ComponentArrays<Vec3>& l) : x(l.component(0)), y(l.component(1)), z(l.component(2)) {}
+  Vec3 operator[](std::size_t i) const { return {x[i], y[i], z[i]}; }
+  void set(std::size_t i, const Vec3& l) const { x[i] = l.x(), y[i] = l.y(), z[i] = l.z(); }
+};
+
+QSDEM_CLONES_WIDE void local_kick_spheres(const Vec3* inv_inertia, const Vec3* torque, AngmomArrays angmom,
+                                          Vec3* omega, std::size_t lo, std::size_t hi, double dt, double alpha) {
   const double half = 0.5 * dt;
 #pragma omp simd
   for (std::size_t i = lo; i < hi; ++i) {
     const double mx = torque[i].x(), my = torque[i].y(), mz = torque[i].z();
-    double lx = angmom[i].x(), ly = angmom[i].y(), lz = angmom[i].z();
+    double lx = angmom.x[i], ly = angmom.y[i], lz = angmom.z[i];
     lx = lx + dt * cundall_damped(mx, lx + half * mx, alpha);
     ly = ly + dt * cundall_damped(my, ly + half * my, alpha);
     lz = lz + dt * cundall_damped(mz, lz + half * mz, alpha);
-    angmom[i].x() = lx, angmom[i].y() = ly, angmom[i].z() = lz;
+    angmom.x[i] = lx, angmom.y[i] = ly, angmom.z[i] = lz;
     const double inv = inv_inertia[i].x();
     omega[i].x() = lx * inv, omega[i].y() = ly * inv, omega[i].z() = lz * inv;
   }
@@ -84,25 +92,25 @@ QSDEM_CLONES_WIDE void local_kick_spheres(const Vec3* inv_inertia, const Vec3* t
 // from L(t - dt/2) (YADE's cundallDamp1st for aspherical bodies), and its omega is set by
 // advance_positions at its new orientation; a sphere's omega is set by local_kick_sphere_spins
 // (storing every omega here made the kick of 8000 spheroids 12 % slower).
-QSDEM_CLONES void local_kick_bodies(const Vec3* torque, const ShapeKind* shape, Vec3* angmom, const Vec3* omega,
-                                    std::size_t lo, std::size_t hi, double dt, double alpha) {
+QSDEM_CLONES void local_kick_bodies(const Vec3* torque, const ShapeKind* shape, AngmomArrays angmom,
+                                    const Vec3* omega, std::size_t lo, std::size_t hi, double dt, double alpha) {
   const double half = 0.5 * dt;
 #pragma omp simd
   for (std::size_t i = lo; i < hi; ++i) {
     const bool sphere = shape[i] == ShapeKind::sphere;
     const double mx = torque[i].x(), my = torque[i].y(), mz = torque[i].z();
-    double lx = angmom[i].x(), ly = angmom[i].y(), lz = angmom[i].z();
+    double lx = angmom.x[i], ly = angmom.y[i], lz = angmom.z[i];
     const double ox = omega[i].x(), oy = omega[i].y(), oz = omega[i].z();
     const double sx = sphere ? lx + half * mx : ox, sy = sphere ? ly + half * my : oy, sz = sphere ? lz + half * mz : oz;
     lx = lx + dt * cundall_damped(mx, sx, alpha);
     ly = ly + dt * cundall_damped(my, sy, alpha);
     lz = lz + dt * cundall_damped(mz, sz, alpha);
-    angmom[i].x() = lx, angmom[i].y() = ly, angmom[i].z() = lz;
+    angmom.x[i] = lx, angmom.y[i] = ly, angmom.z[i] = lz;
   }
 }
 
 // The spheres' omega = L / I among ellipsoids.
-void local_kick_sphere_spins(const Vec3* inv_inertia, const ShapeKind* shape, const Vec3* angmom, Vec3* omega,
+void local_kick_sphere_spins(const Vec3* inv_inertia, const ShapeKind* shape, AngmomArrays angmom, Vec3* omega,
                              std::size_t lo, std::size_t hi) {
   for (std::size_t i = lo; i < hi; ++i)
     if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
@@ -118,10 +126,12 @@ double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, doubl
     spheres |= p.shape[i] == ShapeKind::sphere ? 1u : 0u;
   }
   if (ellipsoids == 0) {
-    local_kick_spheres(p.inv_inertia.data(), p.torque.data(), p.angmom.data(), p.omega.data(), lo, hi, dt, alpha_rot);
+    local_kick_spheres(p.inv_inertia.data(), p.torque.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt,
+                       alpha_rot);
   } else {
-    local_kick_bodies(p.torque.data(), p.shape.data(), p.angmom.data(), p.omega.data(), lo, hi, dt, alpha_rot);
-    if (spheres != 0) local_kick_sphere_spins(p.inv_inertia.data(), p.shape.data(), p.angmom.data(), p.omega.data(), lo, hi);
+    local_kick_bodies(p.torque.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt, alpha_rot);
+    if (spheres != 0)
+      local_kick_sphere_spins(p.inv_inertia.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi);
   }
   return v2max;
 }
@@ -148,7 +158,7 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
   const Vec3* const torque = p.torque.data();
   const ShapeKind* const shape = p.shape.data();
   Vec3* const vel = p.v.data();
-  Vec3* const angmom = p.angmom.data();
+  const AngmomArrays angmom(p.angmom);
   Vec3* const omega = p.omega.data();
   for (std::size_t i = lo; i < hi; ++i) {
     if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i (SPEC 6)
@@ -169,23 +179,24 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
     vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    angmom[i] = Local ? kick_rot(angmom[i], moment) : settle(kick_rot(angmom[i], moment));
+    const Vec3 l = Local ? kick_rot(l_old, moment) : settle(kick_rot(l_old, moment));
+    angmom.set(i, l);
     if constexpr (Track) {
       // The kick's energy identity: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the damping
       // took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
       // drift keeps the rotational energy: a free rotation).
-      const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + angmom[i]);
-      const auto spin = [&](const Vec3& l) {
-        return shape[i] == ShapeKind::sphere ? Vec3(l * inv_inertia[i].x()) : angular_velocity(p.q[i], p.inertia[i], l);
+      const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
+      const auto spin = [&](const Vec3& x) {
+        return shape[i] == ShapeKind::sphere ? Vec3(x * inv_inertia[i].x()) : angular_velocity(p.q[i], p.inertia[i], x);
       };
       const double mass = 1 / inv_mass[i];
       energy.dissipated[i] = (dt * force[i] - mass * (v - v_old)).dot(v_mid) +
-                             (dt * torque[i] - (angmom[i] - l_old)).dot(spin(l_mid));
-      energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * angmom[i].dot(spin(angmom[i]));
+                             (dt * torque[i] - (l - l_old)).dot(spin(l_mid));
+      energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(spin(l));
     }
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
+    if (shape[i] == ShapeKind::sphere) omega[i] = l * inv_inertia[i].x();
   }
   return v2max;
 }
@@ -365,33 +376,42 @@ inline int symmetry_axis(const Vec3& inertia) {
   return -1;
 }
 
-// Spheroids to turn, with the same symmetry axis, in lanes (structure of arrays): in, the
-// orientation, angular momentum and inverse moments; out, the new orientation, omega, and the
-// squared quaternion chord of the turn.
+// Spheroids to turn, with the same symmetry axis, in lanes (structure of arrays). In: the
+// orientation and angular momentum (TurnInput) and the inverse moments; out: the new orientation,
+// omega, and the squared quaternion chord of the turn.
 struct TurnLanes {
   static constexpr int capacity = 64;
   int size = 0;
   std::uint32_t particle[capacity];
-  double qw[capacity], qx[capacity], qy[capacity], qz[capacity];
-  double lx[capacity], ly[capacity], lz[capacity], inv_s[capacity], inv_perp[capacity];
+  double qw[capacity], qx[capacity], qy[capacity], qz[capacity];  // in, when copied (load_lane)
+  double lx[capacity], ly[capacity], lz[capacity];
+  double inv_s[capacity], inv_perp[capacity];
+  double nw[capacity], nx[capacity], ny[capacity], nz[capacity];  // out
   double ox[capacity], oy[capacity], oz[capacity], chord2[capacity];
   double outside[capacity];  // 1: a half angle beyond the Taylor range, or the norm beyond the
                              // Newton step's (lane to run again)
 };
 
+// Where the lanes read q and L: lane a at [a] of these. The particle arrays themselves for a run
+// of consecutive spheroids (turn_in_place: no copies), else the lanes' copies.
+struct TurnInput {
+  const double *qw, *qx, *qy, *qz, *lx, *ly, *lz;
+};
+inline TurnInput copies(const TurnLanes& t) { return {t.qw, t.qx, t.qy, t.qz, t.lx, t.ly, t.lz}; }
+
 // One lane: the turn, then omega = R I^-1 R^T L at the new orientation (gyroscopic; spheroid:
 // I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis), then the chord.
 template <int K, bool taylor_only>
-[[gnu::always_inline]] inline void turn_lane(TurnLanes& t, int a, double dt) {
-  const QuatParts old{t.qw[a], t.qx[a], t.qy[a], t.qz[a]};
-  const double lx = t.lx[a], ly = t.ly[a], lz = t.lz[a], inv_s = t.inv_s[a], inv_perp = t.inv_perp[a];
+[[gnu::always_inline]] inline void turn_lane(const TurnInput& in, TurnLanes& t, int a, double dt) {
+  const QuatParts old{in.qw[a], in.qx[a], in.qy[a], in.qz[a]};
+  const double lx = in.lx[a], ly = in.ly[a], lz = in.lz[a], inv_s = t.inv_s[a], inv_perp = t.inv_perp[a];
   bool outside;
   const QuatParts q = spheroid_rotation<K, taylor_only>(old, inv_s, inv_perp, lx, ly, lz, dt, outside);
   double ex, ey, ez;
   body_axis<K>(q, ex, ey, ez);
   const double f = (inv_s - inv_perp) * (ex * lx + ey * ly + ez * lz);
   t.ox[a] = inv_perp * lx + f * ex, t.oy[a] = inv_perp * ly + f * ey, t.oz[a] = inv_perp * lz + f * ez;
-  t.qw[a] = q.w, t.qx[a] = q.x, t.qy[a] = q.y, t.qz[a] = q.z;
+  t.nw[a] = q.w, t.nx[a] = q.x, t.ny[a] = q.y, t.nz[a] = q.z;
   // Chord |q - q_old| of the shorter arc (q and -q are one turn), summed as Eigen sums a 4-vector.
   // Within the Taylor range (half angles below 0.05) q_old . q > 0: the arc from q_old is the shorter.
   const double dx = q.x - old.x, dy = q.y - old.y, dz = q.z - old.z, dw = q.w - old.w;
@@ -407,64 +427,92 @@ template <int K, bool taylor_only>
 }
 
 template <bool taylor_only>
-inline void turn_lane(int k, TurnLanes& t, int a, double dt) {
-  if (k == 0) turn_lane<0, taylor_only>(t, a, dt);
-  else if (k == 1) turn_lane<1, taylor_only>(t, a, dt);
-  else turn_lane<2, taylor_only>(t, a, dt);
+inline void turn_lane(int k, const TurnInput& in, TurnLanes& t, int a, double dt) {
+  if (k == 0) turn_lane<0, taylor_only>(in, t, a, dt);
+  else if (k == 1) turn_lane<1, taylor_only>(in, t, a, dt);
+  else turn_lane<2, taylor_only>(in, t, a, dt);
 }
 
 // All lanes at once, by the Taylor polynomials (several lanes per vector instruction: a lone
-// spheroid's turn is one long chain of dependent operations). Built for AVX2 and the x86-64
-// baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
-QSDEM_CLONES_WIDE void turn_lanes(int k, TurnLanes& t, double dt) {
+// spheroid's turn is one long chain of dependent operations). Built for AVX-512, AVX2 and the
+// x86-64 baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
+QSDEM_CLONES_WIDE void turn_lanes(int k, const TurnInput& in, TurnLanes& t, double dt) {
   if (k == 0) {
 #pragma omp simd
-    for (int a = 0; a < t.size; ++a) turn_lane<0, true>(t, a, dt);
+    for (int a = 0; a < t.size; ++a) turn_lane<0, true>(in, t, a, dt);
   } else if (k == 1) {
 #pragma omp simd
-    for (int a = 0; a < t.size; ++a) turn_lane<1, true>(t, a, dt);
+    for (int a = 0; a < t.size; ++a) turn_lane<1, true>(in, t, a, dt);
   } else {
 #pragma omp simd
-    for (int a = 0; a < t.size; ++a) turn_lane<2, true>(t, a, dt);
+    for (int a = 0; a < t.size; ++a) turn_lane<2, true>(in, t, a, dt);
   }
+}
+
+// The lanes' turn; a lane beyond the Taylor range runs again, with libm (its input is unchanged).
+void turn(int k, const TurnInput& in, TurnLanes& t, double dt) {
+  turn_lanes(k, in, t, dt);
+  for (int a = 0; a < t.size; ++a)
+    if (t.outside[a] != 0) turn_lane<false>(k, in, t, a, dt);
 }
 
 // The particle arrays a turn reads and writes, through local pointers: through Particles, each
 // store made GCC load the next array's address again (as in integrate_velocities).
 struct SpinArrays {
-  Quat* q;
-  const Vec3* angmom;
+  double *qw, *qx, *qy, *qz;
+  const double *lx, *ly, *lz;
   const Vec3* inv_inertia;
   Vec3* omega;
   const double* bound_radius;
   double* path;  // the surface path, or nullptr when it is not tracked
+
+  SpinArrays(Particles& p, double* surface_path)
+      : qw(p.q.component(3)), qx(p.q.component(0)), qy(p.q.component(1)), qz(p.q.component(2)),
+        lx(p.angmom.component(0)), ly(p.angmom.component(1)), lz(p.angmom.component(2)),
+        inv_inertia(p.inv_inertia.data()), omega(p.omega.data()), bound_radius(p.bound_radius.data()),
+        path(surface_path) {}
+  Quat q(std::size_t i) const { return {qw[i], qx[i], qy[i], qz[i]}; }
+  Vec3 angmom(std::size_t i) const { return {lx[i], ly[i], lz[i]}; }
+  // Lanes a = 0, 1, ... at particles i, i + 1, ...
+  TurnInput from(std::size_t i) const { return {qw + i, qx + i, qy + i, qz + i, lx + i, ly + i, lz + i}; }
 };
 
-// Lane a <- particle i.
+// Lane a <- particle i, symmetry axis k.
 inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i, int k) {
   t.particle[a] = i;
-  const Quat& q = s.q[i];
-  const Vec3& l = s.angmom[i];
-  const Vec3& inv = s.inv_inertia[i];
-  t.qw[a] = q.w(), t.qx[a] = q.x(), t.qy[a] = q.y(), t.qz[a] = q.z();
-  t.lx[a] = l.x(), t.ly[a] = l.y(), t.lz[a] = l.z();
-  t.inv_s[a] = inv[k], t.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
+  t.qw[a] = s.qw[i], t.qx[a] = s.qx[i], t.qy[a] = s.qy[i], t.qz[a] = s.qz[i];
+  t.lx[a] = s.lx[i], t.ly[a] = s.ly[i], t.lz[a] = s.lz[i];
+  t.inv_s[a] = s.inv_inertia[i][k], t.inv_perp[a] = s.inv_inertia[i][k == 2 ? 0 : k + 1];
 }
 
-// Turns the spheroids of the lanes (symmetry axis k) and stores their orientation, omega and
-// surface path.
+// The surface path of a turn: 2 bound_radius |q - q_old| (the chord).
+inline void add_turn_path(const SpinArrays& s, std::size_t i, double chord2) {
+  s.path[i] += 2 * s.bound_radius[i] * std::sqrt(chord2);
+}
+
+// Turns the spheroids of the lanes (symmetry axis k, loaded by load_lane) and stores their
+// orientation, omega and surface path.
 void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
-  turn_lanes(k, t, dt);
+  turn(k, copies(t), t, dt);
   for (int a = 0; a < t.size; ++a) {
     const std::uint32_t i = t.particle[a];
-    if (t.outside[a] != 0) {  // a half angle beyond the Taylor range: again, with libm
-      load_lane(t, a, s, i, k);
-      turn_lane<false>(k, t, a, dt);
-    }
-    s.q[i] = Quat(t.qw[a], t.qx[a], t.qy[a], t.qz[a]);
+    s.qw[i] = t.nw[a], s.qx[i] = t.nx[a], s.qy[i] = t.ny[a], s.qz[i] = t.nz[a];
     s.omega[i] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
-    if (s.path) s.path[i] += 2 * s.bound_radius[i] * std::sqrt(t.chord2[a]);
+    if (s.path) add_turn_path(s, i, t.chord2[a]);
   }
+  t.size = 0;
+}
+
+// Turns the t.size consecutive spheroids from particle i0 (symmetry axis k, the lanes' inverse
+// moments set), reading q and L where they are and storing q in place.
+void turn_in_place(int k, TurnLanes& t, const SpinArrays& s, std::size_t i0, double dt) {
+  turn(k, s.from(i0), t, dt);
+  const int n = t.size;
+  double *const qw = s.qw + i0, *const qx = s.qx + i0, *const qy = s.qy + i0, *const qz = s.qz + i0;
+  for (int a = 0; a < n; ++a) qw[a] = t.nw[a], qx[a] = t.nx[a], qy[a] = t.ny[a], qz[a] = t.nz[a];
+  for (int a = 0; a < n; ++a) s.omega[i0 + a] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
+  if (s.path)
+    for (int a = 0; a < n; ++a) add_turn_path(s, i0 + a, t.chord2[a]);
   t.size = 0;
 }
 
@@ -472,8 +520,11 @@ void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
 // so |L|^2 = 0, spheroid_rotation returns q itself (`still`) and the chord is 0. Such an L is
 // often subnormal, and an operation on a subnormal costs ~50 ns here (a microcode assist, for the
 // whole vector it is in): these spheroids stay out of the lanes and get only their omega, by the
-// lanes' arithmetic (turn_lane).
-inline bool resting(const Vec3& l) { return settled(l.x(), l.y(), l.z()); }
+// lanes' arithmetic (turn_lane). An L of zeros (as the viscous kick settles it) is no subnormal:
+// those spheroids stay in the lanes, which give them the same bits (q kept, a zero chord).
+inline bool resting(const Vec3& l) {
+  return settled(l.x(), l.y(), l.z()) & !((l.x() == 0) & (l.y() == 0) & (l.z() == 0));
+}
 
 template <int K>
 inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
@@ -516,15 +567,12 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const std::size_t n = p.size();
   const bool track = surface_path.size() == n;
   hi = std::min(hi, n);
-  // Spheroids wait in lanes, one set per symmetry axis, and turn a full set at a time.
-  TurnLanes lanes[3];
   // Through local pointers, as in integrate_velocities.
   Vec3* const pos = p.s.data();
   const Vec3* const vel = p.v.data();
   const ShapeKind* const shape = p.shape.data();
   double* const path = surface_path.data();
-  const SpinArrays spin{p.q.data(), p.angmom.data(), p.inv_inertia.data(), p.omega.data(), p.bound_radius.data(),
-                        track ? path : nullptr};
+  const SpinArrays spin(p, track ? path : nullptr);
   // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
   // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
   // rounds to 0: s and the path would keep their bits, and are left alone (no subnormal operation).
@@ -535,31 +583,54 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     return std::abs(v.x()) < slow && std::abs(v.y()) < slow && std::abs(v.z()) < slow && std::abs(s.x()) >= far &&
            std::abs(s.y()) >= far && std::abs(s.z()) >= far;
   };
-  for (std::size_t i = lo; i < hi; ++i) {
-    if (!still(vel[i], pos[i])) {
-      pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
-      if (track) path[i] += dt * vel[i].norm();
-    }
-    if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
-    if (const int k = symmetry_axis(spin.inv_inertia[i]); k >= 0) {  // (the inverses: one array less to read)
-      if (resting(spin.angmom[i])) {
-        spin.omega[i] = resting_omega(k, spin.q[i], spin.angmom[i], spin.inv_inertia[i]);
+  // The particles go in runs of a lane set's size. A run whose every particle is a turning
+  // spheroid of one symmetry axis turns in place; otherwise its spheroids wait in lanes, one set
+  // per symmetry axis, and turn a full set at a time.
+  constexpr int run_size = TurnLanes::capacity;
+  TurnLanes run, lanes[3];
+  int axis[run_size];  // the symmetry axis of each particle of the run that turns in lanes, else -1
+  for (std::size_t r0 = lo, r1; r0 < hi; r0 = r1) {
+    r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
+    const int size = static_cast<int>(r1 - r0);
+    int turning = 0;
+    for (int a = 0; a < size; ++a) {
+      const std::size_t i = r0 + a;
+      axis[a] = -1;
+      if (!still(vel[i], pos[i])) {
+        pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
+        if (track) path[i] += dt * vel[i].norm();
+      }
+      if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
+      const Vec3& inv = spin.inv_inertia[i];
+      if (const int k = symmetry_axis(inv); k >= 0) {  // (the inverses: one array less to read)
+        if (resting(spin.angmom(i))) {
+          spin.omega[i] = resting_omega(k, spin.q(i), spin.angmom(i), inv);
+          continue;
+        }
+        axis[a] = k, ++turning;
+        run.inv_s[a] = inv[k], run.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
         continue;
       }
-      TurnLanes& t = lanes[k];
-      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(i), k);
-      if (t.size == TurnLanes::capacity) turn_spheroids(k, t, spin, dt);
+      // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the
+      // new orientation (gyroscopic).
+      const Quat old = spin.q(i);
+      const Quat q = free_rotation(old, p.inertia[i], spin.angmom(i), dt);
+      p.q.set(i, q);
+      p.omega[i] = angular_velocity(q, p.inertia[i], spin.angmom(i));
+      if (track)  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
+        add_turn_path(spin, i, std::min((q.coeffs() - old.coeffs()).squaredNorm(),
+                                        (q.coeffs() + old.coeffs()).squaredNorm()));
+    }
+    if (turning == size && std::all_of(axis, axis + size, [&](int k) { return k == axis[0]; })) {
+      run.size = size;
+      turn_in_place(axis[0], run, spin, r0, dt);
       continue;
     }
-    // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the
-    // new orientation (gyroscopic).
-    const Quat old = p.q[i];
-    p.q[i] = free_rotation(old, p.inertia[i], p.angmom[i], dt);
-    p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
-    if (track) {  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
-      const double chord2 = std::min((p.q[i].coeffs() - old.coeffs()).squaredNorm(),
-                                     (p.q[i].coeffs() + old.coeffs()).squaredNorm());
-      surface_path[i] += 2 * p.bound_radius[i] * std::sqrt(chord2);
+    for (int a = 0; a < size && turning > 0; ++a) {
+      if (axis[a] < 0) continue;
+      TurnLanes& t = lanes[axis[a]];
+      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(r0 + a), axis[a]);
+      if (t.size == TurnLanes::capacity) turn_spheroids(axis[a], t, spin, dt);
     }
   }
   for (int k = 0; k < 3; ++k)

@@ -9,10 +9,10 @@ namespace qsdem {
 // Every array of Particles is in the registry (a new array that is not would be left out of the
 // reorder, the checkpoint and the memory accounting).
 static_assert([] {
-  std::size_t fields = 0;
+  std::size_t fields = 0;  // bytes
   Particles p;
-  for_each_field(p, [&](auto&, ParticleField) { ++fields; });
-  return fields * sizeof(std::vector<double>) == sizeof(Particles);
+  for_each_field(p, [&](auto& array, ParticleField) { fields += sizeof(array); });
+  return fields == sizeof(Particles);
 }());
 
 double ellipsoid_volume(const Vec3& ax) { return 4.0 / 3.0 * pi * ax.x() * ax.y() * ax.z(); }
@@ -89,9 +89,9 @@ void Particles::add(std::uint32_t pid, ShapeKind kind, const Vec3& ax, double de
   inv_inertia[k] = inertia[k].cwiseInverse();
   damping_translation[k] = damping_rotation[k] = 0.0;
   s[k] = frac_pos;
-  q[k] = orientation.normalized();
+  q.set(k, orientation.normalized());
   v[k] = Vec3::Zero();
-  angmom[k] = Vec3::Zero();
+  angmom.set(k, Vec3::Zero());
   omega[k] = Vec3::Zero();
   force[k] = Vec3::Zero();
   torque[k] = Vec3::Zero();

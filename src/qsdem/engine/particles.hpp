@@ -8,6 +8,7 @@
 #include <type_traits>
 #include <vector>
 
+#include "qsdem/engine/component_arrays.hpp"
 #include "qsdem/engine/types.hpp"
 
 namespace qsdem {
@@ -29,9 +30,9 @@ struct Particles {
 
   // Dynamic state.
   std::vector<Vec3> s;                 // fractional position h^-1 x, never wrapped (SPEC 3)
-  std::vector<Quat> q;                 // orientation, body -> world
+  ComponentArrays<Quat> q;             // orientation, body -> world (component arrays: the drift's lanes)
   std::vector<Vec3> v;                 // fluctuation velocity at t - dt/2 (m/s)
-  std::vector<Vec3> angmom;            // angular momentum, world frame, at t - dt/2
+  ComponentArrays<Vec3> angmom;        // angular momentum, world frame, at t - dt/2 (component arrays)
   std::vector<Vec3> omega;             // angular velocity, world frame, derived from angmom
 
   // Contact resultants at t (contact forces only, no damping), SPEC 7.

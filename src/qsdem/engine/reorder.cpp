@@ -20,13 +20,18 @@ std::uint32_t spread3(std::uint32_t x) {
   return x;
 }
 
-template <class T>
-void permute(std::vector<T>& v, const std::vector<std::uint32_t>& order) {
-  std::vector<T> out(v.size());
+template <class T, class A>
+void permute(std::vector<T, A>& v, const std::vector<std::uint32_t>& order) {
+  std::vector<T, A> out(v.size());
   const std::size_t n = order.size();
 #pragma omp parallel for schedule(static) if (n > parallel_threshold)
   for (std::size_t k = 0; k < n; ++k) out[k] = v[order[k]];
   v.swap(out);
+}
+
+template <class T>
+void permute(ComponentArrays<T>& v, const std::vector<std::uint32_t>& order) {
+  for (auto& c : v.components()) permute(c, order);
 }
 
 // The same for w values per element.

@@ -23,9 +23,15 @@ namespace qsdem {
 
 namespace {
 
-template <class T>
-double kib(const std::vector<T>& v) {
+template <class T, class A>
+double kib(const std::vector<T, A>& v) {
   return static_cast<double>(v.capacity() * sizeof(T)) / 1024;
+}
+template <class T>
+double kib(const ComponentArrays<T>& v) {
+  double sum = 0;
+  for (const auto& c : v.components()) sum += kib(c);
+  return sum;
 }
 
 // Heap held by the state's arrays (KiB), by structure: what `peak_rss_kib` is made of besides

@@ -40,6 +40,12 @@ class BinaryWriter {
     pod(static_cast<std::uint64_t>(v.size()));
     for (const T& x : v) pod(x);
   }
+  // Component arrays as the array of T they hold (one layout in the file).
+  template <class T>
+  void vec(const ComponentArrays<T>& v) {
+    pod(static_cast<std::uint64_t>(v.size()));
+    for (std::size_t i = 0; i < v.size(); ++i) pod(v[i]);
+  }
   void str(const std::string& s) {
     pod(static_cast<std::uint64_t>(s.size()));
     out.insert(out.end(), s.begin(), s.end());
@@ -82,6 +88,12 @@ class BinaryReader {
     if (n > static_cast<std::uint64_t>(end_ - p_) / sizeof(T)) damaged("an array is longer than the file");
     v.resize(n);
     for (T& x : v) pod(x);
+  }
+  template <class T>
+  void vec(ComponentArrays<T>& v) {
+    std::vector<T> elements;
+    vec(elements);
+    v.assign(elements);
   }
   void str(std::string& s) {
     std::uint64_t n = 0;
@@ -532,7 +544,7 @@ class ContentCheck {
   static bool finite(const Quat& q) { return q.coeffs().allFinite(); }
   // Each of `v` finite, else names the first that is not.
   template <class T>
-  void all_finite(const std::vector<T>& v, const char* what) const {
+  void all_finite(const T& v, const char* what) const {
     for (std::size_t k = 0; k < v.size(); ++k) require(finite(v[k]), "{} {} is not finite (NaN or infinity)", what, k);
   }
   // A cell matrix: finite with a positive determinant (a volume).

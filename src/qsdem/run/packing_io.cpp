@@ -27,7 +27,7 @@ std::string format_packing(const Particles& p, const Cell& cell) {
     const Vec3 sw = p.s[i] - p.s[i].array().floor().matrix();  // wrapped into the cell
     const Vec3 x = cell.h * sw;
     const Vec3& a = p.semi_axes[i];
-    const Quat& q = p.q[i];
+    const Quat q = p.q[i];
     out += fmt::format("{:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g} {:.17g}\n",
                        x.x(), x.y(), x.z(), a.x(), a.y(), a.z(), q.w(), q.x(), q.y(), q.z());
   }

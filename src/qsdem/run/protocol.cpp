@@ -224,7 +224,7 @@ void run_fire_phase(const Params& params, State& st, RunProgress& run, const Row
       if (cc.kind == ControlKind::strain_rate) cc.value *= increment / (fastest * step_ratio);  // one step's strain
     Model load = phase_model(params, phase, loading, st.particles, rec.h0);
     for (std::size_t i = 0; i < st.particles.size(); ++i)  // each increment from rest (athermal)
-      st.particles.v[i].setZero(), st.particles.angmom[i].setZero(), st.particles.omega[i].setZero();
+      st.particles.v[i].setZero(), st.particles.angmom.set(i, Vec3::Zero()), st.particles.omega[i].setZero();
     step(load, st, schedule);
     evaluation();
     // The relaxation: the strain-rate components held, the stress-controlled ones on their servo.

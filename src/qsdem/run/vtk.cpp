@@ -151,7 +151,7 @@ void write_vtu(const std::filesystem::path& path, const State& state, VtkEncodin
   for (std::size_t k = 0; k < n; ++k) {
     const Vec3 s = p.s[k];
     centre[k] = state.cell.h * (s.array() - s.array().floor()).matrix();  // wrapped into the cell
-    const Quat& q = p.q[k];
+    const Quat q = p.q[k];
     orientation.insert(orientation.end(), {q.w(), q.x(), q.y(), q.z()});
     const Mat3 r = q.toRotationMatrix();
     const Mat3 rdr = r * p.semi_axes[k].asDiagonal() * r.transpose();
