@@ -44,7 +44,6 @@ class ComponentArrays {
   using Components = std::array<Component, width>;
 
   std::size_t size() const { return c_[0].size(); }
-  std::size_t capacity() const { return c_[0].capacity(); }
   void resize(std::size_t n) {
     for (auto& c : c_) c.resize(n, 0.0);
   }

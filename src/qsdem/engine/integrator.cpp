@@ -460,7 +460,7 @@ void turn(int k, const TurnInput& in, TurnLanes& t, double dt) {
 // store made GCC load the next array's address again (as in integrate_velocities).
 struct SpinArrays {
   double *qw, *qx, *qy, *qz;
-  const double *lx, *ly, *lz;
+  AngmomArrays l;
   const Vec3* inv_inertia;
   Vec3* omega;
   const double* bound_radius;
@@ -468,21 +468,20 @@ struct SpinArrays {
 
   SpinArrays(Particles& p, double* surface_path)
       : qw(p.q.component(3)), qx(p.q.component(0)), qy(p.q.component(1)), qz(p.q.component(2)),
-        lx(p.angmom.component(0)), ly(p.angmom.component(1)), lz(p.angmom.component(2)),
+        l(p.angmom),
         inv_inertia(p.inv_inertia.data()), omega(p.omega.data()), bound_radius(p.bound_radius.data()),
         path(surface_path) {}
   Quat q(std::size_t i) const { return {qw[i], qx[i], qy[i], qz[i]}; }
-  Vec3 angmom(std::size_t i) const { return {lx[i], ly[i], lz[i]}; }
   // Lanes a = 0, 1, ... at particles i, i + 1, ...
-  TurnInput from(std::size_t i) const { return {qw + i, qx + i, qy + i, qz + i, lx + i, ly + i, lz + i}; }
+  TurnInput from(std::size_t i) const { return {qw + i, qx + i, qy + i, qz + i, l.x + i, l.y + i, l.z + i}; }
 };
 
-// Lane a <- particle i, symmetry axis k.
-inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i, int k) {
+// Lane a <- particle i, with its inverse moments about the symmetry axis and across it.
+inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i, double inv_s, double inv_perp) {
   t.particle[a] = i;
   t.qw[a] = s.qw[i], t.qx[a] = s.qx[i], t.qy[a] = s.qy[i], t.qz[a] = s.qz[i];
-  t.lx[a] = s.lx[i], t.ly[a] = s.ly[i], t.lz[a] = s.lz[i];
-  t.inv_s[a] = s.inv_inertia[i][k], t.inv_perp[a] = s.inv_inertia[i][k == 2 ? 0 : k + 1];
+  t.lx[a] = s.l.x[i], t.ly[a] = s.l.y[i], t.lz[a] = s.l.z[i];
+  t.inv_s[a] = inv_s, t.inv_perp[a] = inv_perp;
 }
 
 // The surface path of a turn: 2 bound_radius |q - q_old| (the chord).
@@ -587,7 +586,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   // spheroid of one symmetry axis turns in place; otherwise its spheroids wait in lanes, one set
   // per symmetry axis, and turn a full set at a time.
   constexpr int run_size = TurnLanes::capacity;
-  TurnLanes run, lanes[3];
+  TurnLanes run, lanes[3];  // run: its particles' inverse moments, and the lanes of a run in place
   int axis[run_size];  // the symmetry axis of each particle of the run that turns in lanes, else -1
   for (std::size_t r0 = lo, r1; r0 < hi; r0 = r1) {
     r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
@@ -603,8 +602,8 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
       if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
       const Vec3& inv = spin.inv_inertia[i];
       if (const int k = symmetry_axis(inv); k >= 0) {  // (the inverses: one array less to read)
-        if (resting(spin.angmom(i))) {
-          spin.omega[i] = resting_omega(k, spin.q(i), spin.angmom(i), inv);
+        if (resting(spin.l[i])) {
+          spin.omega[i] = resting_omega(k, spin.q(i), spin.l[i], inv);
           continue;
         }
         axis[a] = k, ++turning;
@@ -614,9 +613,9 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
       // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the
       // new orientation (gyroscopic).
       const Quat old = spin.q(i);
-      const Quat q = free_rotation(old, p.inertia[i], spin.angmom(i), dt);
+      const Quat q = free_rotation(old, p.inertia[i], spin.l[i], dt);
       p.q.set(i, q);
-      p.omega[i] = angular_velocity(q, p.inertia[i], spin.angmom(i));
+      p.omega[i] = angular_velocity(q, p.inertia[i], spin.l[i]);
       if (track)  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
         add_turn_path(spin, i, std::min((q.coeffs() - old.coeffs()).squaredNorm(),
                                         (q.coeffs() + old.coeffs()).squaredNorm()));
@@ -629,7 +628,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     for (int a = 0; a < size && turning > 0; ++a) {
       if (axis[a] < 0) continue;
       TurnLanes& t = lanes[axis[a]];
-      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(r0 + a), axis[a]);
+      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(r0 + a), run.inv_s[a], run.inv_perp[a]);
       if (t.size == TurnLanes::capacity) turn_spheroids(axis[a], t, spin, dt);
     }
   }
