@@ -332,3 +332,57 @@ TEST(Integrator, RattlerMomentaSettleToZeroWithoutSubnormals) {
     }
   }
 }
+
+// The viscous kick runs four particles at a time in vector lanes, each lane with its own damping
+// factors: bit for bit the plain formula of one particle at a time (DampedKick, the settling of
+// SPEC 5.2, omega = L / I for a sphere; an ellipsoid's omega is left to the drift), for any range
+// [lo, hi) (the lanes' groups start at lo; the last particles go one at a time), spheres and
+// ellipsoids mixed within a group of four, and momenta that settle beside ones that do not.
+TEST(Integrator, ViscousKickInLanesIsTheFormulaBitForBit) {
+  const std::size_t n = 27;
+  Particles p;
+  for (std::size_t k = 0; k < n; ++k) {
+    const bool spheroid = k % 5 == 2 || (k >= 12 && k < 16);  // one group of four ellipsoids, one of spheres
+    p.add(static_cast<std::uint32_t>(k), spheroid ? ShapeKind::ellipsoid : ShapeKind::sphere,
+          (spheroid ? Vec3(1.5, 1.0, 1.0) : Vec3::Ones()) * kRmin * (1 + 0.1 * double(k % 7)), kRho,
+          Vec3::Constant(0.5), Quat::Identity());
+  }
+  Model model;
+  model.dt = 1e-7;
+  const double factors[] = {0.0, 1e4, 3.7e5, 1e4, 2.1e6};
+  for (std::size_t k = 0; k < n; ++k) {
+    const double x = double(k) - 13.0;
+    p.damping_translation[k] = factors[k % 5];
+    p.damping_rotation[k] = factors[(k + 2) % 5];
+    p.force[k] = Vec3(0.3 * x, -1e-3 * x * x, 2.5) * 1e-2;
+    p.torque[k] = Vec3(-x, 0.5, 1e-2 * x * x) * 1e-7;
+    p.v[k] = Vec3(1e-4 * x, 2e-3, -3e-4 * x);
+    p.angmom.set(k, Vec3(2e-12, -1e-13 * x, 5e-12));
+    p.omega[k] = Vec3(7, 8, 9);
+  }
+  for (const std::size_t k : {3u, 9u, 17u}) {  // no force: these settle (below 2^-540), or keep a normal component
+    p.force[k] = p.torque[k] = Vec3::Zero();
+    p.v[k] = 0x1p-545 * Vec3(1, -1, 0.5);
+    p.angmom.set(k, k == 9 ? Vec3(0x1p-545, 1e-9, 0) : Vec3(-0x1p-545, 0, 0x1p-546));
+  }
+  for (const auto& [lo, hi] : {std::pair<std::size_t, std::size_t>{0, n}, {1, n}, {2, 11}, {5, 8}, {6, 26}}) {
+    Particles q = p;
+    const double v2max = integrate_velocities(model, q, lo, hi);
+    double expected_v2max = 0;
+    for (std::size_t k = 0; k < n; ++k) {
+      if (k < lo || k >= hi) {
+        EXPECT_TRUE(q.v[k] == p.v[k] && q.angmom[k] == p.angmom[k] && q.omega[k] == p.omega[k]) << k;
+        continue;
+      }
+      const auto settle = [](const Vec3& x) { return x.cwiseAbs().maxCoeff() < 0x1p-540 ? Vec3::Zero() : x; };
+      const Vec3 v = settle(damped_kick(p.v[k], p.force[k] * p.inv_mass[k], p.damping_translation[k], model.dt));
+      const Vec3 l = settle(damped_kick(p.angmom[k], p.torque[k], p.damping_rotation[k], model.dt));
+      const Vec3 omega = p.shape[k] == ShapeKind::sphere ? Vec3(l * p.inv_inertia[k].x()) : p.omega[k];
+      EXPECT_TRUE(q.v[k] == v) << "particle " << k << " of [" << lo << ", " << hi << ")";
+      EXPECT_TRUE(q.angmom[k] == l) << "particle " << k << " of [" << lo << ", " << hi << ")";
+      EXPECT_TRUE(q.omega[k] == omega) << "particle " << k << " of [" << lo << ", " << hi << ")";
+      expected_v2max = std::max(expected_v2max, v.squaredNorm());
+    }
+    EXPECT_EQ(v2max, expected_v2max) << "[" << lo << ", " << hi << ")";
+  }
+}
