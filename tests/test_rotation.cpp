@@ -442,10 +442,11 @@ TEST(Rotation, SphereFastPathUnchanged) {
 // no lanes) gives it: prolate and oblate ones (symmetry axes 0 and 2), with turns per step from
 // 1e-8 rad to beyond the Taylor range, some without angular momentum or with a subnormal one (a
 // rattler's), mixed with spheres and an asymmetric body, more of them than one set of lanes; then
-// a stretch of prolate spheroids only, turning or without angular momentum, which the drift turns
-// in place (runs of 64 consecutive spheroids of one symmetry axis), with lanes beyond the Taylor
-// range among them. Bit for bit, as are the surface path dt |v| + 2 a |q_new - q_old| (both parts
-// are summed apart from the turn: Eigen's norm()) and s + dt h^-1 v, also at subnormal velocities.
+// stretches of prolate and of oblate spheroids only, turning or without angular momentum, which
+// the drift turns in place (runs of 64 consecutive spheroids of one symmetry axis), with lanes
+// beyond the Taylor range among them, and a run of spheres only. Bit for bit, as are the surface
+// path dt |v| + 2 a |q_new - q_old| (both parts are summed apart from the turn: Eigen's norm())
+// and s + dt h^-1 v (Eigen's product, in a sheared cell), also at subnormal velocities.
 TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   std::mt19937_64 rng(20261130);
   std::uniform_real_distribution<double> uniform(0, 1);
@@ -453,10 +454,14 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   Particles p;
   const double dt = 1e-6;
   int beyond_taylor = 0, within_taylor = 0, off_unit = 0, tiny = 0;
-  for (std::uint32_t i = 0; i < 500; ++i) {
-    const bool in_place = i >= 300;  // every particle a turning prolate spheroid
+  for (std::uint32_t i = 0; i < 700; ++i) {
+    // Runs in place: [320, 448) prolate, [448, 576) oblate spheroids; spheres only in [576, 640).
+    const bool prolate = i >= 300 && i < 448, oblate = i >= 448 && i < 576, spheres = i >= 576 && i < 640;
+    const bool in_place = prolate || oblate;  // every particle a turning spheroid
     const double c = 1e-3 * (0.5 + uniform(rng)), a = c * (1.2 + uniform(rng));
-    const Vec3 axes = in_place      ? Vec3(a, c, c)
+    const Vec3 axes = prolate       ? Vec3(a, c, c)
+                      : oblate      ? Vec3(a, a, c)
+                      : spheres     ? Vec3::Constant(c)
                       : i % 37 == 5 ? Vec3::Constant(c)
                       : i % 41 == 7 ? kAxes321
                       : i % 2       ? Vec3(a, c, c)
@@ -474,6 +479,8 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
       ++tiny;
     }
     p.v[i] = 0.1 * Vec3(normal(rng), normal(rng), normal(rng));  // (the translation part of the path)
+    // s as small as the step, so that s + dt h^-1 v keeps the step's round-off (its order of sums).
+    p.s[i] = 1e-7 * Vec3(normal(rng), normal(rng), normal(rng));
     // A rattler's v decayed to subnormal, and just around the bound below which s is left alone.
     if (i % 17 == 6) p.v[i] *= std::array{1e-310, 0x1p-560, 0x1p-530, 1e-150}[(i / 17) % 4];
     (0.5 * turn > 0.05 ? beyond_taylor : within_taylor)++;
@@ -484,7 +491,9 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   std::vector<double> path(p.size(), 0.0);
   Model model;
   model.dt = dt;
-  const Cell cell = make_cell(Mat3::Identity());
+  Mat3 h;
+  h << 1.0, 0.2, 0.1, 0.05, 1.1, 0.3, 0.02, 0.04, 0.9;
+  const Cell cell = make_cell(h);
   advance_positions(model, cell, p, path);
   int spheroids = 0;
   for (std::size_t i = 0; i < p.size(); ++i) {
@@ -503,7 +512,9 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
     EXPECT_EQ(path[i], moved + 2 * p.bound_radius[i] * std::sqrt(chord2)) << "particle " << i;
     const Vec3 omega = omega_of(expected, p.inertia[i], p.angmom[i]);
     EXPECT_LE((p.omega[i] - omega).norm(), 1e-12 * omega.norm()) << "particle " << i;
-    if (p.angmom[i].norm() < 1e-100) EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs()) << "particle " << i;
+    if (p.angmom[i].norm() < 1e-100) {
+      EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs()) << "particle " << i;
+    }
     const Vec3& m = p.inertia[i];
     spheroids += m.x() != m.z() && (m.x() == m.y() || m.y() == m.z());
   }

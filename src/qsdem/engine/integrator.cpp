@@ -253,6 +253,48 @@ struct Xyz4 {
   return out;
 }
 
+// The drift's translation of particles [lo, hi) (advance_positions): s += dt h^-1 v (m: dt h^-1,
+// in the order of Eigen's product, CellMap) and, with a path, path += dt |v|; four particles at a
+// time in lanes. A particle is still where every |v_k| < slow and every |s_k| >= 2^-500: the step
+// is below half an ulp of s and |v|^2 rounds to 0, so s and the path keep their bits and are left
+// alone (no arithmetic on subnormal numbers); a group of four with such a v goes one at a time.
+[[gnu::always_inline]] inline void translate_one(const CellMap& m, double dt, double slow, Vec3& s, const Vec3& v,
+                                                 double* path) {
+  constexpr double far = 0x1p-500;
+  const auto small = [slow](double x) { return std::abs(x) < slow; };
+  const auto apart = [](double x) { return std::abs(x) >= far; };
+  if (small(v.x()) && small(v.y()) && small(v.z()) && apart(s.x()) && apart(s.y()) && apart(s.z())) return;
+  double x, y, z;
+  m.apply(v.x(), v.y(), v.z(), x, y, z);
+  s.x() += x, s.y() += y, s.z() += z;
+  if (path) *path += dt * std::sqrt((v.x() * v.x() + v.y() * v.y()) + v.z() * v.z());
+}
+
+QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, const Vec3* vel, double* path,
+                            std::size_t lo, std::size_t hi) {
+  std::size_t i = lo;
+  for (; i + 4 <= hi; i += 4) {
+    const Xyz4 v = load_xyz4(vel + i);
+    const auto below = [slow](const Lanes4& x) { return (x < slow) & (x > -slow); };
+    const Mask4 small = below(v.x) & below(v.y) & below(v.z);
+    if ((small[0] | small[1] | small[2] | small[3]) != 0) {
+      for (std::size_t k = i; k < i + 4; ++k) translate_one(m, dt, slow, pos[k], vel[k], path ? path + k : nullptr);
+      continue;
+    }
+    Xyz4 s = load_xyz4(pos + i);
+    s.x = s.x + ((m.h00 * v.x + m.h01 * v.y) + m.h02 * v.z);
+    s.y = s.y + ((m.h10 * v.x + m.h11 * v.y) + m.h12 * v.z);
+    s.z = s.z + (m.h20 * v.x + (m.h21 * v.y + m.h22 * v.z));
+    store_xyz4(pos + i, s);
+    if (path) {
+      const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
+      const Lanes4 speed{std::sqrt(v2[0]), std::sqrt(v2[1]), std::sqrt(v2[2]), std::sqrt(v2[3])};
+      store4(path + i, load4(path + i) + dt * speed);
+    }
+  }
+  for (; i < hi; ++i) translate_one(m, dt, slow, pos[i], vel[i], path ? path + i : nullptr);
+}
+
 QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
   hi = std::min(hi, p.size());
   const double dt = model.dt;
@@ -492,10 +534,23 @@ struct TurnInput {
 };
 inline TurnInput copies(const TurnLanes& t) { return {t.qw, t.qx, t.qy, t.qz, t.lx, t.ly, t.lz}; }
 
+// Where the lanes put the new q: lane a at [a] of these, the lanes' own (TurnLanes::nw...) or, for
+// a run turned in place, the particle arrays it was read from; then with a surface path (else
+// null) also path[a] += 2 bound_radius[a] |q - q_old| there (the chord, TurnLanes::chord2).
+struct TurnOutput {
+  double *qw, *qx, *qy, *qz;
+  double* path = nullptr;
+  const double* bound_radius = nullptr;
+};
+inline TurnOutput into_lanes(TurnLanes& t) { return {t.nw, t.nx, t.ny, t.nz}; }
+
 // One lane: the turn, then omega = R I^-1 R^T L at the new orientation (gyroscopic; spheroid:
-// I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis), then the chord.
-template <int K, bool taylor_only>
-[[gnu::always_inline]] inline void turn_lane(const TurnInput& in, TurnLanes& t, int a, double dt) {
+// I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis), then the chord. A lane of
+// the Taylor polynomials beyond their range (taylor_only, `outside`) puts back q_old and adds no
+// path: it runs again, from the same input (`turn`).
+template <int K, bool taylor_only, bool path>
+[[gnu::always_inline]] inline void turn_lane(const TurnInput& in, const TurnOutput& out, TurnLanes& t, int a,
+                                             double dt) {
   const QuatParts old{in.qw[a], in.qx[a], in.qy[a], in.qz[a]};
   const double lx = in.lx[a], ly = in.ly[a], lz = in.lz[a], inv_s = t.inv_s[a], inv_perp = t.inv_perp[a];
   bool outside;
@@ -504,49 +559,65 @@ template <int K, bool taylor_only>
   body_axis<K>(q, ex, ey, ez);
   const double f = (inv_s - inv_perp) * (ex * lx + ey * ly + ez * lz);
   t.ox[a] = inv_perp * lx + f * ex, t.oy[a] = inv_perp * ly + f * ey, t.oz[a] = inv_perp * lz + f * ez;
-  t.nw[a] = q.w, t.nx[a] = q.x, t.ny[a] = q.y, t.nz[a] = q.z;
+  out.qw[a] = outside ? old.w : q.w, out.qx[a] = outside ? old.x : q.x;
+  out.qy[a] = outside ? old.y : q.y, out.qz[a] = outside ? old.z : q.z;
   // Chord |q - q_old| of the shorter arc (q and -q are one turn), summed as Eigen sums a 4-vector.
   // Within the Taylor range (half angles below 0.05) q_old . q > 0: the arc from q_old is the shorter.
   const double dx = q.x - old.x, dy = q.y - old.y, dz = q.z - old.z, dw = q.w - old.w;
   const double minus = (dx * dx + dz * dz) + (dy * dy + dw * dw);
+  double chord2;
   if constexpr (taylor_only) {
-    t.chord2[a] = minus;
+    chord2 = minus;
   } else {
     const double sx = q.x + old.x, sy = q.y + old.y, sz = q.z + old.z, sw = q.w + old.w;
     const double plus = (sx * sx + sz * sz) + (sy * sy + sw * sw);
-    t.chord2[a] = plus < minus ? plus : minus;
+    chord2 = plus < minus ? plus : minus;
+  }
+  t.chord2[a] = chord2;
+  if constexpr (path) {
+    const double moved = out.path[a] + 2 * out.bound_radius[a] * std::sqrt(chord2);
+    out.path[a] = outside ? out.path[a] : moved;
   }
   t.outside[a] = outside ? 1.0 : 0.0;
 }
 
-template <bool taylor_only>
-inline void turn_lane(int k, const TurnInput& in, TurnLanes& t, int a, double dt) {
-  if (k == 0) turn_lane<0, taylor_only>(in, t, a, dt);
-  else if (k == 1) turn_lane<1, taylor_only>(in, t, a, dt);
-  else turn_lane<2, taylor_only>(in, t, a, dt);
-}
-
 // All lanes at once, by the Taylor polynomials (several lanes per vector instruction: a lone
 // spheroid's turn is one long chain of dependent operations). Built for AVX-512, AVX2 and the
-// x86-64 baseline, chosen at load time; no FMA, so the same bits as one lane at a time.
-QSDEM_CLONES_WIDE void turn_lanes(int k, const TurnInput& in, TurnLanes& t, double dt) {
-  if (k == 0) {
-#pragma omp simd
-    for (int a = 0; a < t.size; ++a) turn_lane<0, true>(in, t, a, dt);
-  } else if (k == 1) {
-#pragma omp simd
-    for (int a = 0; a < t.size; ++a) turn_lane<1, true>(in, t, a, dt);
-  } else {
-#pragma omp simd
-    for (int a = 0; a < t.size; ++a) turn_lane<2, true>(in, t, a, dt);
+// x86-64 baseline, chosen at load time; no FMA, so the same bits as one lane at a time. Returns
+// whether a lane is outside the polynomials' range.
+// (The pointers as copies: through the references GCC reloads them after every store, and
+// vectorises only with scatters.)
+template <int K, bool path>
+[[gnu::always_inline]] inline bool turn_all(const TurnInput in, const TurnOutput out, TurnLanes& t, double dt) {
+  double outside = 0;
+#pragma omp simd reduction(max : outside)
+  for (int a = 0; a < t.size; ++a) {
+    turn_lane<K, true, path>(in, out, t, a, dt);
+    outside = outside < t.outside[a] ? t.outside[a] : outside;
   }
+  return outside != 0;
+}
+QSDEM_CLONES_WIDE bool turn_lanes(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, double dt) {
+  if (out.path) {
+    if (k == 0) return turn_all<0, true>(in, out, t, dt);
+    if (k == 1) return turn_all<1, true>(in, out, t, dt);
+    return turn_all<2, true>(in, out, t, dt);
+  }
+  if (k == 0) return turn_all<0, false>(in, out, t, dt);
+  if (k == 1) return turn_all<1, false>(in, out, t, dt);
+  return turn_all<2, false>(in, out, t, dt);
 }
 
 // The lanes' turn; a lane beyond the Taylor range runs again, with libm (its input is unchanged).
-void turn(int k, const TurnInput& in, TurnLanes& t, double dt) {
-  turn_lanes(k, in, t, dt);
-  for (int a = 0; a < t.size; ++a)
-    if (t.outside[a] != 0) turn_lane<false>(k, in, t, a, dt);
+void turn(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, double dt) {
+  if (!turn_lanes(k, in, out, t, dt)) return;
+  for (int a = 0; a < t.size; ++a) {
+    if (t.outside[a] == 0) continue;
+    const bool path = out.path != nullptr;
+    if (k == 0) path ? turn_lane<0, false, true>(in, out, t, a, dt) : turn_lane<0, false, false>(in, out, t, a, dt);
+    else if (k == 1) path ? turn_lane<1, false, true>(in, out, t, a, dt) : turn_lane<1, false, false>(in, out, t, a, dt);
+    else path ? turn_lane<2, false, true>(in, out, t, a, dt) : turn_lane<2, false, false>(in, out, t, a, dt);
+  }
 }
 
 // The particle arrays a turn reads and writes, through local pointers: through Particles, each
@@ -567,6 +638,9 @@ struct SpinArrays {
   Quat q(std::size_t i) const { return {qw[i], qx[i], qy[i], qz[i]}; }
   // Lanes a = 0, 1, ... at particles i, i + 1, ...
   TurnInput from(std::size_t i) const { return {qw + i, qx + i, qy + i, qz + i, l.x + i, l.y + i, l.z + i}; }
+  TurnOutput into(std::size_t i) const {
+    return {qw + i, qx + i, qy + i, qz + i, path ? path + i : nullptr, bound_radius + i};
+  }
 };
 
 // Lane a <- particle i, with its inverse moments about the symmetry axis and across it.
@@ -585,7 +659,7 @@ inline void add_turn_path(const SpinArrays& s, std::size_t i, double chord2) {
 // Turns the spheroids of the lanes (symmetry axis k, loaded by load_lane) and stores their
 // orientation, omega and surface path.
 void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
-  turn(k, copies(t), t, dt);
+  turn(k, copies(t), into_lanes(t), t, dt);
   for (int a = 0; a < t.size; ++a) {
     const std::uint32_t i = t.particle[a];
     s.qw[i] = t.nw[a], s.qx[i] = t.nx[a], s.qy[i] = t.ny[a], s.qz[i] = t.nz[a];
@@ -596,15 +670,10 @@ void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
 }
 
 // Turns the t.size consecutive spheroids from particle i0 (symmetry axis k, the lanes' inverse
-// moments set), reading q and L where they are and storing q in place.
+// moments set) in place: the lanes read q and L and write q and the path where they are.
 void turn_in_place(int k, TurnLanes& t, const SpinArrays& s, std::size_t i0, double dt) {
-  turn(k, s.from(i0), t, dt);
-  const int n = t.size;
-  double *const qw = s.qw + i0, *const qx = s.qx + i0, *const qy = s.qy + i0, *const qz = s.qz + i0;
-  for (int a = 0; a < n; ++a) qw[a] = t.nw[a], qx[a] = t.nx[a], qy[a] = t.ny[a], qz[a] = t.nz[a];
-  for (int a = 0; a < n; ++a) s.omega[i0 + a] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
-  if (s.path)
-    for (int a = 0; a < n; ++a) add_turn_path(s, i0 + a, t.chord2[a]);
+  turn(k, s.from(i0), s.into(i0), t, dt);
+  for (int a = 0; a < t.size; ++a) s.omega[i0 + a] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
   t.size = 0;
 }
 
@@ -614,9 +683,10 @@ void turn_in_place(int k, TurnLanes& t, const SpinArrays& s, std::size_t i0, dou
 // whole vector it is in): these spheroids stay out of the lanes and get only their omega, by the
 // lanes' arithmetic (turn_lane). An L of zeros (as the viscous kick settles it) is no subnormal:
 // those spheroids stay in the lanes, which give them the same bits (q kept, a zero chord).
-inline bool resting(const Vec3& l) {
-  return settled(l.x(), l.y(), l.z()) & !((l.x() == 0) & (l.y() == 0) & (l.z() == 0));
+inline bool resting(double x, double y, double z) {
+  return settled(x, y, z) & !((x == 0) & (y == 0) & (z == 0));
 }
+inline bool resting(const Vec3& l) { return resting(l.x(), l.y(), l.z()); }
 
 template <int K>
 inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
@@ -631,6 +701,37 @@ inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, const Vec3& inv_i
   if (k == 0) return resting_omega<0>(q, l, inv_s, inv_perp);
   if (k == 1) return resting_omega<1>(q, l, inv_s, inv_perp);
   return resting_omega<2>(q, l, inv_s, inv_perp);
+}
+
+// What a run of particles [i0, i0 + n) is, in vector lanes: kAllSpheres, or the symmetry axis k
+// (0 or 2, symmetry_axis) that every one of them turns about, none resting (then t.inv_s and
+// t.inv_perp hold their inverse moments), or kMixed (advance_positions sorts it one at a time).
+constexpr int kAllSpheres = -2, kMixed = -1;
+QSDEM_CLONES int sort_run(const ShapeKind* shape, const Vec3* inv_inertia, AngmomArrays l, std::size_t i0, int n,
+                          TurnLanes& t) {
+  int spheres = 0;  // the shapes first: a run of spheres reads no other array
+#pragma omp simd reduction(+ : spheres)
+  for (int a = 0; a < n; ++a) spheres += shape[i0 + static_cast<std::size_t>(a)] == ShapeKind::sphere ? 1 : 0;
+  if (spheres == n) return kAllSpheres;
+  if (spheres != 0) return kMixed;
+  int axis0 = 0, axis2 = 0, resting_any = 0;  // counts (the same reductions for any build)
+#pragma omp simd reduction(+ : axis0, axis2, resting_any)
+  for (int a = 0; a < n; ++a) {
+    const std::size_t i = i0 + static_cast<std::size_t>(a);
+    const double x = inv_inertia[i].x(), y = inv_inertia[i].y(), z = inv_inertia[i].z();
+    const bool k0 = y == z, k2 = !k0 & (x == y);
+    const double lx = l.x[i], ly = l.y[i], lz = l.z[i];
+    axis0 += k0 ? 1 : 0;
+    axis2 += k2 ? 1 : 0;
+    resting_any += resting(lx, ly, lz) ? 1 : 0;
+  }
+  if (resting_any != 0 || (axis0 != n && axis2 != n)) return kMixed;
+  const int k = axis0 == n ? 0 : 2;
+  for (int a = 0; a < n; ++a) {
+    const Vec3& inv = inv_inertia[i0 + static_cast<std::size_t>(a)];
+    t.inv_s[a] = inv[k], t.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
+  }
+  return k;
 }
 
 }  // namespace
@@ -667,14 +768,10 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const SpinArrays spin(p, track ? path : nullptr);
   // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
   // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
-  // rounds to 0: s and the path would keep their bits, and are left alone (no subnormal operation).
+  // rounds to 0: s and the path would keep their bits, and are left alone (translate_one).
   const double largest = step_map.cwiseAbs().maxCoeff();
   const double slow = largest > 0 ? std::min(0x1p-556 / (3 * largest), kSettled) : 0.0;
-  const auto still = [slow](const Vec3& v, const Vec3& s) {
-    constexpr double far = 0x1p-500;
-    return std::abs(v.x()) < slow && std::abs(v.y()) < slow && std::abs(v.z()) < slow && std::abs(s.x()) >= far &&
-           std::abs(s.y()) >= far && std::abs(s.z()) >= far;
-  };
+  const CellMap step_map_parts(step_map);
   // The particles go in runs of a lane set's size. A run whose every particle is a turning
   // spheroid of one symmetry axis turns in place; otherwise its spheroids wait in lanes, one set
   // per symmetry axis, and turn a full set at a time.
@@ -684,14 +781,18 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   for (std::size_t r0 = lo, r1; r0 < hi; r0 = r1) {
     r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
     const int size = static_cast<int>(r1 - r0);
+    translate(step_map_parts, dt, slow, pos, vel, track ? path : nullptr, r0, r1);  // x = h s moves by dt v
+    if (const int kind = sort_run(shape, spin.inv_inertia, spin.l, r0, size, run); kind != kMixed) {
+      if (kind == kAllSpheres) continue;  // a sphere's orientation changes nothing
+      run.size = size;
+      turn_in_place(kind, run, spin, r0, dt);
+      continue;
+    }
+    // A mixed run: each particle in turn; its turning spheroids wait in the lanes of their axis.
     int turning = 0;
     for (int a = 0; a < size; ++a) {
       const std::size_t i = r0 + a;
       axis[a] = -1;
-      if (!still(vel[i], pos[i])) {
-        pos[i] += step_map * vel[i];  // moves x = h s by exactly dt v in the deformed cell
-        if (track) path[i] += dt * vel[i].norm();
-      }
       if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
       const Vec3& inv = spin.inv_inertia[i];
       if (const int k = symmetry_axis(inv); k >= 0) {  // (the inverses: one array less to read)
@@ -712,11 +813,6 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
       if (track)  // chord |q - q_old| = 2 sin(theta/4) of the shorter arc (q and -q are one turn)
         add_turn_path(spin, i, std::min((q.coeffs() - old.coeffs()).squaredNorm(),
                                         (q.coeffs() + old.coeffs()).squaredNorm()));
-    }
-    if (turning == size && std::all_of(axis, axis + size, [&](int k) { return k == axis[0]; })) {
-      run.size = size;
-      turn_in_place(axis[0], run, spin, r0, dt);
-      continue;
     }
     for (int a = 0; a < size && turning > 0; ++a) {
       if (axis[a] < 0) continue;
