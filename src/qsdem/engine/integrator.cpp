@@ -240,10 +240,23 @@ struct Xyz4 {
   store4(d + 8, __builtin_shufflevector(__builtin_shufflevector(r.x, r.y, 3, 3, 7, 7), r.z, 6, 1, 2, 7));
 }
 
-// DampedKick(a, dt) and its settle, in lanes: keep v + gain rate, zero where every |component| < 2^-540.
-[[gnu::always_inline]] inline Xyz4 damped_kick_lanes(const Lanes4& a, double dt, const Xyz4& v, const Xyz4& rate) {
-  const Lanes4 h = 0.5 * a * dt, c = 1 / (1 + h);
-  const Lanes4 keep = (1 - h) * c, gain = dt * c;
+// DampedKick(a, dt)'s factors in lanes, computed again only when a group's damping differs from
+// the last group's (a division per lane; equal damping gives equal factors, +0 and -0 alike).
+struct KickFactors {
+  Lanes4 a{}, keep, gain;  // a = 0: keep 1, gain dt
+  explicit KickFactors(double dt) : keep{1, 1, 1, 1}, gain{dt, dt, dt, dt} {}
+  [[gnu::always_inline]] void update(const Lanes4& next, double dt) {
+    const Mask4 same = next == a;
+    if ((same[0] & same[1] & same[2] & same[3]) != 0) return;
+    a = next;
+    const Lanes4 h = 0.5 * a * dt, c = 1 / (1 + h);
+    keep = (1 - h) * c, gain = dt * c;
+  }
+};
+
+// The kick and its settle, in lanes: keep v + gain rate, zero where every |component| < 2^-540.
+[[gnu::always_inline]] inline Xyz4 damped_kick_lanes(const KickFactors& f, const Xyz4& v, const Xyz4& rate) {
+  const Lanes4 keep = f.keep, gain = f.gain;
   Xyz4 out{keep * v.x + gain * rate.x, keep * v.y + gain * rate.y, keep * v.z + gain * rate.z};
   const auto small = [](const Lanes4& x) { return (x < kSettled) & (x > -kSettled); };
   const Mask4 keep_bits = ~(small(out.x) & small(out.y) & small(out.z));
@@ -309,16 +322,18 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
   double *const lx = p.angmom.component(0), *const ly = p.angmom.component(1), *const lz = p.angmom.component(2);
   Vec3* const omega = p.omega.data();
   Lanes4 v2max{};
+  KickFactors kick(dt), kick_rot(dt);  // translation, rotation
   std::size_t i = lo;
   for (; i + 4 <= hi; i += 4) {
     const Lanes4 m = load4(inv_mass + i);
     const Xyz4 f = load_xyz4(force + i);
-    const Xyz4 v = damped_kick_lanes(load4(damping_of + i), dt, load_xyz4(vel + i), {f.x * m, f.y * m, f.z * m});
+    kick.update(load4(damping_of + i), dt);
+    const Xyz4 v = damped_kick_lanes(kick, load_xyz4(vel + i), {f.x * m, f.y * m, f.z * m});
     store_xyz4(vel + i, v);
     const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2) lane by lane
-    const Xyz4 l = damped_kick_lanes(load4(damping_rot_of + i), dt, {load4(lx + i), load4(ly + i), load4(lz + i)},
-                                     load_xyz4(torque + i));
+    kick_rot.update(load4(damping_rot_of + i), dt);
+    const Xyz4 l = damped_kick_lanes(kick_rot, {load4(lx + i), load4(ly + i), load4(lz + i)}, load_xyz4(torque + i));
     store4(lx + i, l.x), store4(ly + i, l.y), store4(lz + i, l.z);
     // A sphere's omega = L / I (kick_particles); an ellipsoid's is the drift's.
     std::uint32_t kinds;
