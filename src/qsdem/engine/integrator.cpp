@@ -137,6 +137,21 @@ double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, doubl
   return v2max;
 }
 
+// The kick's arrays through local pointers: through p, each store made GCC load the next array's
+// address again (it cannot tell that a Vec3 store leaves p's vectors alone).
+struct KickArrays {
+  const double *damping_of, *damping_rot_of, *inv_mass;  // A_i, B_i (SPEC 6), 1 / m
+  const Vec3 *inv_inertia, *force, *torque;
+  const ShapeKind* shape;
+  Vec3* vel;
+  AngmomArrays angmom;
+  Vec3* omega;
+  explicit KickArrays(Particles& p)
+      : damping_of(p.damping_translation.data()), damping_rot_of(p.damping_rotation.data()),
+        inv_mass(p.inv_mass.data()), inv_inertia(p.inv_inertia.data()), force(p.force.data()),
+        torque(p.torque.data()), shape(p.shape.data()), vel(p.v.data()), angmom(p.angmom), omega(p.omega.data()) {}
+};
+
 // The kick of particles [lo, hi); Local: with Cundall's damping (alpha on translation and
 // rotation), else the viscous factors alone (the code of the viscous models, unchanged). Track:
 // also each particle's dissipation and kinetic energy (KickEnergy).
@@ -149,55 +164,48 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
   // The factors of the last damping seen, for translation and rotation (one value each in most runs).
   double damping = 0, damping_rot = 0;
   DampedKick kick(damping, dt), kick_rot(damping_rot, dt);
-  // The arrays through local pointers: through p, each store made GCC load the next array's
-  // address again (it cannot tell that a Vec3 store leaves p's vectors alone).
-  const double* const damping_of = p.damping_translation.data();
-  const double* const damping_rot_of = p.damping_rotation.data();
-  const double* const inv_mass = p.inv_mass.data();
-  const Vec3* const inv_inertia = p.inv_inertia.data();
-  const Vec3* const force = p.force.data();
-  const Vec3* const torque = p.torque.data();
-  const ShapeKind* const shape = p.shape.data();
-  Vec3* const vel = p.v.data();
-  const AngmomArrays angmom(p.angmom);
-  Vec3* const omega = p.omega.data();
+  const KickArrays arrays(p);
   for (std::size_t i = lo; i < hi; ++i) {
-    if (damping_of[i] != damping) kick = DampedKick(damping = damping_of[i], dt);  // A_i (SPEC 6)
-    if (damping_rot_of[i] != damping_rot) kick_rot = DampedKick(damping_rot = damping_rot_of[i], dt);  // B_i
-    Vec3 accel = force[i] * inv_mass[i];
-    Vec3 moment = torque[i];
+    if (arrays.damping_of[i] != damping) kick = DampedKick(damping = arrays.damping_of[i], dt);  // A_i (SPEC 6)
+    if (arrays.damping_rot_of[i] != damping_rot)
+      kick_rot = DampedKick(damping_rot = arrays.damping_rot_of[i], dt);  // B_i
+    Vec3 accel = arrays.force[i] * arrays.inv_mass[i];
+    Vec3 moment = arrays.torque[i];
     if constexpr (Local) {
       // The sign of the fluctuating velocity at t predicted from t - dt/2 (YADE's cundallDamp2nd);
       // a sphere's omega has the signs of L; an ellipsoid's moment is damped by omega at q(t) from
       // L(t - dt/2) (YADE's cundallDamp1st for aspherical bodies).
-      accel = cundall_damped(accel, vel[i] + 0.5 * dt * accel, alpha);
-      moment = cundall_damped(moment, shape[i] == ShapeKind::sphere ? Vec3(angmom[i] + 0.5 * dt * moment) : omega[i],
+      accel = cundall_damped(accel, arrays.vel[i] + 0.5 * dt * accel, alpha);
+      moment = cundall_damped(moment,
+                              arrays.shape[i] == ShapeKind::sphere ? Vec3(arrays.angmom[i] + 0.5 * dt * moment)
+                                                                   : arrays.omega[i],
                               alpha_rot);
     }
     // Cundall's damping leaves a free particle's momentum alone: only the viscous decay settles it.
-    const Vec3 v = Local ? kick(vel[i], accel) : settle(kick(vel[i], accel));
-    const Vec3 v_old = vel[i], l_old = angmom[i];
-    vel[i] = v;
+    const Vec3 v = Local ? kick(arrays.vel[i], accel) : settle(kick(arrays.vel[i], accel));
+    const Vec3 v_old = arrays.vel[i], l_old = arrays.angmom[i];
+    arrays.vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
     const Vec3 l = Local ? kick_rot(l_old, moment) : settle(kick_rot(l_old, moment));
-    angmom.set(i, l);
+    arrays.angmom.set(i, l);
     if constexpr (Track) {
       // The kick's energy identity: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the damping
       // took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
       // drift keeps the rotational energy: a free rotation).
       const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
       const auto spin = [&](const Vec3& x) {
-        return shape[i] == ShapeKind::sphere ? Vec3(x * inv_inertia[i].x()) : angular_velocity(p.q[i], p.inertia[i], x);
+        return arrays.shape[i] == ShapeKind::sphere ? Vec3(x * arrays.inv_inertia[i].x())
+                                                    : angular_velocity(p.q[i], p.inertia[i], x);
       };
-      const double mass = 1 / inv_mass[i];
-      energy.dissipated[i] = (dt * force[i] - mass * (v - v_old)).dot(v_mid) +
-                             (dt * torque[i] - (l - l_old)).dot(spin(l_mid));
+      const double mass = 1 / arrays.inv_mass[i];
+      energy.dissipated[i] = (dt * arrays.force[i] - mass * (v - v_old)).dot(v_mid) +
+                             (dt * arrays.torque[i] - (l - l_old)).dot(spin(l_mid));
       energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(spin(l));
     }
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (shape[i] == ShapeKind::sphere) omega[i] = l * inv_inertia[i].x();
+    if (arrays.shape[i] == ShapeKind::sphere) arrays.omega[i] = l * arrays.inv_inertia[i].x();
   }
   return v2max;
 }
@@ -249,8 +257,7 @@ struct KickFactors {
     const Mask4 same = next == a;
     if ((same[0] & same[1] & same[2] & same[3]) != 0) return;
     a = next;
-    const Lanes4 h = 0.5 * a * dt, c = 1 / (1 + h);
-    keep = (1 - h) * c, gain = dt * c;
+    damped_kick_factors(a, dt, keep, gain);
   }
 };
 
@@ -311,39 +318,34 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
 QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
   hi = std::min(hi, p.size());
   const double dt = model.dt;
-  const double* const damping_of = p.damping_translation.data();
-  const double* const damping_rot_of = p.damping_rotation.data();
-  const double* const inv_mass = p.inv_mass.data();
-  const Vec3* const inv_inertia = p.inv_inertia.data();
-  const Vec3* const force = p.force.data();
-  const Vec3* const torque = p.torque.data();
-  const ShapeKind* const shape = p.shape.data();
-  Vec3* const vel = p.v.data();
-  double *const lx = p.angmom.component(0), *const ly = p.angmom.component(1), *const lz = p.angmom.component(2);
-  Vec3* const omega = p.omega.data();
+  const KickArrays arrays(p);
+  double *const lx = arrays.angmom.x, *const ly = arrays.angmom.y, *const lz = arrays.angmom.z;
   Lanes4 v2max{};
   KickFactors kick(dt), kick_rot(dt);  // translation, rotation
   std::size_t i = lo;
   for (; i + 4 <= hi; i += 4) {
-    const Lanes4 m = load4(inv_mass + i);
-    const Xyz4 f = load_xyz4(force + i);
-    kick.update(load4(damping_of + i), dt);
-    const Xyz4 v = damped_kick_lanes(kick, load_xyz4(vel + i), {f.x * m, f.y * m, f.z * m});
-    store_xyz4(vel + i, v);
+    const Lanes4 m = load4(arrays.inv_mass + i);
+    const Xyz4 f = load_xyz4(arrays.force + i);
+    kick.update(load4(arrays.damping_of + i), dt);
+    const Xyz4 v = damped_kick_lanes(kick, load_xyz4(arrays.vel + i), {f.x * m, f.y * m, f.z * m});
+    store_xyz4(arrays.vel + i, v);
     const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2) lane by lane
-    kick_rot.update(load4(damping_rot_of + i), dt);
-    const Xyz4 l = damped_kick_lanes(kick_rot, {load4(lx + i), load4(ly + i), load4(lz + i)}, load_xyz4(torque + i));
+    kick_rot.update(load4(arrays.damping_rot_of + i), dt);
+    const Xyz4 l =
+        damped_kick_lanes(kick_rot, {load4(lx + i), load4(ly + i), load4(lz + i)}, load_xyz4(arrays.torque + i));
     store4(lx + i, l.x), store4(ly + i, l.y), store4(lz + i, l.z);
     // A sphere's omega = L / I (kick_particles); an ellipsoid's is the drift's.
     std::uint32_t kinds;
-    std::memcpy(&kinds, shape + i, sizeof kinds);
+    std::memcpy(&kinds, arrays.shape + i, sizeof kinds);
     if (kinds == 0) {  // four spheres (ShapeKind::sphere = 0)
-      const Lanes4 inv{inv_inertia[i].x(), inv_inertia[i + 1].x(), inv_inertia[i + 2].x(), inv_inertia[i + 3].x()};
-      store_xyz4(omega + i, {l.x * inv, l.y * inv, l.z * inv});
+      const Vec3* const inv_inertia = arrays.inv_inertia + i;
+      const Lanes4 inv{inv_inertia[0].x(), inv_inertia[1].x(), inv_inertia[2].x(), inv_inertia[3].x()};
+      store_xyz4(arrays.omega + i, {l.x * inv, l.y * inv, l.z * inv});
     } else {
       for (std::size_t k = 0; k < 4; ++k)
-        if (shape[i + k] == ShapeKind::sphere) omega[i + k] = Vec3(l.x[k], l.y[k], l.z[k]) * inv_inertia[i + k].x();
+        if (arrays.shape[i + k] == ShapeKind::sphere)
+          arrays.omega[i + k] = Vec3(l.x[k], l.y[k], l.z[k]) * arrays.inv_inertia[i + k].x();
     }
   }
   double out = 0;
@@ -658,6 +660,11 @@ struct SpinArrays {
   }
 };
 
+// Lane a's inverse moments about the symmetry axis k and across it.
+inline void set_inverse_moments(TurnLanes& t, int a, const Vec3& inv, int k) {
+  t.inv_s[a] = inv[k], t.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
+}
+
 // Lane a <- particle i, with its inverse moments about the symmetry axis and across it.
 inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i, double inv_s, double inv_perp) {
   t.particle[a] = i;
@@ -744,7 +751,7 @@ QSDEM_CLONES int sort_run(const ShapeKind* shape, const Vec3* inv_inertia, Angmo
   const int k = axis0 == n ? 0 : 2;
   for (int a = 0; a < n; ++a) {
     const Vec3& inv = inv_inertia[i0 + static_cast<std::size_t>(a)];
-    t.inv_s[a] = inv[k], t.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
+    set_inverse_moments(t, a, inv, k);
   }
   return k;
 }
@@ -816,7 +823,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
           continue;
         }
         axis[a] = k, ++turning;
-        run.inv_s[a] = inv[k], run.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
+        set_inverse_moments(run, a, inv, k);
         continue;
       }
       // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the

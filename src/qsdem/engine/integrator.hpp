@@ -11,14 +11,16 @@ namespace qsdem {
 
 // Central-difference velocity update with viscous damping factor A (paper Eq. 10):
 //   v(t+dt/2) = [(1 - A dt/2) v(t-dt/2) + dt F/m] / (1 + A dt/2) = keep v + gain F/m,
-// the two factors computed once (no division per particle).
+// the two factors computed once (no division per particle). T: a double, or vector lanes of them
+// (the kick's lanes, integrator.cpp): the same operations, so the same bits.
+template <class T>
+inline void damped_kick_factors(const T& a, double dt, T& keep, T& gain) {
+  const T h = 0.5 * a * dt, c = 1 / (1 + h);
+  keep = (1 - h) * c, gain = dt * c;
+}
 struct DampedKick {
   double keep, gain;
-  DampedKick(double a, double dt) {
-    const double c = 1 / (1 + 0.5 * a * dt);
-    keep = (1 - 0.5 * a * dt) * c;
-    gain = dt * c;
-  }
+  DampedKick(double a, double dt) { damped_kick_factors(a, dt, keep, gain); }
   Vec3 operator()(const Vec3& v, const Vec3& rate) const { return keep * v + gain * rate; }
 };
 
