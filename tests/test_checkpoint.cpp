@@ -322,6 +322,9 @@ TEST(CheckpointFile, RoundTripIsExact) {
   EXPECT_EQ(c.state.particles.inertia_scale, st.particles.inertia_scale);
   EXPECT_EQ(c.state.particles.mass, st.particles.mass);
   EXPECT_EQ(c.state.particles.inv_inertia, st.particles.inv_inertia);
+  EXPECT_EQ(c.state.particles.symmetry_axis, st.particles.symmetry_axis);
+  EXPECT_EQ(c.state.particles.inv_axial_moment, st.particles.inv_axial_moment);
+  EXPECT_EQ(c.state.particles.inv_transverse_moment, st.particles.inv_transverse_moment);
   EXPECT_GT(*std::max_element(st.particles.inertia_scale.begin(), st.particles.inertia_scale.end()), 1.4);
   EXPECT_EQ(c.state.pairs.history.values, st.pairs.history.values);
   EXPECT_EQ(c.state.pairs.history.layout, st.pairs.history.layout);

@@ -525,6 +525,34 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
   EXPECT_GT(tiny, 10);
 }
 
+// What the drift reads of a body's inertia (Particles::symmetry_axis and the inverse moments
+// about that axis and across it) follows its shape and moments: a sphere, prolate and oblate
+// spheroids (axes 0 and 2), three distinct moments; and again after the moments are scaled.
+TEST(Rotation, BodiesKnowTheirSymmetryAxis) {
+  Particles p;
+  const Vec3 sphere = Vec3::Constant(1e-3), prolate(2e-3, 1e-3, 1e-3), oblate(2e-3, 2e-3, 1e-3);
+  p.add(0, ShapeKind::sphere, sphere, kRho, Vec3::Zero(), Quat::Identity());
+  p.add(1, ShapeKind::ellipsoid, prolate, kRho, Vec3::Zero(), Quat::Identity());
+  p.add(2, ShapeKind::ellipsoid, oblate, kRho, Vec3::Zero(), Quat::Identity());
+  p.add(3, ShapeKind::ellipsoid, kAxes321, kRho, Vec3::Zero(), Quat::Identity());
+  const auto check = [&p](const char* when) {
+    SCOPED_TRACE(when);
+    EXPECT_EQ(p.symmetry_axis, (std::vector<std::int8_t>{kSphereBody, 0, 2, kThreeMoments}));
+    const std::array<std::array<int, 2>, 3> axes{{{0, 1}, {0, 1}, {2, 0}}};  // axial, transverse
+    for (std::size_t i = 0; i < 3; ++i) {
+      EXPECT_EQ(p.inv_axial_moment[i], 1 / p.inertia[i][axes[i][0]]) << "particle " << i;
+      EXPECT_EQ(p.inv_transverse_moment[i], 1 / p.inertia[i][axes[i][1]]) << "particle " << i;
+    }
+    EXPECT_EQ(p.inertia[0].x(), p.inertia[0].z());  // a sphere's 1 / I, whichever moment
+  };
+  check("as added");
+  InertiaScaling scaling;
+  scaling.target = InertiaScaling::Target::coarsest;
+  scale_inertia(p, scaling, kRho);
+  ASSERT_GT(p.inertia_scale[0], 1);
+  check("scaled");
+}
+
 // The spheroid's turn (SPEC 5.4) takes the sine and cosine of half angles below 0.05 from Taylor
 // polynomials to x^7 and x^8 (libm above). Against the closed form with libm's trigonometry
 // (Eigen's AngleAxis), over turns per step from 1e-9 rad to beyond the switch, just below, at

@@ -141,6 +141,7 @@ double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, doubl
 // address again (it cannot tell that a Vec3 store leaves p's vectors alone).
 struct KickArrays {
   const double *damping_of, *damping_rot_of, *inv_mass;  // A_i, B_i (SPEC 6), 1 / m
+  const double* inv_transverse;                          // a sphere's 1 / I
   const Vec3 *inv_inertia, *force, *torque;
   const ShapeKind* shape;
   Vec3* vel;
@@ -148,7 +149,8 @@ struct KickArrays {
   Vec3* omega;
   explicit KickArrays(Particles& p)
       : damping_of(p.damping_translation.data()), damping_rot_of(p.damping_rotation.data()),
-        inv_mass(p.inv_mass.data()), inv_inertia(p.inv_inertia.data()), force(p.force.data()),
+        inv_mass(p.inv_mass.data()), inv_transverse(p.inv_transverse_moment.data()),
+        inv_inertia(p.inv_inertia.data()), force(p.force.data()),
         torque(p.torque.data()), shape(p.shape.data()), vel(p.v.data()), angmom(p.angmom), omega(p.omega.data()) {}
 };
 
@@ -339,8 +341,7 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
     std::uint32_t kinds;
     std::memcpy(&kinds, arrays.shape + i, sizeof kinds);
     if (kinds == 0) {  // four spheres (ShapeKind::sphere = 0)
-      const Vec3* const inv_inertia = arrays.inv_inertia + i;
-      const Lanes4 inv{inv_inertia[0].x(), inv_inertia[1].x(), inv_inertia[2].x(), inv_inertia[3].x()};
+      const Lanes4 inv = load4(arrays.inv_transverse + i);  // 1 / I (Particles::inv_transverse_moment)
       store_xyz4(arrays.omega + i, {l.x * inv, l.y * inv, l.z * inv});
     } else {
       for (std::size_t k = 0; k < 4; ++k)
@@ -519,15 +520,6 @@ inline QuatParts spheroid_rotation(int k, const QuatParts& q, double inv_s, doub
   return spheroid_rotation<2, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
 }
 
-// The symmetry axis of a body with two equal moments (-1: three distinct moments), from the
-// moments or their inverses. Equal moments are computed by the same expression (ellipsoid_inertia),
-// so b == c gives bit-equal I_b, I_c and inverses; the spheroid's flow reads only the inverses.
-inline int symmetry_axis(const Vec3& inertia) {
-  if (inertia.y() == inertia.z()) return 0;
-  if (inertia.x() == inertia.y()) return 2;
-  return -1;
-}
-
 // Spheroids to turn, with the same symmetry axis, in lanes (structure of arrays). In: the
 // orientation and angular momentum (TurnInput) and the inverse moments; out: the new orientation,
 // omega, and the squared quaternion chord of the turn.
@@ -544,12 +536,13 @@ struct TurnLanes {
                              // Newton step's (lane to run again)
 };
 
-// Where the lanes read q and L: lane a at [a] of these. The particle arrays themselves for a run
-// of consecutive spheroids (turn_in_place: no copies), else the lanes' copies.
+// Where the lanes read q, L and the inverse moments about the symmetry axis and across it: lane a
+// at [a] of these. The particle arrays themselves for a run of consecutive spheroids
+// (turn_in_place: no copies), else the lanes' copies.
 struct TurnInput {
-  const double *qw, *qx, *qy, *qz, *lx, *ly, *lz;
+  const double *qw, *qx, *qy, *qz, *lx, *ly, *lz, *inv_s, *inv_perp;
 };
-inline TurnInput copies(const TurnLanes& t) { return {t.qw, t.qx, t.qy, t.qz, t.lx, t.ly, t.lz}; }
+inline TurnInput copies(const TurnLanes& t) { return {t.qw, t.qx, t.qy, t.qz, t.lx, t.ly, t.lz, t.inv_s, t.inv_perp}; }
 
 // Where the lanes put the new q: lane a at [a] of these, the lanes' own (TurnLanes::nw...) or, for
 // a run turned in place, the particle arrays it was read from; then with a surface path (else
@@ -569,7 +562,7 @@ template <int K, bool taylor_only, bool path>
 [[gnu::always_inline]] inline void turn_lane(const TurnInput& in, const TurnOutput& out, TurnLanes& t, int a,
                                              double dt) {
   const QuatParts old{in.qw[a], in.qx[a], in.qy[a], in.qz[a]};
-  const double lx = in.lx[a], ly = in.ly[a], lz = in.lz[a], inv_s = t.inv_s[a], inv_perp = t.inv_perp[a];
+  const double lx = in.lx[a], ly = in.ly[a], lz = in.lz[a], inv_s = in.inv_s[a], inv_perp = in.inv_perp[a];
   bool outside;
   const QuatParts q = spheroid_rotation<K, taylor_only>(old, inv_s, inv_perp, lx, ly, lz, dt, outside);
   double ex, ey, ez;
@@ -642,35 +635,33 @@ void turn(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, doubl
 struct SpinArrays {
   double *qw, *qx, *qy, *qz;
   AngmomArrays l;
-  const Vec3* inv_inertia;
+  const std::int8_t* symmetry_axis;  // Particles::symmetry_axis, and the inverse moments about it and across
+  const double *inv_axial, *inv_transverse;
   Vec3* omega;
   const double* bound_radius;
   double* path;  // the surface path, or nullptr when it is not tracked
 
   SpinArrays(Particles& p, double* surface_path)
       : qw(p.q.component(3)), qx(p.q.component(0)), qy(p.q.component(1)), qz(p.q.component(2)),
-        l(p.angmom),
-        inv_inertia(p.inv_inertia.data()), omega(p.omega.data()), bound_radius(p.bound_radius.data()),
+        l(p.angmom), symmetry_axis(p.symmetry_axis.data()), inv_axial(p.inv_axial_moment.data()),
+        inv_transverse(p.inv_transverse_moment.data()), omega(p.omega.data()), bound_radius(p.bound_radius.data()),
         path(surface_path) {}
   Quat q(std::size_t i) const { return {qw[i], qx[i], qy[i], qz[i]}; }
   // Lanes a = 0, 1, ... at particles i, i + 1, ...
-  TurnInput from(std::size_t i) const { return {qw + i, qx + i, qy + i, qz + i, l.x + i, l.y + i, l.z + i}; }
+  TurnInput from(std::size_t i) const {
+    return {qw + i, qx + i, qy + i, qz + i, l.x + i, l.y + i, l.z + i, inv_axial + i, inv_transverse + i};
+  }
   TurnOutput into(std::size_t i) const {
     return {qw + i, qx + i, qy + i, qz + i, path ? path + i : nullptr, bound_radius + i};
   }
 };
 
-// Lane a's inverse moments about the symmetry axis k and across it.
-inline void set_inverse_moments(TurnLanes& t, int a, const Vec3& inv, int k) {
-  t.inv_s[a] = inv[k], t.inv_perp[a] = inv[k == 2 ? 0 : k + 1];
-}
-
 // Lane a <- particle i, with its inverse moments about the symmetry axis and across it.
-inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i, double inv_s, double inv_perp) {
+inline void load_lane(TurnLanes& t, int a, const SpinArrays& s, std::uint32_t i) {
   t.particle[a] = i;
   t.qw[a] = s.qw[i], t.qx[a] = s.qx[i], t.qy[a] = s.qy[i], t.qz[a] = s.qz[i];
   t.lx[a] = s.l.x[i], t.ly[a] = s.l.y[i], t.lz[a] = s.l.z[i];
-  t.inv_s[a] = inv_s, t.inv_perp[a] = inv_perp;
+  t.inv_s[a] = s.inv_axial[i], t.inv_perp[a] = s.inv_transverse[i];
 }
 
 // The surface path of a turn: 2 bound_radius |q - q_old| (the chord).
@@ -691,8 +682,8 @@ void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
   t.size = 0;
 }
 
-// Turns the t.size consecutive spheroids from particle i0 (symmetry axis k, the lanes' inverse
-// moments set) in place: the lanes read q and L and write q and the path where they are.
+// Turns the t.size consecutive spheroids from particle i0 (symmetry axis k) in place: the lanes
+// read q, L and the inverse moments and write q and the path where they are.
 void turn_in_place(int k, TurnLanes& t, const SpinArrays& s, std::size_t i0, double dt) {
   turn(k, s.from(i0), s.into(i0), t, dt);
   for (int a = 0; a < t.size; ++a) s.omega[i0 + a] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
@@ -718,48 +709,38 @@ inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv
   return {inv_perp * l.x() + f * ex, inv_perp * l.y() + f * ey, inv_perp * l.z() + f * ez};
 }
 
-inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, const Vec3& inv_inertia) {
-  const double inv_s = inv_inertia[k], inv_perp = inv_inertia[(k + 1) % 3];
+inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
   if (k == 0) return resting_omega<0>(q, l, inv_s, inv_perp);
   if (k == 1) return resting_omega<1>(q, l, inv_s, inv_perp);
   return resting_omega<2>(q, l, inv_s, inv_perp);
 }
 
 // What a run of particles [i0, i0 + n) is, in vector lanes: kAllSpheres, or the symmetry axis k
-// (0 or 2, symmetry_axis) that every one of them turns about, none resting (then t.inv_s and
-// t.inv_perp hold their inverse moments), or kMixed (advance_positions sorts it one at a time).
-constexpr int kAllSpheres = -2, kMixed = -1;
-QSDEM_CLONES int sort_run(const ShapeKind* shape, const Vec3* inv_inertia, AngmomArrays l, std::size_t i0, int n,
-                          TurnLanes& t) {
-  int spheres = 0;  // the shapes first: a run of spheres reads no other array
-#pragma omp simd reduction(+ : spheres)
-  for (int a = 0; a < n; ++a) spheres += shape[i0 + static_cast<std::size_t>(a)] == ShapeKind::sphere ? 1 : 0;
-  if (spheres == n) return kAllSpheres;
-  if (spheres != 0) return kMixed;
-  int axis0 = 0, axis2 = 0, resting_any = 0;  // counts (the same reductions for any build)
-#pragma omp simd reduction(+ : axis0, axis2, resting_any)
+// (0 or 2) that every one of them turns about, none resting, or kMixed (advance_positions sorts
+// it one at a time). From Particles::symmetry_axis (a byte each: a run of spheres reads nothing
+// more), then for a run of spheroids their L.
+constexpr int kAllSpheres = kSphereBody, kMixed = -1;
+QSDEM_CLONES int sort_run(const std::int8_t* symmetry_axis, AngmomArrays l, std::size_t i0, int n) {
+  const std::int8_t* const axis = symmetry_axis + i0;
+  const int k = axis[0];
+  int others = 0;  // a count (the same reduction for any build)
+#pragma omp simd reduction(+ : others)
+  for (int a = 0; a < n; ++a) others += axis[a] != k ? 1 : 0;
+  if (others != 0 || k == kThreeMoments) return kMixed;
+  if (k == kSphereBody) return kAllSpheres;
+  int resting_any = 0;
+#pragma omp simd reduction(+ : resting_any)
   for (int a = 0; a < n; ++a) {
     const std::size_t i = i0 + static_cast<std::size_t>(a);
-    const double x = inv_inertia[i].x(), y = inv_inertia[i].y(), z = inv_inertia[i].z();
-    const bool k0 = y == z, k2 = !k0 & (x == y);
-    const double lx = l.x[i], ly = l.y[i], lz = l.z[i];
-    axis0 += k0 ? 1 : 0;
-    axis2 += k2 ? 1 : 0;
-    resting_any += resting(lx, ly, lz) ? 1 : 0;
+    resting_any += resting(l.x[i], l.y[i], l.z[i]) ? 1 : 0;
   }
-  if (resting_any != 0 || (axis0 != n && axis2 != n)) return kMixed;
-  const int k = axis0 == n ? 0 : 2;
-  for (int a = 0; a < n; ++a) {
-    const Vec3& inv = inv_inertia[i0 + static_cast<std::size_t>(a)];
-    set_inverse_moments(t, a, inv, k);
-  }
-  return k;
+  return resting_any != 0 ? kMixed : k;
 }
 
 }  // namespace
 
 Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
-  if (const int k = symmetry_axis(inertia); k >= 0) {
+  if (const int k = equal_moments_axis(inertia); k >= 0) {
     bool outside;
     const QuatParts r = spheroid_rotation<false>(k, parts(q), 1 / inertia[k], 1 / inertia[(k + 1) % 3], angmom, dt,
                                                  outside);
@@ -785,7 +766,6 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   // Through local pointers, as in integrate_velocities.
   Vec3* const pos = p.s.data();
   const Vec3* const vel = p.v.data();
-  const ShapeKind* const shape = p.shape.data();
   double* const path = surface_path.data();
   const SpinArrays spin(p, track ? path : nullptr);
   // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
@@ -798,13 +778,13 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   // spheroid of one symmetry axis turns in place; otherwise its spheroids wait in lanes, one set
   // per symmetry axis, and turn a full set at a time.
   constexpr int run_size = TurnLanes::capacity;
-  TurnLanes run, lanes[3];  // run: its particles' inverse moments, and the lanes of a run in place
+  TurnLanes run, lanes[3];  // the lanes of a run in place, and of each axis's spheroids of mixed runs
   int axis[run_size];  // the symmetry axis of each particle of the run that turns in lanes, else -1
   for (std::size_t r0 = lo, r1; r0 < hi; r0 = r1) {
     r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
     const int size = static_cast<int>(r1 - r0);
     translate(step_map_parts, dt, slow, pos, vel, track ? path : nullptr, r0, r1);  // x = h s moves by dt v
-    if (const int kind = sort_run(shape, spin.inv_inertia, spin.l, r0, size, run); kind != kMixed) {
+    if (const int kind = sort_run(spin.symmetry_axis, spin.l, r0, size); kind != kMixed) {
       if (kind == kAllSpheres) continue;  // a sphere's orientation changes nothing
       run.size = size;
       turn_in_place(kind, run, spin, r0, dt);
@@ -815,15 +795,14 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     for (int a = 0; a < size; ++a) {
       const std::size_t i = r0 + a;
       axis[a] = -1;
-      if (shape[i] == ShapeKind::sphere) continue;  // a sphere's orientation changes nothing
-      const Vec3& inv = spin.inv_inertia[i];
-      if (const int k = symmetry_axis(inv); k >= 0) {  // (the inverses: one array less to read)
+      const int k = spin.symmetry_axis[i];
+      if (k == kSphereBody) continue;  // a sphere's orientation changes nothing
+      if (k >= 0) {
         if (resting(spin.l[i])) {
-          spin.omega[i] = resting_omega(k, spin.q(i), spin.l[i], inv);
+          spin.omega[i] = resting_omega(k, spin.q(i), spin.l[i], spin.inv_axial[i], spin.inv_transverse[i]);
           continue;
         }
         axis[a] = k, ++turning;
-        set_inverse_moments(run, a, inv, k);
         continue;
       }
       // Three distinct moments: NO_SQUISH, one at a time. omega = R I^-1 R^T L then follows the
@@ -839,7 +818,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     for (int a = 0; a < size && turning > 0; ++a) {
       if (axis[a] < 0) continue;
       TurnLanes& t = lanes[axis[a]];
-      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(r0 + a), run.inv_s[a], run.inv_perp[a]);
+      load_lane(t, t.size++, spin, static_cast<std::uint32_t>(r0 + a));
       if (t.size == TurnLanes::capacity) turn_spheroids(axis[a], t, spin, dt);
     }
   }

@@ -30,12 +30,19 @@ bool Particles::has_ellipsoids() const {
 }
 
 void Particles::derive_inverses() {
-  inv_mass.resize(mass.size());
-  inv_inertia.resize(inertia.size());
-  for (std::size_t i = 0; i < mass.size(); ++i) {
-    inv_mass[i] = 1 / mass[i];
-    inv_inertia[i] = inertia[i].cwiseInverse();
-  }
+  resize(mass.size());  // sizes the derived arrays
+  for (std::size_t i = 0; i < mass.size(); ++i) derive_inverses(i);
+}
+
+void Particles::derive_inverses(std::size_t i) {
+  inv_mass[i] = 1 / mass[i];
+  const Vec3 inv = inertia[i].cwiseInverse();
+  inv_inertia[i] = inv;
+  const int k = shape[i] == ShapeKind::sphere ? kSphereBody : equal_moments_axis(inertia[i]);
+  symmetry_axis[i] = static_cast<std::int8_t>(k);
+  const int axial = k == kSphereBody ? 0 : k, transverse = axial == 2 ? 0 : axial + 1;
+  inv_axial_moment[i] = k == kThreeMoments ? 0.0 : inv[axial];
+  inv_transverse_moment[i] = k == kThreeMoments ? 0.0 : inv[transverse];
 }
 
 void scale_inertia(Particles& p, const InertiaScaling& scaling, double density) {
@@ -53,8 +60,7 @@ void scale_inertia(Particles& p, const InertiaScaling& scaling, double density) 
     p.inertia_scale[i] = mu;
     p.mass[i] = m;
     p.inertia[i] = ellipsoid_inertia(m, p.semi_axes[i]);
-    p.inv_mass[i] = 1 / m;
-    p.inv_inertia[i] = p.inertia[i].cwiseInverse();
+    p.derive_inverses(i);
   }
 }
 
@@ -85,8 +91,7 @@ void Particles::add(std::uint32_t pid, ShapeKind kind, const Vec3& ax, double de
   mass[k] = m;
   inertia[k] = ellipsoid_inertia(m, ax);
   inertia_scale[k] = 1.0;
-  inv_mass[k] = 1 / m;
-  inv_inertia[k] = inertia[k].cwiseInverse();
+  derive_inverses(k);
   damping_translation[k] = damping_rotation[k] = 0.0;
   s[k] = frac_pos;
   q.set(k, orientation.normalized());

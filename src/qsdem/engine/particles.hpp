@@ -13,6 +13,9 @@
 
 namespace qsdem {
 
+// Particles::symmetry_axis of a sphere, and of a body of three distinct moments.
+constexpr std::int8_t kSphereBody = -2, kThreeMoments = -1;
+
 struct Particles {
   // Static per run.
   std::vector<std::uint32_t> id;       // stable id, as generated or read
@@ -25,6 +28,11 @@ struct Particles {
   std::vector<double> inertia_scale;   // mu_i, the phase's inertia scaling (1: none), SPEC 5.6
   std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
   std::vector<Vec3> inv_inertia;       // (the integrator multiplies instead of dividing)
+  // How the drift turns the body (kept with the inertia): kSphereBody (no turn), the symmetry
+  // axis 0-2 of a body with two equal moments (a spheroid's free flow, SPEC 5), or
+  // kThreeMoments; and 1 / I about that axis and across it (a sphere's: 1 / I both).
+  std::vector<std::int8_t> symmetry_axis;
+  std::vector<double> inv_axial_moment, inv_transverse_moment;
   std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping/stage.hpp), SPEC 6
   std::vector<double> damping_rotation;     // B_i (1/s)
 
@@ -41,8 +49,10 @@ struct Particles {
 
   std::size_t size() const { return id.size(); }
   bool has_ellipsoids() const;
-  // Sets inv_mass and inv_inertia from mass and inertia (a restored checkpoint stores only these).
+  // Sets inv_mass, inv_inertia and the drift's symmetry_axis and inverse moments from mass and
+  // inertia (a restored checkpoint stores only these).
   void derive_inverses();
+  void derive_inverses(std::size_t i);
   void resize(std::size_t n);
   // Appends one particle at rest with mass properties from the shape (SPEC 2).
   void add(std::uint32_t pid, ShapeKind kind, const Vec3& semi_axes, double density,
@@ -71,6 +81,9 @@ constexpr void for_each_field(P& p, F&& f) {
   f(p.inertia_scale, ParticleField{"inertia_scale", 11});  // 1 in older formats (no scaling)
   f(p.inv_mass, ParticleField{"inv_mass", 0});
   f(p.inv_inertia, ParticleField{"inv_inertia", 0});
+  f(p.symmetry_axis, ParticleField{"symmetry_axis", 0});
+  f(p.inv_axial_moment, ParticleField{"inv_axial_moment", 0});
+  f(p.inv_transverse_moment, ParticleField{"inv_transverse_moment", 0});
   f(p.damping_translation, ParticleField{"damping_translation", 1});
   f(p.damping_rotation, ParticleField{"damping_rotation", 0});  // set with the translation's on load
   f(p.s, ParticleField{"s", 1});
@@ -93,6 +106,15 @@ double step_gain(const Particles& p);
 // Mass and principal moments of a solid ellipsoid (SPEC 2).
 double ellipsoid_volume(const Vec3& semi_axes);
 Vec3 ellipsoid_inertia(double mass, const Vec3& semi_axes);
+
+// The symmetry axis of a body with two equal moments (kThreeMoments: three distinct ones), from
+// the moments or their inverses. Equal moments come from the same expression (ellipsoid_inertia):
+// b == c gives bit-equal I_b, I_c and inverses.
+inline int equal_moments_axis(const Vec3& inertia) {
+  if (inertia.y() == inertia.z()) return 0;
+  if (inertia.x() == inertia.y()) return 2;
+  return kThreeMoments;
+}
 
 // World-frame angular velocity from angular momentum: omega = R I^-1 R^T L.
 inline Vec3 angular_velocity(const Quat& q, const Vec3& inertia, const Vec3& angmom) {
