@@ -368,7 +368,7 @@ TEST(StiffnessDamping, ActsOnAndRattlers) {
     p.v[4] = Vec3(1e-4, -2e-4, 0);
     for (std::size_t k = 0; k < 5; ++k) {
       p.angmom.set(k, p.inertia[k].cwiseProduct(Vec3(30, -10, 20)));
-      p.omega[k] = p.angmom[k] * p.inv_inertia[k].x();
+      p.omega[k] = p.angmom[k] * p.inv_transverse_moment[k];
     }
     const Vec3 rattler_x = p.s[4], rattler_l = p.angmom[4];
     const std::vector<Vec3> l0 = p.angmom.interleaved();

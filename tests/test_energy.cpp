@@ -49,7 +49,7 @@ ContactInput contact(double overlap, double before, double vx, double radius) {
 double kinetic_energy(const Particles& p) {
   double k = 0;
   for (std::size_t i = 0; i < p.size(); ++i) {
-    const Vec3 w = p.shape[i] == ShapeKind::sphere ? Vec3(p.angmom[i] * p.inv_inertia[i].x())
+    const Vec3 w = p.shape[i] == ShapeKind::sphere ? Vec3(p.angmom[i] * p.inv_transverse_moment[i])
                                                    : angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
     k += 0.5 * p.mass[i] * p.v[i].squaredNorm() + 0.5 * p.angmom[i].dot(w);
   }

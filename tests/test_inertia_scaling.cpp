@@ -133,7 +133,8 @@ TEST(InertiaScaling, OffRestoresTheSolidMassesExactly) {
   EXPECT_EQ(st.particles.mass, solid.mass);
   EXPECT_EQ(st.particles.inertia, solid.inertia);
   EXPECT_EQ(st.particles.inv_mass, solid.inv_mass);
-  EXPECT_EQ(st.particles.inv_inertia, solid.inv_inertia);
+  EXPECT_EQ(st.particles.inv_axial_moment, solid.inv_axial_moment);
+  EXPECT_EQ(st.particles.inv_transverse_moment, solid.inv_transverse_moment);
   EXPECT_EQ(st.particles.inertia_scale, std::vector<double>(solid.size(), 1.0));
 }
 

@@ -379,7 +379,7 @@ TEST(Integrator, ViscousKickInLanesIsTheFormulaBitForBit) {
       const auto settle = [](const Vec3& x) { return x.cwiseAbs().maxCoeff() < 0x1p-540 ? Vec3::Zero() : x; };
       const Vec3 v = settle(damped_kick(p.v[k], p.force[k] * p.inv_mass[k], p.damping_translation[k], model.dt));
       const Vec3 l = settle(damped_kick(p.angmom[k], p.torque[k], p.damping_rotation[k], model.dt));
-      const Vec3 omega = p.shape[k] == ShapeKind::sphere ? Vec3(l * p.inv_inertia[k].x()) : p.omega[k];
+      const Vec3 omega = p.shape[k] == ShapeKind::sphere ? Vec3(l * p.inv_transverse_moment[k]) : p.omega[k];
       EXPECT_TRUE(q.v[k] == v) << "particle " << k << " of [" << lo << ", " << hi << ")";
       EXPECT_TRUE(q.angmom[k] == l) << "particle " << k << " of [" << lo << ", " << hi << ")";
       EXPECT_TRUE(q.omega[k] == omega) << "particle " << k << " of [" << lo << ", " << hi << ")";

@@ -526,7 +526,7 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
 }
 
 // What the drift reads of a body's inertia (Particles::symmetry_axis and the inverse moments
-// about that axis and across it) follows its shape and moments: a sphere, prolate and oblate
+// about that axis and across it), and 1 / I_min, follow its shape and moments: a sphere, prolate and oblate
 // spheroids (axes 0 and 2), three distinct moments; and again after the moments are scaled.
 TEST(Rotation, BodiesKnowTheirSymmetryAxis) {
   Particles p;
@@ -544,6 +544,8 @@ TEST(Rotation, BodiesKnowTheirSymmetryAxis) {
       EXPECT_EQ(p.inv_transverse_moment[i], 1 / p.inertia[i][axes[i][1]]) << "particle " << i;
     }
     EXPECT_EQ(p.inertia[0].x(), p.inertia[0].z());  // a sphere's 1 / I, whichever moment
+    for (std::size_t i = 0; i < 4; ++i)  // what stiffness damping reads, of any body
+      EXPECT_EQ(inv_smallest_moment(p, i), p.inertia[i].cwiseInverse().maxCoeff()) << "particle " << i;
   };
   check("as added");
   InertiaScaling scaling;

@@ -35,7 +35,7 @@ void mix_velocities(Particles& p, double alpha) {
   for (std::size_t i = 0; i < p.size(); ++i) {
     p.v[i] = keep_v * p.v[i] + vf * p.force[i];
     p.angmom.set(i, keep_l * p.angmom[i] + lm * p.torque[i]);
-    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_inertia[i].x();
+    if (p.shape[i] == ShapeKind::sphere) p.omega[i] = p.angmom[i] * p.inv_transverse_moment[i];
   }
 }
 

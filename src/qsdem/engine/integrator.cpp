@@ -73,7 +73,8 @@ struct AngmomArrays {
   void set(std::size_t i, const Vec3& l) const { x[i] = l.x(), y[i] = l.y(), z[i] = l.z(); }
 };
 
-QSDEM_CLONES_WIDE void local_kick_spheres(const Vec3* inv_inertia, const Vec3* torque, AngmomArrays angmom,
+// inv_moment: each sphere's 1 / I (Particles::inv_transverse_moment).
+QSDEM_CLONES_WIDE void local_kick_spheres(const double* inv_moment, const Vec3* torque, AngmomArrays angmom,
                                           Vec3* omega, std::size_t lo, std::size_t hi, double dt, double alpha) {
   const double half = 0.5 * dt;
 #pragma omp simd
@@ -84,7 +85,7 @@ QSDEM_CLONES_WIDE void local_kick_spheres(const Vec3* inv_inertia, const Vec3* t
     ly = ly + dt * cundall_damped(my, ly + half * my, alpha);
     lz = lz + dt * cundall_damped(mz, lz + half * mz, alpha);
     angmom.x[i] = lx, angmom.y[i] = ly, angmom.z[i] = lz;
-    const double inv = inv_inertia[i].x();
+    const double inv = inv_moment[i];
     omega[i].x() = lx * inv, omega[i].y() = ly * inv, omega[i].z() = lz * inv;
   }
 }
@@ -111,10 +112,10 @@ QSDEM_CLONES void local_kick_bodies(const Vec3* torque, const ShapeKind* shape, 
 }
 
 // The spheres' omega = L / I among ellipsoids.
-void local_kick_sphere_spins(const Vec3* inv_inertia, const ShapeKind* shape, AngmomArrays angmom, Vec3* omega,
+void local_kick_sphere_spins(const double* inv_moment, const ShapeKind* shape, AngmomArrays angmom, Vec3* omega,
                              std::size_t lo, std::size_t hi) {
   for (std::size_t i = lo; i < hi; ++i)
-    if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_inertia[i].x();
+    if (shape[i] == ShapeKind::sphere) omega[i] = angmom[i] * inv_moment[i];
 }
 
 double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, double alpha, double alpha_rot) {
@@ -127,12 +128,12 @@ double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, doubl
     spheres |= p.shape[i] == ShapeKind::sphere ? 1u : 0u;
   }
   if (ellipsoids == 0) {
-    local_kick_spheres(p.inv_inertia.data(), p.torque.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt,
+    local_kick_spheres(p.inv_transverse_moment.data(), p.torque.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt,
                        alpha_rot);
   } else {
     local_kick_bodies(p.torque.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt, alpha_rot);
     if (spheres != 0)
-      local_kick_sphere_spins(p.inv_inertia.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi);
+      local_kick_sphere_spins(p.inv_transverse_moment.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi);
   }
   return v2max;
 }
@@ -141,16 +142,15 @@ double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, doubl
 // address again (it cannot tell that a Vec3 store leaves p's vectors alone).
 struct KickArrays {
   const double *damping_of, *damping_rot_of, *inv_mass;  // A_i, B_i (SPEC 6), 1 / m
-  const double* inv_transverse;                          // a sphere's 1 / I
-  const Vec3 *inv_inertia, *force, *torque;
+  const double* inv_moment;                              // a sphere's 1 / I (inv_transverse_moment)
+  const Vec3 *force, *torque;
   const ShapeKind* shape;
   Vec3* vel;
   AngmomArrays angmom;
   Vec3* omega;
   explicit KickArrays(Particles& p)
       : damping_of(p.damping_translation.data()), damping_rot_of(p.damping_rotation.data()),
-        inv_mass(p.inv_mass.data()), inv_transverse(p.inv_transverse_moment.data()),
-        inv_inertia(p.inv_inertia.data()), force(p.force.data()),
+        inv_mass(p.inv_mass.data()), inv_moment(p.inv_transverse_moment.data()), force(p.force.data()),
         torque(p.torque.data()), shape(p.shape.data()), vel(p.v.data()), angmom(p.angmom), omega(p.omega.data()) {}
 };
 
@@ -197,7 +197,7 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
       // drift keeps the rotational energy: a free rotation).
       const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
       const auto spin = [&](const Vec3& x) {
-        return arrays.shape[i] == ShapeKind::sphere ? Vec3(x * arrays.inv_inertia[i].x())
+        return arrays.shape[i] == ShapeKind::sphere ? Vec3(x * arrays.inv_moment[i])
                                                     : angular_velocity(p.q[i], p.inertia[i], x);
       };
       const double mass = 1 / arrays.inv_mass[i];
@@ -207,7 +207,7 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
     }
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
-    if (arrays.shape[i] == ShapeKind::sphere) arrays.omega[i] = l * arrays.inv_inertia[i].x();
+    if (arrays.shape[i] == ShapeKind::sphere) arrays.omega[i] = l * arrays.inv_moment[i];
   }
   return v2max;
 }
@@ -341,12 +341,12 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
     std::uint32_t kinds;
     std::memcpy(&kinds, arrays.shape + i, sizeof kinds);
     if (kinds == 0) {  // four spheres (ShapeKind::sphere = 0)
-      const Lanes4 inv = load4(arrays.inv_transverse + i);  // 1 / I (Particles::inv_transverse_moment)
+      const Lanes4 inv = load4(arrays.inv_moment + i);
       store_xyz4(arrays.omega + i, {l.x * inv, l.y * inv, l.z * inv});
     } else {
       for (std::size_t k = 0; k < 4; ++k)
         if (arrays.shape[i + k] == ShapeKind::sphere)
-          arrays.omega[i + k] = Vec3(l.x[k], l.y[k], l.z[k]) * arrays.inv_inertia[i + k].x();
+          arrays.omega[i + k] = Vec3(l.x[k], l.y[k], l.z[k]) * arrays.inv_moment[i + k];
     }
   }
   double out = 0;

@@ -37,7 +37,6 @@ void Particles::derive_inverses() {
 void Particles::derive_inverses(std::size_t i) {
   inv_mass[i] = 1 / mass[i];
   const Vec3 inv = inertia[i].cwiseInverse();
-  inv_inertia[i] = inv;
   const int k = shape[i] == ShapeKind::sphere ? kSphereBody : equal_moments_axis(inertia[i]);
   symmetry_axis[i] = static_cast<std::int8_t>(k);
   const int axial = k == kSphereBody ? 0 : k, transverse = axial == 2 ? 0 : axial + 1;

@@ -3,6 +3,7 @@
 // Every array is listed once more, in for_each_field below: resize, the reorder permutation,
 // the checkpoint and the memory accounting go through that list.
 #pragma once
+#include <algorithm>
 #include <concepts>
 #include <cstdint>
 #include <type_traits>
@@ -26,11 +27,12 @@ struct Particles {
   std::vector<double> mass;            // kg: mu_i times the solid's (the dynamics' mass, SPEC 5.6)
   std::vector<Vec3> inertia;           // principal moments, body frame (kg m^2), mu_i times the solid's
   std::vector<double> inertia_scale;   // mu_i, the phase's inertia scaling (1: none), SPEC 5.6
-  std::vector<double> inv_mass;        // 1 / mass, and 1 / each moment: kept with mass and inertia
-  std::vector<Vec3> inv_inertia;       // (the integrator multiplies instead of dividing)
-  // How the drift turns the body (kept with the inertia): kSphereBody (no turn), the symmetry
-  // axis 0-2 of a body with two equal moments (a spheroid's free flow, SPEC 5), or
-  // kThreeMoments; and 1 / I about that axis and across it (a sphere's: 1 / I both).
+  // Kept with mass and inertia (the integrator multiplies instead of dividing): 1 / mass; how the
+  // drift turns the body: kSphereBody (no turn), the symmetry axis 0-2 of a body with two equal
+  // moments (a spheroid's free flow, SPEC 5), or kThreeMoments; and 1 / I about that axis and
+  // across it (a sphere's 1 / I both; 0 for three distinct moments, which the drift reads from
+  // the moments).
+  std::vector<double> inv_mass;
   std::vector<std::int8_t> symmetry_axis;
   std::vector<double> inv_axial_moment, inv_transverse_moment;
   std::vector<double> damping_translation;  // A_i (1/s), the damping stage's (damping/stage.hpp), SPEC 6
@@ -49,8 +51,8 @@ struct Particles {
 
   std::size_t size() const { return id.size(); }
   bool has_ellipsoids() const;
-  // Sets inv_mass, inv_inertia and the drift's symmetry_axis and inverse moments from mass and
-  // inertia (a restored checkpoint stores only these).
+  // Sets inv_mass, symmetry_axis and the inverse moments from mass and inertia (a restored
+  // checkpoint stores only these).
   void derive_inverses();
   void derive_inverses(std::size_t i);
   void resize(std::size_t n);
@@ -80,7 +82,6 @@ constexpr void for_each_field(P& p, F&& f) {
   f(p.inertia, ParticleField{"inertia", 1});
   f(p.inertia_scale, ParticleField{"inertia_scale", 11});  // 1 in older formats (no scaling)
   f(p.inv_mass, ParticleField{"inv_mass", 0});
-  f(p.inv_inertia, ParticleField{"inv_inertia", 0});
   f(p.symmetry_axis, ParticleField{"symmetry_axis", 0});
   f(p.inv_axial_moment, ParticleField{"inv_axial_moment", 0});
   f(p.inv_transverse_moment, ParticleField{"inv_transverse_moment", 0});
@@ -114,6 +115,13 @@ inline int equal_moments_axis(const Vec3& inertia) {
   if (inertia.y() == inertia.z()) return 0;
   if (inertia.x() == inertia.y()) return 2;
   return kThreeMoments;
+}
+
+// 1 / I_min, the largest inverse moment of particle i (the bits of max_k 1 / I_k: division rounds
+// monotonically).
+inline double inv_smallest_moment(const Particles& p, std::size_t i) {
+  return p.symmetry_axis[i] == kThreeMoments ? 1 / p.inertia[i].minCoeff()
+                                             : std::max(p.inv_axial_moment[i], p.inv_transverse_moment[i]);
 }
 
 // World-frame angular velocity from angular momentum: omega = R I^-1 R^T L.

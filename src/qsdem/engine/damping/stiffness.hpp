@@ -25,7 +25,7 @@ struct StiffnessDamping {
   }
   double rotation_factor(const Particles& p, std::size_t i, const DampingInputs& in) const {
     return in.contact_rotational_stiffness
-               ? two_xi0 * std::sqrt(in.contact_rotational_stiffness[i] * p.inv_inertia[i].maxCoeff())
+               ? two_xi0 * std::sqrt(in.contact_rotational_stiffness[i] * inv_smallest_moment(p, i))
                : 0.0;
   }
 };
