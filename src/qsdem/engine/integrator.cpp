@@ -356,9 +356,13 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
 
 }  // namespace
 
-double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
+bool kick_settles(const Model& model) {
   // Cundall's damping only where it acts: alpha = 0 would change no bit, but costs the signs.
-  const bool local = model.damping.cundall_translation > 0 || model.damping.cundall_rotation > 0;
+  return !(model.damping.cundall_translation > 0 || model.damping.cundall_rotation > 0);
+}
+
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
+  const bool local = !kick_settles(model);
   if (energy.dissipated) {
     if (local) return kick_particles<true, true>(model, p, lo, hi, energy);
     return kick_particles<false, true>(model, p, lo, hi, energy);
@@ -718,9 +722,9 @@ inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, double inv_s, dou
 // What a run of particles [i0, i0 + n) is, in vector lanes: kAllSpheres, or the symmetry axis k
 // (0 or 2) that every one of them turns about, none resting, or kMixed (advance_positions sorts
 // it one at a time). From Particles::symmetry_axis (a byte each: a run of spheres reads nothing
-// more), then for a run of spheroids their L.
+// more), then for a run of spheroids their L, unless `settled` (none is resting).
 constexpr int kAllSpheres = kSphereBody, kMixed = -1;
-QSDEM_CLONES int sort_run(const std::int8_t* symmetry_axis, AngmomArrays l, std::size_t i0, int n) {
+QSDEM_CLONES int sort_run(const std::int8_t* symmetry_axis, AngmomArrays l, std::size_t i0, int n, bool settled) {
   const std::int8_t* const axis = symmetry_axis + i0;
   const int k = axis[0];
   int others = 0;  // a count (the same reduction for any build)
@@ -728,6 +732,7 @@ QSDEM_CLONES int sort_run(const std::int8_t* symmetry_axis, AngmomArrays l, std:
   for (int a = 0; a < n; ++a) others += axis[a] != k ? 1 : 0;
   if (others != 0 || k == kThreeMoments) return kMixed;
   if (k == kSphereBody) return kAllSpheres;
+  if (settled) return k;
   int resting_any = 0;
 #pragma omp simd reduction(+ : resting_any)
   for (int a = 0; a < n; ++a) {
@@ -757,7 +762,7 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
 }
 
 void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path,
-                       std::size_t lo, std::size_t hi) {
+                       std::size_t lo, std::size_t hi, bool settled) {
   const double dt = model.dt;
   const Mat3 step_map = dt * cell.h_inv;
   const std::size_t n = p.size();
@@ -784,7 +789,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
     const int size = static_cast<int>(r1 - r0);
     translate(step_map_parts, dt, slow, pos, vel, track ? path : nullptr, r0, r1);  // x = h s moves by dt v
-    if (const int kind = sort_run(spin.symmetry_axis, spin.l, r0, size); kind != kMixed) {
+    if (const int kind = sort_run(spin.symmetry_axis, spin.l, r0, size, settled); kind != kMixed) {
       if (kind == kAllSpheres) continue;  // a sphere's orientation changes nothing
       run.size = size;
       turn_in_place(kind, run, spin, r0, dt);

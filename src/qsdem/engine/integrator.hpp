@@ -42,6 +42,11 @@ struct KickEnergy {
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX,
                             KickEnergy energy = {});
 
+// Whether integrate_velocities with this model settles the momenta (SPEC 5.2: every viscous
+// model; Cundall's local damping does not): after it, every angular momentum is zero or has a
+// component of at least 2^-540 (what advance_positions' `settled` tells it).
+bool kick_settles(const Model& model);
+
 // Free rotation of a rigid body over dt at constant world angular momentum L (the drift half of
 // the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and
 // symplectic, gyroscopic motion included (omega follows the body as it turns). Exact for bodies
@@ -54,8 +59,10 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
 // read). Spheres: orientation and omega = L / I untouched.
 // surface_path (one per particle, or empty): adds how far each particle's surface can have moved
 // in this step, dt |v| + 2 a |q_new - q_old| (NeighborState::surface_path).
-// Particles [lo, hi), on the calling thread, as integrate_velocities.
+// Particles [lo, hi), on the calling thread, as integrate_velocities. `settled`: the momenta are
+// as a kick that settles them leaves them (kick_settles): no L of subnormal size to keep out of
+// the vector lanes, and none looked for.
 void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {},
-                       std::size_t lo = 0, std::size_t hi = SIZE_MAX);
+                       std::size_t lo = 0, std::size_t hi = SIZE_MAX, bool settled = false);
 
 }  // namespace qsdem

@@ -69,7 +69,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping/stage.hpp)
       m = std::max(m, integrate_velocities(model, p, lo, hi, kick_energy));
       const double t2 = omp_get_wtime();
-      advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi);
+      advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi, kick_settles(model));
       const double t3 = omp_get_wtime();
       mine[0] += t1 - t0, mine[1] += t2 - t1, mine[2] += t3 - t2;
       schedule.owner_seconds[r] = t3 - t0;
