@@ -420,6 +420,7 @@ void io_run(BinaryReader& in, RunProgress& r, std::uint32_t version) {
   if (version < 7) {
     LegacyRun l;
     io_legacy_run(in, l, version);
+    if (l.phase < 0 || l.phase > 2) in.damaged(fmt::format("the run's phase is {}, not 0, 1 or 2", l.phase));
     r = from_legacy(l);
     return;
   }
