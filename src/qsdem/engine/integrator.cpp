@@ -128,12 +128,13 @@ double local_kick(Particles& p, std::size_t lo, std::size_t hi, double dt, doubl
     spheres |= p.shape[i] == ShapeKind::sphere ? 1u : 0u;
   }
   if (ellipsoids == 0) {
-    local_kick_spheres(p.inv_transverse_moment.data(), p.torque.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt,
-                       alpha_rot);
+    local_kick_spheres(p.inv_transverse_moment.data(), p.torque.data(), AngmomArrays(p.angmom), p.omega.data(), lo,
+                       hi, dt, alpha_rot);
   } else {
     local_kick_bodies(p.torque.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi, dt, alpha_rot);
     if (spheres != 0)
-      local_kick_sphere_spins(p.inv_transverse_moment.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(), lo, hi);
+      local_kick_sphere_spins(p.inv_transverse_moment.data(), p.shape.data(), AngmomArrays(p.angmom), p.omega.data(),
+                              lo, hi);
   }
   return v2max;
 }
@@ -747,7 +748,7 @@ QSDEM_CLONES int sort_run(const std::int8_t* symmetry_axis, AngmomArrays l, std:
 Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
   if (const int k = equal_moments_axis(inertia); k >= 0) {
     bool outside;
-    const QuatParts r = spheroid_rotation<false>(k, parts(q), 1 / inertia[k], 1 / inertia[(k + 1) % 3], angmom, dt,
+    const QuatParts r = spheroid_rotation<false>(k, parts(q), 1 / inertia[k], 1 / inertia[transverse_axis(k)], angmom, dt,
                                                  outside);
     return Quat(r.w, r.x, r.y, r.z);
   }

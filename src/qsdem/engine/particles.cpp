@@ -39,9 +39,9 @@ void Particles::derive_inverses(std::size_t i) {
   const Vec3 inv = inertia[i].cwiseInverse();
   const int k = shape[i] == ShapeKind::sphere ? kSphereBody : equal_moments_axis(inertia[i]);
   symmetry_axis[i] = static_cast<std::int8_t>(k);
-  const int axial = k == kSphereBody ? 0 : k, transverse = axial == 2 ? 0 : axial + 1;
+  const int axial = k == kSphereBody ? 0 : k;
   inv_axial_moment[i] = k == kThreeMoments ? 0.0 : inv[axial];
-  inv_transverse_moment[i] = k == kThreeMoments ? 0.0 : inv[transverse];
+  inv_transverse_moment[i] = k == kThreeMoments ? 0.0 : inv[transverse_axis(axial)];
 }
 
 void scale_inertia(Particles& p, const InertiaScaling& scaling, double density) {

@@ -108,14 +108,16 @@ double step_gain(const Particles& p);
 double ellipsoid_volume(const Vec3& semi_axes);
 Vec3 ellipsoid_inertia(double mass, const Vec3& semi_axes);
 
-// The symmetry axis of a body with two equal moments (kThreeMoments: three distinct ones), from
-// the moments or their inverses. Equal moments come from the same expression (ellipsoid_inertia):
-// b == c gives bit-equal I_b, I_c and inverses.
+// The symmetry axis of a body with two equal moments (kThreeMoments: three distinct ones). Equal
+// moments come from the same expression (ellipsoid_inertia): b == c gives bit-equal I_b, I_c.
 inline int equal_moments_axis(const Vec3& inertia) {
   if (inertia.y() == inertia.z()) return 0;
   if (inertia.x() == inertia.y()) return 2;
   return kThreeMoments;
 }
+
+// A body axis across the symmetry axis k (its moment is I_perp).
+constexpr int transverse_axis(int k) { return (k + 1) % 3; }
 
 // 1 / I_min, the largest inverse moment of particle i (the bits of max_k 1 / I_k: division rounds
 // monotonically).
