@@ -9,6 +9,7 @@
 #define QSDEM_CLONES_WIDE
 #else
 #define QSDEM_CLONES [[gnu::target_clones("avx2", "default")]]
-// Also AVX-512 (8 lanes), for a loop of long independent lane arithmetic (the spheroids' turn).
+// Also AVX-512 (8 lanes), for a loop of long independent lane arithmetic (the contacts' narrow
+// phase and law, the spheroids' turn); not for a loop bound by memory (the kick, the drift's translation).
 #define QSDEM_CLONES_WIDE [[gnu::target_clones("avx512f", "avx2", "default")]]
 #endif

@@ -450,9 +450,10 @@ struct PwOutcome {
 }  // namespace
 
 // The batch, in three phases (above). Each lane's arithmetic is the same sequence as for a lone
-// pair. Two builds of the batch, chosen at load time by the CPU: four lanes per instruction with
-// AVX2, two with the x86-64 baseline (SSE2). Neither uses FMA, so both give the same bits.
-QSDEM_CLONES void ellipsoid_contacts(EllipsoidContactBatch& b) {
+// pair. Three builds of the batch, chosen at load time by the CPU: eight lanes per instruction
+// with AVX-512, four with AVX2, two with the x86-64 baseline (SSE2). None uses FMA, so all give
+// the same bits.
+QSDEM_CLONES_WIDE void ellipsoid_contacts(EllipsoidContactBatch& b) {
   PwLanes w;
   reject_or_start(b, w);
   iterate_lanes(b, w);

@@ -115,7 +115,7 @@ struct ContactLanes {
 
 // sphere_sphere (contact/geometry.hpp) on every lane.
 template <class Law>
-QSDEM_CLONES void sphere_geometry(ContactLanes<Law>& c) {
+QSDEM_CLONES_WIDE void sphere_geometry(ContactLanes<Law>& c) {
   auto& g = c.geometry;
 #pragma omp simd
   for (int a = 0; a < c.size; ++a)
@@ -133,10 +133,10 @@ template <bool BySlot, class Law, class Slots>
 
 // On every lane: the velocity of j's contact point relative to i's (SPEC 3), the law, the torques
 // (x_c - x_j) x F on j and (x_c - x_i) x (-F) on i (SPEC 4) with the law's own, and the contact's
-// terms of the sums. Built for AVX2 and the x86-64 baseline, chosen at load time; no FMA, so the
-// same bits.
+// terms of the sums. Built for AVX-512, AVX2 and the x86-64 baseline, chosen at load time; no FMA,
+// so the same bits.
 template <bool BySlot, class Law, class Slots>
-QSDEM_CLONES void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c, const Slots& slots) {
+QSDEM_CLONES_WIDE void evaluate_contacts(const Law& law, double dt, ContactLanes<Law>& c, const Slots& slots) {
   const auto& g = lanes_geometry<BySlot>(c, slots);
 #pragma omp simd
   for (int a = 0; a < c.size; ++a) {
@@ -333,8 +333,9 @@ QSDEM_CLONES void to_test(const double* path, const std::uint32_t* pair_i,
 // ellipsoid by Perram-Wertheim, skipped while provably apart. The pairs to test are taken a batch
 // at a time: the ellipsoid pairs' narrow phase runs on the whole batch at once (EllipsoidContactBatch),
 // then the law runs on the contacts in pair order (the order of the sums, as one pair at a time).
+// Built as the lanes it calls are (their inlined parts in vector lanes of the same width).
 template <class Law>
-ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
+QSDEM_CLONES_WIDE ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(in, p, pairs, b);
@@ -443,7 +444,7 @@ ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs
 // as branch_vector gives it) and reach r = r_i + r_j: |l|, touching (1: |l|^2 < r^2, else 0), and
 // for an apart pair the motion `moved` + gap (|l| - r, less a margin for its round-off) below which
 // it is not tested again (-1: tested at the next step).
-QSDEM_CLONES void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
+QSDEM_CLONES_WIDE void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
                                                             const double* reach, std::uint32_t n, double moved,
                                                             double* distance, double* touch, double* until) {
 #pragma omp simd
@@ -467,7 +468,8 @@ QSDEM_CLONES void sphere_tests(const CellMap& h, double* lx, double* ly, double*
 // since then (NeighborState::moved_any) is below its gap. The others go through a first pass over
 // a chunk that tests them without a branch on the outcome; a second runs the law on the touching.
 template <class Law>
-ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
+QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs,
+                                                std::size_t b) {
   ForceBlock acc;
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(in, p, pairs, b);
