@@ -249,6 +249,37 @@ TEST(Run, UpdateRangesFollowTheOwnersTimes) {
   EXPECT_EQ(s.owner_rate, kept) << "an owner without a time";
 }
 
+// A block's contacts grouped by the owner of their j end (group_contacts_by_owner): each group in
+// pair order, the four contact arrays moved together; a block whose j ends one owner holds (any
+// owner, or none for no contacts) left as it is.
+TEST(Run, ContactsGroupByTheOwnerOfTheirJEnd) {
+  Schedule s;
+  s.owner_first = {0, 10, 20, 30};  // three owners
+  PairList pairs;
+  const std::vector<std::uint32_t> j = {25, 3, 12, 28, 4, 15, 16, 17, 22};
+  const std::size_t n = j.size();
+  pairs.contact_j = j;
+  pairs.contact_pairs.resize(n);
+  pairs.contact_force.resize(n);
+  pairs.contact_torque_j.resize(n);
+  for (std::uint32_t m = 0; m < n; ++m) {
+    pairs.contact_pairs[m] = 100 + m;
+    pairs.contact_force[m] = Vec3(m, 0, 0);
+    pairs.contact_torque_j[m] = Vec3(0, m, 0);
+  }
+  s.contact_owner_first.assign(3 * 4, 0);
+  group_contacts_by_owner(s, pairs, 0, 0, 5);  // block 0: j 25 3 12 28 4 (owners 2 0 1 2 0)
+  group_contacts_by_owner(s, pairs, 1, 5, 3);  // block 1: j 15 16 17, all owner 1
+  group_contacts_by_owner(s, pairs, 2, 8, 0);  // block 2: no contacts
+  EXPECT_EQ(pairs.contact_j, (std::vector<std::uint32_t>{3, 4, 12, 25, 28, 15, 16, 17, 22}));
+  EXPECT_EQ(pairs.contact_pairs, (std::vector<std::uint32_t>{101, 104, 102, 100, 103, 105, 106, 107, 108}));
+  for (std::uint32_t m = 0; m < n; ++m) {
+    EXPECT_EQ(pairs.contact_force[m].x(), pairs.contact_pairs[m] - 100.0) << "slot " << m;
+    EXPECT_EQ(pairs.contact_torque_j[m].y(), pairs.contact_pairs[m] - 100.0) << "slot " << m;
+  }
+  EXPECT_EQ(s.contact_owner_first, (std::vector<std::uint32_t>{0, 2, 3, 5, 5, 5, 8, 8, 8, 8, 8, 8}));
+}
+
 // A thread done with its blocks takes those left at the end of another thread's range
 // (compute_contact_forces). Here every step's cut gives all the blocks to thread 1 (the smoothed
 // block times are overwritten: the first block seems to cost everything), so thread 0 can only

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 
+#include "qsdem/engine/clones.hpp"
+
 namespace qsdem {
 
 bool Schedule::has_owners_of(const State& state) const {
@@ -86,35 +88,62 @@ void assign_single_owner(Schedule& s, const State& state) {
   }
 }
 
-void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first, std::uint32_t count) {
+QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first,
+                                          std::uint32_t count) {
   const std::size_t owners = s.owners();
   std::uint32_t* const row = s.contact_owner_first.data() + b * (owners + 1);
   if (owners == 1) {  // one thread: one group, in place
     row[0] = first, row[1] = first + count;
     return;
   }
-  const auto owner = [&](std::uint32_t j) {  // the last t with owner_first[t] <= j
-    std::size_t t = 0;
-    while (t + 1 < owners && s.owner_first[t + 1] <= j) ++t;
-    return t;
-  };
-  std::fill(row, row + owners + 1, 0u);
-  for (std::uint32_t m = first; m < first + count; ++m) ++row[owner(pairs.contact_j[m]) + 1];
-  row[0] = first;
-  for (std::size_t t = 0; t < owners; ++t) row[t + 1] += row[t];
-  if (row[1] == first + count) return;  // all in the first group: already in place
-  // Each contact's new slot (row[t] serves as group t's next slot and ends at group t + 1's
-  // start: shifted back after), then the four arrays moved through a copy. The copies are the
-  // thread's own, kept from block to block (no allocation once grown).
-  thread_local std::vector<std::uint32_t> slot, copy_u32;
+  // Each contact's owner: the number of the owners' first particles, after the first, at or below
+  // its j (in vector lanes; the copies are the thread's own, kept from block to block).
+  thread_local std::vector<std::uint32_t> cuts, group, slot, copy_u32;
   thread_local std::vector<Vec3> copy_vec;
-  slot.resize(count);
-  for (std::uint32_t c = 0; c < count; ++c) slot[c] = row[owner(pairs.contact_j[first + c])]++;
-  for (std::size_t t = owners; t > 0; --t) row[t] = row[t - 1];
-  row[0] = first;
+  cuts.assign(s.owner_first.begin() + 1, s.owner_first.end() - 1);
+  group.resize(count);
+  const std::uint32_t* const js = pairs.contact_j.data() + first;
+  const std::uint32_t* const cut = cuts.data();
+  std::uint32_t* const g = group.data();
+  const std::size_t ncuts = cuts.size();
+  std::fill(g, g + count, 0u);
+  for (std::size_t k = 0; k < ncuts; ++k) {
+    const std::uint32_t from = cut[k];
+#pragma omp simd
+    for (std::uint32_t c = 0; c < count; ++c) g[c] += js[c] >= from ? 1 : 0;
+  }
+  // Group t's size, and where it starts (row[t]).
+  std::uint32_t next = first;
+  for (std::size_t t = 0; t < owners; ++t) {
+    row[t] = next;
+    std::uint32_t size = 0;
+#pragma omp simd reduction(+ : size)
+    for (std::uint32_t c = 0; c < count; ++c) size += g[c] == t ? 1 : 0;
+    next += size;
+    if (size == count) {  // one owner holds every j end: grouped as they are
+      for (std::size_t u = t + 1; u <= owners; ++u) row[u] = first + count;
+      return;
+    }
+  }
+  row[owners] = next;
+  // Each contact's new slot, group by group in pair order (a count in a register, not a counter
+  // per group in memory: a contact's slot does not wait for the last one's store), then the four
+  // arrays moved through a copy.
+  // (Masks, not selects: GCC makes a branch of the select, and groups alternate at random.)
+  slot.assign(count, 0u);
+  std::uint32_t* const to = slot.data();
+  for (std::size_t t = 0; t < owners; ++t) {
+    if (row[t + 1] == row[t]) continue;
+    std::uint32_t at = row[t];
+    for (std::uint32_t c = 0; c < count; ++c) {
+      const std::uint32_t mine = 0u - (g[c] == t ? 1u : 0u);  // all ones for group t's contacts
+      to[c] += at & mine;
+      at -= mine;
+    }
+  }
   const auto move = [&](auto& array, auto& copy) {
     copy.assign(array.begin() + first, array.begin() + first + count);
-    for (std::uint32_t c = 0; c < count; ++c) array[slot[c]] = copy[c];
+    for (std::uint32_t c = 0; c < count; ++c) array[to[c]] = copy[c];
   };
   move(pairs.contact_pairs, copy_u32);
   move(pairs.contact_j, copy_u32);
