@@ -40,6 +40,9 @@ struct Grid {
 struct Grids {
   std::vector<Grid> classes;
   std::vector<std::uint32_t> start, members;  // bin b holds members[start[b], start[b + 1]), ascending
+  // The members' wrapped positions and bounding radii in the same order: a row of bins along x
+  // is one contiguous range, which the search reads in sequence.
+  std::vector<double> x, y, z, radius;
 };
 
 // Bins per axis of a class's grid: at least 2 r_max + skin wide, so that a bin's neighbours hold
@@ -258,6 +261,12 @@ Grids make_grids(const Particles& p, const std::vector<Vec3>& sw, const std::vec
   for (std::size_t b = 0; b < bins; ++b)
     if (grids.start[b + 1] - grids.start[b] > 1)
       std::sort(grids.members.begin() + grids.start[b], grids.members.begin() + grids.start[b + 1]);
+  grids.x.resize(n), grids.y.resize(n), grids.z.resize(n), grids.radius.resize(n);
+#pragma omp parallel for schedule(static) if (n > parallel_threshold)
+  for (std::size_t m = 0; m < n; ++m) {
+    const std::uint32_t j = grids.members[m];
+    grids.x[m] = sw[j].x(), grids.y[m] = sw[j].y(), grids.z[m] = sw[j].z(), grids.radius[m] = p.bound_radius[j];
+  }
   return grids;
 }
 
@@ -269,6 +278,12 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
   const std::size_t n = p.size();
   const Vec3 w = cell.widths();
   const std::vector<Vec3>& sw = wp.s;
+  const CellMap h(cell.h);
+  // Through local pointers: through the vectors GCC reloaded them after every push_back.
+  const std::uint32_t* const start = grids.start.data();
+  const std::uint32_t* const members = grids.members.data();
+  const double *const gx = grids.x.data(), *const gy = grids.y.data(), *const gz = grids.z.data();
+  const double* const radius = grids.radius.data();
   std::vector<std::vector<Candidate>> found(static_cast<std::size_t>(omp_get_max_threads()));
   long count = 0;
 #pragma omp parallel if (n > parallel_threshold) reduction(+ : count)
@@ -277,6 +292,7 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
 #pragma omp for schedule(dynamic, 256)
     for (std::size_t i = 0; i < n; ++i) {
       const double ri = p.bound_radius[i];
+      const double six = sw[i].x(), siy = sw[i].y(), siz = sw[i].z();
       for (int c = 0; c <= cls[i]; ++c) {
         const Grid& g = grids.classes[static_cast<std::size_t>(c)];
         const double reach = ri + g.r_max + skin;
@@ -285,23 +301,28 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
           lo[k] = static_cast<int>(std::floor((sw[i][k] - reach / w[k]) * g.n[k]));
           hi[k] = static_cast<int>(std::floor((sw[i][k] + reach / w[k]) * g.n[k]));
         }
-        for (int uz = lo.z(); uz <= hi.z(); ++uz)
-          for (int uy = lo.y(); uy <= hi.y(); ++uy)
-            for (int ux = lo.x(); ux <= hi.x(); ++ux) {
-              const Eigen::Vector3i u(ux, uy, uz);
-              Eigen::Vector3i bin, img;
-              for (int k = 0; k < 3; ++k) {
-                img[k] = floor_div(u[k], g.n[k]);
-                bin[k] = u[k] - img[k] * g.n[k];
-              }
-              const std::size_t b = g.bin_index(bin);
-              for (std::uint32_t m = grids.start[b]; m < grids.start[b + 1]; ++m) {
-                const std::uint32_t j = grids.members[m];
+        for (int uz = lo.z(); uz <= hi.z(); ++uz) {
+          const int iz = floor_div(uz, g.n.z()), bz = uz - iz * g.n.z();
+          for (int uy = lo.y(); uy <= hi.y(); ++uy) {
+            const int iy = floor_div(uy, g.n.y()), by = uy - iy * g.n.y();
+            // The row's bins along x in runs of one periodic image: each run's members are one
+            // contiguous range of the grid's arrays.
+            for (int ux = lo.x(); ux <= hi.x();) {
+              const int ix = floor_div(ux, g.n.x()), bx = ux - ix * g.n.x();
+              const int last = std::min(hi.x(), (ix + 1) * g.n.x() - 1);  // the run's last ux
+              const std::uint32_t m0 = start[g.bin_index({bx, by, bz})];
+              const std::uint32_t m1 = start[g.bin_index({bx + (last - ux), by, bz}) + 1];
+              ux = last + 1;
+              const Vec3i img(ix, iy, iz);
+              for (std::uint32_t m = m0; m < m1; ++m) {
+                const std::uint32_t j = members[m];
                 if (c == cls[i] && j <= i) continue;
                 ++count;
-                const Vec3 l = cell.h * (sw[j] + img.cast<double>() - sw[i]);
-                const double cut = ri + p.bound_radius[j] + skin;
-                if (l.squaredNorm() >= cut * cut) continue;
+                // l = h (s_j + image - s_i), summed as Eigen sums it
+                double lx, ly, lz;
+                h.apply((gx[m] + ix) - six, (gy[m] + iy) - siy, (gz[m] + iz) - siz, lx, ly, lz);
+                const double cut = ri + radius[m] + skin;
+                if ((lx * lx + ly * ly) + lz * lz >= cut * cut) continue;
                 const Vec3i k = img + wp.wrap[i] - wp.wrap[j];  // image in unwrapped coordinates
                 if (i < j)
                   out.push_back({static_cast<std::uint32_t>(i), j, k});
@@ -309,6 +330,8 @@ std::vector<Candidate> find_candidates(const Particles& p, const Cell& cell, dou
                   out.push_back({j, static_cast<std::uint32_t>(i), Vec3i(-k)});
               }
             }
+          }
+        }
       }
     }
   }
