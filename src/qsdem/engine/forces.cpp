@@ -444,9 +444,8 @@ QSDEM_CLONES_WIDE ForceBlock force_block(const ForceInputs<Law>& in, Particles& 
 // as branch_vector gives it) and reach r = r_i + r_j: |l|, touching (1: |l|^2 < r^2, else 0), and
 // for an apart pair the motion `moved` + gap (|l| - r, less a margin for its round-off) below which
 // it is not tested again (-1: tested at the next step).
-QSDEM_CLONES_WIDE void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz,
-                                                            const double* reach, std::uint32_t n, double moved,
-                                                            double* distance, double* touch, double* until) {
+QSDEM_CLONES_WIDE void sphere_tests(const CellMap& h, double* lx, double* ly, double* lz, const double* reach,
+                                    std::uint32_t n, double moved, double* distance, double* touch, double* until) {
 #pragma omp simd
   for (std::uint32_t m = 0; m < n; ++m) {
     double x, y, z;

@@ -97,18 +97,15 @@ QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::siz
     return;
   }
   // Each contact's owner: the number of the owners' first particles, after the first, at or below
-  // its j (in vector lanes; the copies are the thread's own, kept from block to block).
-  thread_local std::vector<std::uint32_t> cuts, group, slot, copy_u32;
+  // its j (in vector lanes; the arrays are the thread's own, kept from block to block).
+  thread_local std::vector<std::uint32_t> group, slot, copy_u32;
   thread_local std::vector<Vec3> copy_vec;
-  cuts.assign(s.owner_first.begin() + 1, s.owner_first.end() - 1);
   group.resize(count);
   const std::uint32_t* const js = pairs.contact_j.data() + first;
-  const std::uint32_t* const cut = cuts.data();
   std::uint32_t* const g = group.data();
-  const std::size_t ncuts = cuts.size();
   std::fill(g, g + count, 0u);
-  for (std::size_t k = 0; k < ncuts; ++k) {
-    const std::uint32_t from = cut[k];
+  for (std::size_t t = 1; t < owners; ++t) {
+    const auto from = static_cast<std::uint32_t>(s.owner_first[t]);  // particle indices fit 32 bits
 #pragma omp simd
     for (std::uint32_t c = 0; c < count; ++c) g[c] += js[c] >= from ? 1 : 0;
   }

@@ -62,7 +62,7 @@ void record_owner_times(Schedule& s);
 void assign_single_owner(Schedule& s, const State& state);
 
 // Groups block b's contacts, slots [first, first + count), by the thread that owns their j end,
-// keeping the pair order within each group (a counting sort of the four contact arrays), and
+// keeping the pair order within each group (the four contact arrays moved together), and
 // writes the block's row of contact_owner_first.
 void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first, std::uint32_t count);
 
