@@ -280,7 +280,8 @@ struct KickFactors {
 // in the order of Eigen's product, CellMap) and, with a path, path += dt |v|; four particles at a
 // time in lanes. A particle is still where every |v_k| < slow and every |s_k| >= 2^-500: the step
 // is below half an ulp of s and |v|^2 rounds to 0, so s and the path keep their bits and are left
-// alone (no arithmetic on subnormal numbers); a group of four with such a v goes one at a time.
+// alone (no arithmetic on subnormal numbers); a group of four with such a v goes one at a time,
+// unless that v is zeros (a settled rattler's): the lanes add zeros, which keeps the same bits.
 [[gnu::always_inline]] inline void translate_one(const CellMap& m, double dt, double slow, Vec3& s, const Vec3& v,
                                                  double* path) {
   constexpr double far = 0x1p-500;
@@ -299,7 +300,8 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   for (; i + 4 <= hi; i += 4) {
     const Xyz4 v = load_xyz4(vel + i);
     const auto below = [slow](const Lanes4& x) { return (x < slow) & (x > -slow); };
-    const Mask4 small = below(v.x) & below(v.y) & below(v.z);
+    const Mask4 zero = (v.x == 0) & (v.y == 0) & (v.z == 0);
+    const Mask4 small = below(v.x) & below(v.y) & below(v.z) & ~zero;
     if ((small[0] | small[1] | small[2] | small[3]) != 0) {
       for (std::size_t k = i; k < i + 4; ++k) translate_one(m, dt, slow, pos[k], vel[k], path ? path + k : nullptr);
       continue;
