@@ -55,12 +55,14 @@ Vec3 omega_of(const Quat& q, const Vec3& inertia, const Vec3& angmom) {
 }
 
 // One ellipsoid in a large cell, driven through the engine's integrate_velocities and
-// advance_positions (the order of step(): kick with the torque at t, then drift).
+// advance_positions (the order of step(): kick with the torque at t, then drift, which
+// normalises the orientation at the steps step() has it do so).
 struct Body {
   Particles p;
   Model model;
   Cell cell = make_cell(Mat3::Identity());  // 1 m cell: positions do not matter here
   Vec3 inertia;                             // by hand
+  long steps = 0;
 
   // Starts at orientation q0 with body-frame angular velocity omega_body; dt = w_dt / |omega|.
   Body(const Vec3& axes, const Quat& q0, const Vec3& omega_body, double w_dt) {
@@ -73,7 +75,7 @@ struct Body {
   void step(const Vec3& torque = Vec3::Zero()) {
     p.torque[0] = torque;
     integrate_velocities(model, p);
-    advance_positions(model, cell, p);
+    advance_positions(model, cell, p, {}, 0, SIZE_MAX, false, normalizes_orientations(steps++));
   }
   Vec3 body_angmom() const { return p.q[0].conjugate() * p.angmom[0]; }
   double energy() const { return 0.5 * p.angmom[0].dot(p.omega[0]); }  // 1/2 L.omega
@@ -246,6 +248,37 @@ TEST(Rotation, DriftIsTimeReversible) {
                      sci(quat_angle(b.p.q[0], kQ0)));
     }
   }
+}
+
+// A spheroid's orientation is normalised every kNormalizeEvery steps (SPEC 5.4); between them it
+// is the product of the step's unit turns, whose norm departs from 1 by the round-off of the
+// products, a few ulps a step. Over 5e4 steps at omega dt from 1e-5 to 0.1 (the Taylor
+// polynomials and libm), prolate and oblate: | |q| - 1 | stays below 1e-14 (kNormalizeEvery steps
+// of a few ulps each), and the orientation within 1e-9 rad of a run normalised at every step
+// (a precession: round-off differences grow linearly, ~1e-16 a step).
+TEST(Rotation, SpheroidNormStaysUnitBetweenNormalizations) {
+  const SingleThread one_thread;
+  double worst_norm = 0, worst_angle = 0;
+  for (const Vec3& axes : {Vec3(1.5e-3, 1e-3, 1e-3), Vec3(1.5e-3, 1.5e-3, 1e-3)}) {
+    for (double w_dt : {1e-5, 1e-3, 0.1}) {
+      Body b(axes, kQ0, near_axis(1), w_dt), always(axes, kQ0, near_axis(1), w_dt);
+      double off_unit = 0, skipped = 0;
+      for (int s = 0; s < 50000; ++s) {
+        skipped += normalizes_orientations(b.steps) ? 0 : 1;
+        b.step();
+        off_unit = std::max(off_unit, std::abs(b.p.q[0].norm() - 1));
+        integrate_velocities(always.model, always.p);
+        advance_positions(always.model, always.cell, always.p);  // normalised at every step
+      }
+      EXPECT_GT(skipped, 40000) << "test setup: most steps leave the norm";
+      EXPECT_LT(off_unit, 1e-14) << "axes " << axes.transpose() << " omega dt " << w_dt;
+      const double angle = quat_angle(b.p.q[0], always.p.q[0]);
+      EXPECT_LT(angle, 1e-9) << "axes " << axes.transpose() << " omega dt " << w_dt;
+      worst_norm = std::max(worst_norm, off_unit), worst_angle = std::max(worst_angle, angle);
+    }
+  }
+  RecordProperty("largest_norm_error", sci(worst_norm));
+  RecordProperty("largest_angle_to_normalised", sci(worst_angle));
 }
 
 // After advance_positions, omega is R(t+dt) I^-1 R(t+dt)^T L (the next contact forces read it):
@@ -439,7 +472,7 @@ TEST(Rotation, SphereFastPathUnchanged) {
 // advance_positions turns the spheroids in lanes, several per vector instruction, with the sine
 // and cosine of the half angles by their Taylor polynomials and the lanes beyond the polynomials'
 // range run again one at a time. Every spheroid must get exactly what free_rotation (one body,
-// no lanes) gives it: prolate and oblate ones (symmetry axes 0 and 2), with turns per step from
+// no lanes) gives it, at a step that normalises the orientations and at one that does not: prolate and oblate ones (symmetry axes 0 and 2), with turns per step from
 // 1e-8 rad to beyond the Taylor range, some without angular momentum or with a subnormal one (a
 // rattler's), mixed with spheres and an asymmetric body, more of them than one set of lanes; then
 // stretches of prolate and of oblate spheroids only, turning or without angular momentum, which
@@ -483,40 +516,48 @@ TEST(Rotation, SpheroidLanesMatchOneAtATime) {
     p.s[i] = 1e-7 * Vec3(normal(rng), normal(rng), normal(rng));
     // A rattler's v decayed to subnormal, and just around the bound below which s is left alone.
     if (i % 17 == 6) p.v[i] *= std::array{1e-310, 0x1p-560, 0x1p-530, 1e-150}[(i / 17) % 4];
-    (0.5 * turn > 0.05 ? beyond_taylor : within_taylor)++;
+    (0.5 * turn > 0.004 ? beyond_taylor : within_taylor)++;  // (SPEC 5.4's Taylor range)
     // |q|^2 = 1 + 1e-6: beyond the lanes' Newton step for the norm (they run such a lane again).
     if (i % 29 == 3) p.q.set(i, Quat((1 + 5e-7) * p.q[i].coeffs())), ++off_unit;
   }
   const Particles before = p;
-  std::vector<double> path(p.size(), 0.0);
   Model model;
   model.dt = dt;
   Mat3 h;
   h << 1.0, 0.2, 0.1, 0.05, 1.1, 0.3, 0.02, 0.04, 0.9;
   const Cell cell = make_cell(h);
-  advance_positions(model, cell, p, path);
   int spheroids = 0;
-  for (std::size_t i = 0; i < p.size(); ++i) {
-    const double moved = dt * before.v[i].norm();
-    const Vec3 s_expected = before.s[i] + (dt * cell.h_inv) * before.v[i];
-    EXPECT_EQ(p.s[i], s_expected) << "particle " << i;
-    if (p.shape[i] == ShapeKind::sphere) {
-      EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs());
-      EXPECT_EQ(path[i], moved) << "particle " << i;
-      continue;
+  for (const bool normalize : {true, false}) {
+    p = before;
+    spheroids = 0;
+    std::vector<double> path(p.size(), 0.0);
+    advance_positions(model, cell, p, path, 0, SIZE_MAX, false, normalize);
+    for (std::size_t i = 0; i < p.size(); ++i) {
+      const double moved = dt * before.v[i].norm();
+      const Vec3 s_expected = before.s[i] + (dt * cell.h_inv) * before.v[i];
+      EXPECT_EQ(p.s[i], s_expected) << "particle " << i;
+      if (p.shape[i] == ShapeKind::sphere) {
+        EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs());
+        EXPECT_EQ(path[i], moved) << "particle " << i;
+        continue;
+      }
+      const Quat expected = free_rotation(before.q[i], p.inertia[i], p.angmom[i], dt, normalize);
+      ASSERT_EQ(p.q[i].coeffs(), expected.coeffs()) << "particle " << i << (normalize ? "" : ", not normalised");
+      const double chord2 = std::min((expected.coeffs() - before.q[i].coeffs()).squaredNorm(),
+                                     (expected.coeffs() + before.q[i].coeffs()).squaredNorm());
+      EXPECT_EQ(path[i], moved + 2 * p.bound_radius[i] * std::sqrt(chord2)) << "particle " << i;
+      // (R(q) of a q off the unit sphere by e is a rotation to within ~2e, and omega takes e.L
+      // from the old q, the free flow keeping it: those set off by 5e-7 are so off.)
+      const Vec3 omega = omega_of(expected.normalized(), p.inertia[i], p.angmom[i]);
+      const double off_unit_by =
+          std::abs(expected.squaredNorm() - 1) + std::abs(before.q[i].squaredNorm() - 1);
+      EXPECT_LE((p.omega[i] - omega).norm(), (1e-12 + 4 * off_unit_by) * omega.norm()) << "particle " << i;
+      if (p.angmom[i].norm() < 1e-100) {
+        EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs()) << "particle " << i;
+      }
+      const Vec3& m = p.inertia[i];
+      spheroids += m.x() != m.z() && (m.x() == m.y() || m.y() == m.z());
     }
-    const Quat expected = free_rotation(before.q[i], p.inertia[i], p.angmom[i], dt);
-    ASSERT_EQ(p.q[i].coeffs(), expected.coeffs()) << "particle " << i;
-    const double chord2 = std::min((expected.coeffs() - before.q[i].coeffs()).squaredNorm(),
-                                   (expected.coeffs() + before.q[i].coeffs()).squaredNorm());
-    EXPECT_EQ(path[i], moved + 2 * p.bound_radius[i] * std::sqrt(chord2)) << "particle " << i;
-    const Vec3 omega = omega_of(expected, p.inertia[i], p.angmom[i]);
-    EXPECT_LE((p.omega[i] - omega).norm(), 1e-12 * omega.norm()) << "particle " << i;
-    if (p.angmom[i].norm() < 1e-100) {
-      EXPECT_EQ(p.q[i].coeffs(), before.q[i].coeffs()) << "particle " << i;
-    }
-    const Vec3& m = p.inertia[i];
-    spheroids += m.x() != m.z() && (m.x() == m.y() || m.y() == m.z());
   }
   EXPECT_GT(spheroids, 2 * 64) << "more than one set of lanes";
   EXPECT_GT(beyond_taylor, 20);
@@ -594,13 +635,13 @@ TEST(Rotation, DriftTrustsTheKicksSettle) {
   EXPECT_FALSE(kick_settles(model));
 }
 
-// The spheroid's turn (SPEC 5.4) takes the sine and cosine of half angles below 0.05 from Taylor
-// polynomials to x^7 and x^8 (libm above). Against the closed form with libm's trigonometry
+// The spheroid's turn (SPEC 5.4) takes the sine and cosine of half angles below 0.004 from Taylor
+// polynomials to x^5 and x^4 (libm above). Against the closed form with libm's trigonometry
 // (Eigen's AngleAxis), over turns per step from 1e-9 rad to beyond the switch, just below, at
-// and just above it (precession half angle 0.05): the polynomials' remainders are below
-// 0.05^9/9! = 5.4e-18 (sine, 1.1e-16 of it) and 0.05^10/10! = 2.7e-20 (cosine), so what is left
+// and just above it (precession half angle 0.004): the polynomials' remainders are below
+// 0.004^7/7! = 3.3e-21 (sine, 8e-19 of it) and 0.004^6/6! = 5.7e-18 (cosine), so what is left
 // is the round-off of the two products and the normalisation, a few ulps of a unit quaternion:
-// 2e-15 is ten of them (a Taylor series one term short would miss it at 0.05 by 0.05^7/7! = 1.5e-13).
+// 2e-15 is ten of them (a Taylor series one term short would miss it at 0.004 by 0.004^5/5! = 8.5e-15).
 TEST(Rotation, SpheroidTurnMatchesLibmTrigonometry) {
   std::mt19937_64 rng(20261206);
   std::normal_distribution<double> normal(0, 1);
@@ -609,7 +650,7 @@ TEST(Rotation, SpheroidTurnMatchesLibmTrigonometry) {
   const double i_s = inertia.x(), i_perp = inertia.y();
   std::vector<double> half_angles;  // of the precession, 0.5 dt |L| / I_perp
   for (double h = 1e-9; h < 0.2; h *= 1.7) half_angles.push_back(h);
-  for (double h : {0.05 * (1 - 1e-12), 0.05, 0.05 * (1 + 1e-12)}) half_angles.push_back(h);
+  for (double h : {0.004 * (1 - 1e-12), 0.004, 0.004 * (1 + 1e-12)}) half_angles.push_back(h);
   double worst = 0;
   for (double h : half_angles) {
     for (int trial = 0; trial < 8; ++trial) {

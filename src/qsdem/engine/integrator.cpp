@@ -393,11 +393,13 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
 namespace {
 
 // sin and cos of a half angle. The per-step rotations of a quasi-static run are ~1e-6-1e-3 rad:
-// below 0.05 the Taylor polynomials (to x^7 and x^8) are within 3e-16 relative of libm and
-// cheaper than its sin and cos. They are polynomials in x^2 (sin x = x sinc x): sinc_cos_taylor.
+// below kTaylorHalfAngle the Taylor polynomials to x^5 and x^4 leave out less than
+// x^7/7! (8e-19 of the sine) and x^6/6! (6e-18): libm's to round-off, and cheaper than its sin
+// and cos (SPEC 5.4). They are polynomials in x^2 (sin x = x sinc x): sinc_cos_taylor.
+constexpr double kTaylorHalfAngle = 0.004;
 [[gnu::always_inline]] inline void sinc_cos_taylor(double x2, double& sinc, double& c) {
-  sinc = 1 - x2 * (1.0 / 6) * (1 - x2 * (1.0 / 20) * (1 - x2 * (1.0 / 42)));
-  c = 1 - x2 * 0.5 * (1 - x2 * (1.0 / 12) * (1 - x2 * (1.0 / 30) * (1 - x2 * (1.0 / 56))));
+  sinc = 1 - x2 * (1.0 / 6) * (1 - x2 * (1.0 / 20));
+  c = 1 - x2 * 0.5 * (1 - x2 * (1.0 / 12));
 }
 [[gnu::always_inline]] inline void sin_cos_taylor(double x, double& s, double& c) {
   double sinc;
@@ -405,7 +407,7 @@ namespace {
   s = x * sinc;
 }
 inline void sin_cos(double x, double& s, double& c) {
-  if (std::abs(x) <= 0.05) {
+  if (std::abs(x) <= kTaylorHalfAngle) {
     sin_cos_taylor(x, s, c);
   } else {
     s = std::sin(x);
@@ -466,23 +468,26 @@ template <int K>
 // momentum L: the orientation after dt. Few divisions: they are the slowest operations here. With
 // `taylor_only` both half angles take the Taylor polynomials and the norm its Newton step (no
 // branch, for vector lanes), and `outside` tells when one of them is beyond its range (the caller
-// then runs the lane again without it).
-template <int K, bool taylor_only>
+// then runs the lane again without it). Without `normalize` the product of the turns is returned
+// as it is: its norm is 1 to round-off, and is restored every kNormalizeEvery steps (SPEC 5.4).
+template <int K, bool taylor_only, bool normalize>
 [[gnu::always_inline]] inline QuatParts spheroid_rotation(const QuatParts& q, double inv_s, double inv_perp,
-                                                          double lx, double ly, double lz, double dt, bool& outside) {
+                                                          double lx, double ly, double lz, double dt, bool& outside,
+                                                          double& pi_s) {
   const double l2 = lx * lx + ly * ly + lz * lz;
   double ax, ay, az;
   body_axis<K>(q, ax, ay, az);
-  const double pi_s = ax * lx + ay * ly + az * lz;           // body component on the symmetry axis
+  pi_s = ax * lx + ay * ly + az * lz;                        // body component on the symmetry axis
   const double spin = 0.5 * dt * pi_s * (inv_s - inv_perp);  // half angle of the spin
-  // The half angle of the precession is x = rate |L|. Below 0.05 its sine and cosine are
+  // The half angle of the precession is x = rate |L|. Within the Taylor range its sine and cosine are
   // polynomials in x^2 = rate^2 |L|^2, and sp = sin x / |L| (the factor of the precession axis's
   // components) is rate sinc x: no square root or division (they took a sixth of the lanes' time).
   // |L| = 0 gives x = 0 and no NaN (`still` below).
   const double rate = 0.5 * dt * inv_perp;
   const double x2 = rate * rate * l2;
   double sp, cp, ss, cs;
-  if (taylor_only || x2 <= 0.05 * 0.05) {  // (no branch in the lanes: taylor_only is a constant)
+  constexpr double range2 = kTaylorHalfAngle * kTaylorHalfAngle;
+  if (taylor_only || x2 <= range2) {  // (no branch in the lanes: taylor_only is a constant)
     sinc_cos_taylor(x2, sp, cp);
     sp *= rate;
   } else {
@@ -492,7 +497,7 @@ template <int K, bool taylor_only>
     cp = std::cos(x);
   }
   if constexpr (taylor_only) {
-    outside = !(x2 <= 0.05 * 0.05) | !(std::abs(spin) <= 0.05);
+    outside = !(x2 <= range2) | !(std::abs(spin) <= kTaylorHalfAngle);
     sin_cos_taylor(spin, ss, cs);
   } else {
     outside = false;
@@ -500,6 +505,9 @@ template <int K, bool taylor_only>
   }
   const QuatParts about_l{cp, sp * lx, sp * ly, sp * lz};
   const QuatParts r = multiply_axis<K>(multiply(about_l, q), cs, ss);
+  const bool still = l2 == 0;  // no angular momentum: no turn
+  if constexpr (!normalize)  // (component by component: a select of the struct is a branch)
+    return {still ? q.w : r.w, still ? q.x : r.x, still ? q.y : r.y, still ? q.z : r.z};
   // |r|^2 = 1 + O(ulps) (unit factors): one Newton step for |r|^-1, 1.5 - |r|^2/2, is exact to
   // round-off there and needs no square root or division.
   // (Summed as Eigen sums a 4-vector: (x^2 + z^2) + (y^2 + w^2).)
@@ -513,18 +521,18 @@ template <int K, bool taylor_only>
   } else {
     scale = std::abs(n2 - 1) < 1e-8 ? 1.5 - 0.5 * n2 : 1 / std::sqrt(n2);
   }
-  const bool still = l2 == 0;  // no angular momentum: no turn
   return {still ? q.w : r.w * scale, still ? q.x : r.x * scale, still ? q.y : r.y * scale, still ? q.z : r.z * scale};
 }
 
 inline QuatParts parts(const Quat& q) { return {q.w(), q.x(), q.y(), q.z()}; }
 
-template <bool taylor_only>
-inline QuatParts spheroid_rotation(int k, const QuatParts& q, double inv_s, double inv_perp, const Vec3& l, double dt,
-                                   bool& outside) {
-  if (k == 0) return spheroid_rotation<0, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
-  if (k == 1) return spheroid_rotation<1, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
-  return spheroid_rotation<2, taylor_only>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside);
+template <bool normalize>
+inline QuatParts spheroid_rotation(int k, const QuatParts& q, double inv_s, double inv_perp, const Vec3& l, double dt) {
+  bool outside;
+  double pi_s;
+  if (k == 0) return spheroid_rotation<0, false, normalize>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside, pi_s);
+  if (k == 1) return spheroid_rotation<1, false, normalize>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside, pi_s);
+  return spheroid_rotation<2, false, normalize>(q, inv_s, inv_perp, l.x(), l.y(), l.z(), dt, outside, pi_s);
 }
 
 // Spheroids to turn, with the same symmetry axis, in lanes (structure of arrays). In: the
@@ -565,21 +573,23 @@ inline TurnOutput into_lanes(TurnLanes& t) { return {t.nw, t.nx, t.ny, t.nz}; }
 // I^-1 = inv_perp 1 + (inv_s - inv_perp) e e^T, e the symmetry axis), then the chord. A lane of
 // the Taylor polynomials beyond their range (taylor_only, `outside`) puts back q_old and adds no
 // path: it runs again, from the same input (`turn`).
-template <int K, bool taylor_only, bool path>
+template <int K, bool taylor_only, bool path, bool normalize>
 [[gnu::always_inline]] inline void turn_lane(const TurnInput& in, const TurnOutput& out, TurnLanes& t, int a,
                                              double dt) {
   const QuatParts old{in.qw[a], in.qx[a], in.qy[a], in.qz[a]};
   const double lx = in.lx[a], ly = in.ly[a], lz = in.lz[a], inv_s = in.inv_s[a], inv_perp = in.inv_perp[a];
   bool outside;
-  const QuatParts q = spheroid_rotation<K, taylor_only>(old, inv_s, inv_perp, lx, ly, lz, dt, outside);
+  double pi_s;
+  const QuatParts q = spheroid_rotation<K, taylor_only, normalize>(old, inv_s, inv_perp, lx, ly, lz, dt, outside, pi_s);
   double ex, ey, ez;
   body_axis<K>(q, ex, ey, ez);
-  const double f = (inv_s - inv_perp) * (ex * lx + ey * ly + ez * lz);
+  // e.L at the new orientation is pi_s: the free flow keeps it (precession about L, spin about e).
+  const double f = (inv_s - inv_perp) * pi_s;
   t.ox[a] = inv_perp * lx + f * ex, t.oy[a] = inv_perp * ly + f * ey, t.oz[a] = inv_perp * lz + f * ez;
   out.qw[a] = outside ? old.w : q.w, out.qx[a] = outside ? old.x : q.x;
   out.qy[a] = outside ? old.y : q.y, out.qz[a] = outside ? old.z : q.z;
   // Chord |q - q_old| of the shorter arc (q and -q are one turn), summed as Eigen sums a 4-vector.
-  // Within the Taylor range (half angles below 0.05) q_old . q > 0: the arc from q_old is the shorter.
+  // Within the Taylor range (half angles below kTaylorHalfAngle) q_old . q > 0: the arc from q_old is the shorter.
   const double dx = q.x - old.x, dy = q.y - old.y, dz = q.z - old.z, dw = q.w - old.w;
   const double minus = (dx * dx + dz * dz) + (dy * dy + dw * dw);
   double chord2;
@@ -604,36 +614,44 @@ template <int K, bool taylor_only, bool path>
 // whether a lane is outside the polynomials' range.
 // (The pointers as copies: through the references GCC reloads them after every store, and
 // vectorises only with scatters.)
-template <int K, bool path>
+template <int K, bool path, bool normalize>
 [[gnu::always_inline]] inline bool turn_all(const TurnInput in, const TurnOutput out, TurnLanes& t, double dt) {
   double outside = 0;
 #pragma omp simd reduction(max : outside)
   for (int a = 0; a < t.size; ++a) {
-    turn_lane<K, true, path>(in, out, t, a, dt);
+    turn_lane<K, true, path, normalize>(in, out, t, a, dt);
     outside = outside < t.outside[a] ? t.outside[a] : outside;
   }
   return outside != 0;
 }
-QSDEM_CLONES_WIDE bool turn_lanes(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, double dt) {
-  if (out.path) {
-    if (k == 0) return turn_all<0, true>(in, out, t, dt);
-    if (k == 1) return turn_all<1, true>(in, out, t, dt);
-    return turn_all<2, true>(in, out, t, dt);
-  }
-  if (k == 0) return turn_all<0, false>(in, out, t, dt);
-  if (k == 1) return turn_all<1, false>(in, out, t, dt);
-  return turn_all<2, false>(in, out, t, dt);
+template <bool path, bool normalize>
+[[gnu::always_inline]] inline bool turn_all(int k, const TurnInput in, const TurnOutput out, TurnLanes& t, double dt) {
+  if (k == 0) return turn_all<0, path, normalize>(in, out, t, dt);
+  if (k == 1) return turn_all<1, path, normalize>(in, out, t, dt);
+  return turn_all<2, path, normalize>(in, out, t, dt);
+}
+QSDEM_CLONES_WIDE bool turn_lanes(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, double dt,
+                                  bool normalize) {
+  if (out.path) return normalize ? turn_all<true, true>(k, in, out, t, dt) : turn_all<true, false>(k, in, out, t, dt);
+  return normalize ? turn_all<false, true>(k, in, out, t, dt) : turn_all<false, false>(k, in, out, t, dt);
 }
 
-// The lanes' turn; a lane beyond the Taylor range runs again, with libm (its input is unchanged).
-void turn(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, double dt) {
-  if (!turn_lanes(k, in, out, t, dt)) return;
+// One lane again, with libm (its input is unchanged).
+template <bool path, bool normalize>
+void turn_lane_again(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, int a, double dt) {
+  if (k == 0) turn_lane<0, false, path, normalize>(in, out, t, a, dt);
+  else if (k == 1) turn_lane<1, false, path, normalize>(in, out, t, a, dt);
+  else turn_lane<2, false, path, normalize>(in, out, t, a, dt);
+}
+
+// The lanes' turn; a lane beyond the Taylor range runs again, with libm.
+void turn(int k, const TurnInput& in, const TurnOutput& out, TurnLanes& t, double dt, bool normalize) {
+  if (!turn_lanes(k, in, out, t, dt, normalize)) return;
+  const bool path = out.path != nullptr;
   for (int a = 0; a < t.size; ++a) {
     if (t.outside[a] == 0) continue;
-    const bool path = out.path != nullptr;
-    if (k == 0) path ? turn_lane<0, false, true>(in, out, t, a, dt) : turn_lane<0, false, false>(in, out, t, a, dt);
-    else if (k == 1) path ? turn_lane<1, false, true>(in, out, t, a, dt) : turn_lane<1, false, false>(in, out, t, a, dt);
-    else path ? turn_lane<2, false, true>(in, out, t, a, dt) : turn_lane<2, false, false>(in, out, t, a, dt);
+    if (path) normalize ? turn_lane_again<true, true>(k, in, out, t, a, dt) : turn_lane_again<true, false>(k, in, out, t, a, dt);
+    else normalize ? turn_lane_again<false, true>(k, in, out, t, a, dt) : turn_lane_again<false, false>(k, in, out, t, a, dt);
   }
 }
 
@@ -678,8 +696,8 @@ inline void add_turn_path(const SpinArrays& s, std::size_t i, double chord2) {
 
 // Turns the spheroids of the lanes (symmetry axis k, loaded by load_lane) and stores their
 // orientation, omega and surface path.
-void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
-  turn(k, copies(t), into_lanes(t), t, dt);
+void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt, bool normalize) {
+  turn(k, copies(t), into_lanes(t), t, dt, normalize);
   for (int a = 0; a < t.size; ++a) {
     const std::uint32_t i = t.particle[a];
     s.qw[i] = t.nw[a], s.qx[i] = t.nx[a], s.qy[i] = t.ny[a], s.qz[i] = t.nz[a];
@@ -691,8 +709,8 @@ void turn_spheroids(int k, TurnLanes& t, const SpinArrays& s, double dt) {
 
 // Turns the t.size consecutive spheroids from particle i0 (symmetry axis k) in place: the lanes
 // read q, L and the inverse moments and write q and the path where they are.
-void turn_in_place(int k, TurnLanes& t, const SpinArrays& s, std::size_t i0, double dt) {
-  turn(k, s.from(i0), s.into(i0), t, dt);
+void turn_in_place(int k, TurnLanes& t, const SpinArrays& s, std::size_t i0, double dt, bool normalize) {
+  turn(k, s.from(i0), s.into(i0), t, dt, normalize);
   for (int a = 0; a < t.size; ++a) s.omega[i0 + a] = Vec3(t.ox[a], t.oy[a], t.oz[a]);
   t.size = 0;
 }
@@ -747,11 +765,11 @@ QSDEM_CLONES int sort_run(const std::int8_t* symmetry_axis, AngmomArrays l, std:
 
 }  // namespace
 
-Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt) {
+Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt, bool normalize) {
   if (const int k = equal_moments_axis(inertia); k >= 0) {
-    bool outside;
-    const QuatParts r = spheroid_rotation<false>(k, parts(q), 1 / inertia[k], 1 / inertia[transverse_axis(k)], angmom, dt,
-                                                 outside);
+    const double inv_s = 1 / inertia[k], inv_perp = 1 / inertia[transverse_axis(k)];
+    const QuatParts r = normalize ? spheroid_rotation<true>(k, parts(q), inv_s, inv_perp, angmom, dt)
+                                  : spheroid_rotation<false>(k, parts(q), inv_s, inv_perp, angmom, dt);
     return Quat(r.w, r.x, r.y, r.z);
   }
   Vec3 body = q.conjugate() * angmom;  // pi = R^T L
@@ -765,7 +783,7 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
 }
 
 void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path,
-                       std::size_t lo, std::size_t hi, bool settled) {
+                       std::size_t lo, std::size_t hi, bool settled, bool normalize) {
   const double dt = model.dt;
   const Mat3 step_map = dt * cell.h_inv;
   const std::size_t n = p.size();
@@ -795,7 +813,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
     if (const int kind = sort_run(spin.symmetry_axis, spin.l, r0, size, settled); kind != kMixed) {
       if (kind == kAllSpheres) continue;  // a sphere's orientation changes nothing
       run.size = size;
-      turn_in_place(kind, run, spin, r0, dt);
+      turn_in_place(kind, run, spin, r0, dt, normalize);
       continue;
     }
     // A mixed run: each particle in turn; its turning spheroids wait in the lanes of their axis.
@@ -827,11 +845,11 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
       if (axis[a] < 0) continue;
       TurnLanes& t = lanes[axis[a]];
       load_lane(t, t.size++, spin, static_cast<std::uint32_t>(r0 + a));
-      if (t.size == TurnLanes::capacity) turn_spheroids(axis[a], t, spin, dt);
+      if (t.size == TurnLanes::capacity) turn_spheroids(axis[a], t, spin, dt, normalize);
     }
   }
   for (int k = 0; k < 3; ++k)
-    if (lanes[k].size > 0) turn_spheroids(k, lanes[k], spin, dt);
+    if (lanes[k].size > 0) turn_spheroids(k, lanes[k], spin, dt, normalize);
 }
 
 }  // namespace qsdem

@@ -51,7 +51,13 @@ bool kick_settles(const Model& model);
 // the rotational leapfrog, SPEC 5): returns q(t+dt) from q(t). Second order, time-reversible and
 // symplectic, gyroscopic motion included (omega follows the body as it turns). Exact for bodies
 // with two equal principal moments (spheroids); NO_SQUISH splitting otherwise (integrator.cpp).
-Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt);
+// Without `normalize` a spheroid's q(t+dt) is the product of the turns as it is (SPEC 5.4).
+Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, double dt, bool normalize = true);
+
+// The steps (s.step a multiple of it) at which the drift restores the norm of the spheroids'
+// orientations; between them it is 1 to round-off (SPEC 5.4).
+constexpr long kNormalizeEvery = 16;
+inline bool normalizes_orientations(long step) { return step % kNormalizeEvery == 0; }
 
 // Positions and orientations to t + dt in the already deformed cell: s += dt h^-1 v (the affine
 // part moves with h, SPEC 3); ellipsoids turn by free_rotation at the angular momentum
@@ -61,8 +67,9 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
 // in this step, dt |v| + 2 a |q_new - q_old| (NeighborState::surface_path).
 // Particles [lo, hi), on the calling thread, as integrate_velocities. `settled`: the momenta are
 // as a kick that settles them leaves them (kick_settles): no L of subnormal size to keep out of
-// the vector lanes, and none looked for.
+// the vector lanes, and none looked for. `normalize`: the spheroids' orientations are normalised
+// (normalizes_orientations), else left as the turns' product.
 void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {},
-                       std::size_t lo = 0, std::size_t hi = SIZE_MAX, bool settled = false);
+                       std::size_t lo = 0, std::size_t hi = SIZE_MAX, bool settled = false, bool normalize = true);
 
 }  // namespace qsdem

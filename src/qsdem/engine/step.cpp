@@ -52,6 +52,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   double v2max = 0;
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
   schedule.owner_seconds.assign(owners, 0.0);
+  const bool normalize = normalizes_orientations(s.step);
   const double start = omp_get_wtime();
   // Thread r takes the particles the force stage assigned it (Schedule::owner_first, cut by the
   // owners' measured times) and reads only their contacts, which the force stage grouped by owner.
@@ -69,7 +70,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping/stage.hpp)
       m = std::max(m, integrate_velocities(model, p, lo, hi, kick_energy));
       const double t2 = omp_get_wtime();
-      advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi, kick_settles(model));
+      advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi, kick_settles(model), normalize);
       const double t3 = omp_get_wtime();
       mine[0] += t1 - t0, mine[1] += t2 - t1, mine[2] += t3 - t2;
       schedule.owner_seconds[r] = t3 - t0;
