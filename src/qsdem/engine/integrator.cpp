@@ -149,10 +149,12 @@ struct KickArrays {
   Vec3* vel;
   AngmomArrays angmom;
   Vec3* omega;
+  Vec3* pos;  // (a kick that also translates)
   explicit KickArrays(Particles& p)
       : damping_of(p.damping_translation.data()), damping_rot_of(p.damping_rotation.data()),
         inv_mass(p.inv_mass.data()), inv_moment(p.inv_transverse_moment.data()), force(p.force.data()),
-        torque(p.torque.data()), shape(p.shape.data()), vel(p.v.data()), angmom(p.angmom), omega(p.omega.data()) {}
+        torque(p.torque.data()), shape(p.shape.data()), vel(p.v.data()), angmom(p.angmom), omega(p.omega.data()),
+        pos(p.s.data()) {}
 };
 
 // The kick of particles [lo, hi); Local: with Cundall's damping (alpha on translation and
@@ -294,6 +296,21 @@ struct KickFactors {
   if (path) *path += dt * std::sqrt((v.x() * v.x() + v.y() * v.y()) + v.z() * v.z());
 }
 
+// s + m v in lanes (the order of CellMap::apply).
+[[gnu::always_inline]] inline Xyz4 moved(const CellMap& m, const Xyz4& s, const Xyz4& v) {
+  return {s.x + ((m.h00 * v.x + m.h01 * v.y) + m.h02 * v.z), s.y + ((m.h10 * v.x + m.h11 * v.y) + m.h12 * v.z),
+          s.z + (m.h20 * v.x + (m.h21 * v.y + m.h22 * v.z))};
+}
+
+// The speed below which a particle is still (translate): every |v_k| below 2^-556 / (3 max|m|)
+// and 2^-540 moves s by less than 2^-555, under half an ulp of any |s_k| >= 2^-500.
+inline double still_speed(const CellMap& m) {
+  const double largest = std::max({std::abs(m.h00), std::abs(m.h01), std::abs(m.h02), std::abs(m.h10),
+                                   std::abs(m.h11), std::abs(m.h12), std::abs(m.h20), std::abs(m.h21),
+                                   std::abs(m.h22)});
+  return largest > 0 ? std::min(0x1p-556 / (3 * largest), kSettled) : 0.0;
+}
+
 QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, const Vec3* vel, double* path,
                             std::size_t lo, std::size_t hi) {
   std::size_t i = lo;
@@ -306,11 +323,7 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
       for (std::size_t k = i; k < i + 4; ++k) translate_one(m, dt, slow, pos[k], vel[k], path ? path + k : nullptr);
       continue;
     }
-    Xyz4 s = load_xyz4(pos + i);
-    s.x = s.x + ((m.h00 * v.x + m.h01 * v.y) + m.h02 * v.z);
-    s.y = s.y + ((m.h10 * v.x + m.h11 * v.y) + m.h12 * v.z);
-    s.z = s.z + (m.h20 * v.x + (m.h21 * v.y + m.h22 * v.z));
-    store_xyz4(pos + i, s);
+    store_xyz4(pos + i, moved(m, load_xyz4(pos + i), v));
     if (path) {
       const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
       const Lanes4 speed{std::sqrt(v2[0]), std::sqrt(v2[1]), std::sqrt(v2[2]), std::sqrt(v2[3])};
@@ -320,7 +333,10 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   for (; i < hi; ++i) translate_one(m, dt, slow, pos[i], vel[i], path ? path + i : nullptr);
 }
 
-QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi) {
+// With `move` (dt h^-1) it also translates the particles, s += dt h^-1 v with the new v, as
+// translate does (the same bits: a settled v is zeros or not small, so no particle is still).
+QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi,
+                                 const CellMap* move) {
   hi = std::min(hi, p.size());
   const double dt = model.dt;
   const KickArrays arrays(p);
@@ -334,6 +350,7 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
     kick.update(load4(arrays.damping_of + i), dt);
     const Xyz4 v = damped_kick_lanes(kick, load_xyz4(arrays.vel + i), {f.x * m, f.y * m, f.z * m});
     store_xyz4(arrays.vel + i, v);
+    if (move) store_xyz4(arrays.pos + i, moved(*move, load_xyz4(arrays.pos + i), v));
     const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2) lane by lane
     kick_rot.update(load4(arrays.damping_rot_of + i), dt);
@@ -354,7 +371,9 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
   }
   double out = 0;
   for (std::size_t k = 0; k < 4; ++k) out = std::max(out, v2max[k]);
-  return std::max(out, kick_particles<false, false>(model, p, i, hi, {}));
+  out = std::max(out, kick_particles<false, false>(model, p, i, hi, {}));
+  if (move) translate(*move, dt, still_speed(*move), arrays.pos, arrays.vel, nullptr, i, hi);
+  return out;
 }
 
 }  // namespace
@@ -364,14 +383,17 @@ bool kick_settles(const Model& model) {
   return !(model.damping.cundall_translation > 0 || model.damping.cundall_rotation > 0);
 }
 
-double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
+double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy,
+                            const CellMap* move) {
   const bool local = !kick_settles(model);
-  if (energy.dissipated) {
-    if (local) return kick_particles<true, true>(model, p, lo, hi, energy);
-    return kick_particles<false, true>(model, p, lo, hi, energy);
-  }
-  if (local) return local_kick(p, lo, hi, model.dt, model.damping.cundall_translation, model.damping.cundall_rotation);
-  return viscous_kick(model, p, lo, hi);
+  if (!local && !energy.dissipated) return viscous_kick(model, p, lo, hi, move);  // (moves in its pass)
+  double v2max;
+  if (energy.dissipated)
+    v2max = local ? kick_particles<true, true>(model, p, lo, hi, energy) : kick_particles<false, true>(model, p, lo, hi, energy);
+  else
+    v2max = local_kick(p, lo, hi, model.dt, model.damping.cundall_translation, model.damping.cundall_rotation);
+  if (move) translate(*move, model.dt, still_speed(*move), p.s.data(), p.v.data(), nullptr, lo, std::min(hi, p.size()));
+  return v2max;
 }
 
 // Orientation scheme (SPEC 5; notes-ellipsoid-algorithms 3). The kick above moves L with the
@@ -794,12 +816,10 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   const Vec3* const vel = p.v.data();
   double* const path = surface_path.data();
   const SpinArrays spin(p, track ? path : nullptr);
-  // A rattler's v decays to subnormal numbers too. With every |v_k| below 2^-556 / (3 max|dt h^-1|)
-  // and 2^-540, the step is below 2^-555, under half an ulp of any |s_k| >= 2^-500, and |v|^2
-  // rounds to 0: s and the path would keep their bits, and are left alone (translate_one).
-  const double largest = step_map.cwiseAbs().maxCoeff();
-  const double slow = largest > 0 ? std::min(0x1p-556 / (3 * largest), kSettled) : 0.0;
+  // A rattler's v decays to subnormal numbers too: below still_speed s and the path would keep
+  // their bits (|v|^2 rounds to 0), and are left alone (translate_one).
   const CellMap step_map_parts(step_map);
+  const double slow = still_speed(step_map_parts);
   // The particles go in runs of a lane set's size. A run whose every particle is a turning
   // spheroid of one symmetry axis turns in place; otherwise its spheroids wait in lanes, one set
   // per symmetry axis, and turn a full set at a time.

@@ -39,8 +39,11 @@ struct KickEnergy {
 // (Particles::damping_translation, damping_rotation); angular velocity from the body inertia.
 // Particles [lo, hi), on the calling thread (the step runs it on each thread's range, step.cpp).
 // Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
+// With `move` (dt h^-1 of the deformed cell) the particles are also translated, s += dt h^-1 v,
+// with the same bits as advance_positions: for particles whose drift is that alone (spheres with
+// no surface path). The viscous kick does it in its own pass, while it holds v.
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX,
-                            KickEnergy energy = {});
+                            KickEnergy energy = {}, const CellMap* move = nullptr);
 
 // Whether integrate_velocities with this model settles the momenta (SPEC 5.2: every viscous
 // model; Cundall's local damping does not): after it, every angular momentum is zero or has a
