@@ -473,7 +473,7 @@ QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Part
   acc.first_contact = pairs.first_i[pairs.block_first[b]];
   clear_block_resultants(in, p, pairs, b);
   constexpr std::uint32_t chunk = 128;
-  std::uint32_t tested[chunk], touching[chunk];
+  std::uint32_t tested[chunk], touching[chunk], lost[chunk];
   alignas(64) double lx[chunk], ly[chunk], lz[chunk], reach[chunk], distance[chunk], touch[chunk], until[chunk];
   ContactLanes<Law> contacts;
   constexpr int width = ContactLanes<Law>::width;
@@ -500,21 +500,22 @@ QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Part
       reach[m] = p.bound_radius[i] + p.bound_radius[j];
     }
     sphere_tests(cell_map, lx, ly, lz, reach, nk, moved, distance, touch, until);
-    std::uint32_t nt = 0;
+    // The touching and the contacts just lost are listed without a branch (t and the last step's
+    // overlap are ~50/50 at random: GCC made branches of selects on them, which mispredicted).
+    std::uint32_t nt = 0, nl = 0;
     for (std::uint32_t m = 0; m < nk; ++m) {
       const std::uint32_t k = tested[m];
-      const bool t = touch[m] != 0;
+      const std::uint32_t t = touch[m] != 0 ? 1 : 0;
       touching[nt] = m;
-      nt += t ? 1 : 0;
-      // The law's history, for a contact (a select, not a branch: t mispredicts); the contacts are
-      // every ~9th listed pair, too sparse for the hardware prefetcher.
-      __builtin_prefetch(pairs.history.values.data() + width * (t ? k : c0), 1);
-      // An apart pair is written only when it was a contact (rare, so well predicted; `&`, not
-      // `&&`: a branch on t itself mispredicts).
-      const bool lost = (!t) & ((pairs.overlap[k] != 0) | !overlap_known);
-      if (lost) mark_apart<Law>(pairs, k);
+      nt += t;
+      // The law's history, for a contact (the address by arithmetic, for the same reason); the
+      // contacts are every ~9th listed pair, too sparse for the hardware prefetcher.
+      __builtin_prefetch(pairs.history.values.data() + width * (c0 + (k - c0) * t), 1);
+      lost[nl] = k;
+      nl += (1 - t) & ((pairs.overlap[k] != 0 ? 1u : 0u) | (overlap_known ? 0u : 1u));
       if (in.skip_apart) pairs.apart_until[k] = until[m];
     }
+    for (std::uint32_t n = 0; n < nl; ++n) mark_apart<Law>(pairs, lost[n]);
     for (std::uint32_t n = 0; n < nt; ++n) {
       const std::uint32_t m = touching[n], k = tested[m], i = pairs.i[k], j = pairs.j[k];
       const double ri = p.bound_radius[i], rj = p.bound_radius[j];
