@@ -334,17 +334,23 @@ TEST(Integrator, RattlerMomentaSettleToZeroWithoutSubnormals) {
   }
 }
 
-// For spheres only the step has the kick translate them too (integrate_velocities' `move`, in the
-// viscous kick's own pass): bit for bit the kick and then advance_positions, with every kick (the
+// The step has the kick translate the particles too (integrate_velocities' `move`, in the viscous
+// kick's own pass, with the surface path's dt |v|) and then turns the ellipsoids
+// (turn_orientations): bit for bit the kick and then advance_positions, with every kick (the
 // viscous one, Cundall's local one, which leaves a subnormal v as it is, and the one that tracks
-// energy), over ranges whose last particles go one at a time, in a sheared cell, with velocities
-// that settle to zeros, stay subnormal or stay normal; particles outside the range untouched.
+// energy), over ranges whose last particles go one at a time, spheres and spheroids mixed, in a
+// sheared cell, with velocities that settle to zeros, stay subnormal or stay normal; particles
+// outside the range untouched.
 TEST(Integrator, KickThatTranslatesIsTheKickThenTheDrift) {
   const std::size_t n = 23;
   Particles p;
-  for (std::size_t k = 0; k < n; ++k)
-    p.add(static_cast<std::uint32_t>(k), ShapeKind::sphere, Vec3::Ones() * kRmin * (1 + 0.1 * double(k % 7)), kRho,
-          Vec3(0.1 + 0.03 * double(k), 0.9 - 0.02 * double(k), 1e-3 * double(k + 1)), Quat::Identity());
+  for (std::size_t k = 0; k < n; ++k) {
+    const bool spheroid = k % 4 == 1;
+    p.add(static_cast<std::uint32_t>(k), spheroid ? ShapeKind::ellipsoid : ShapeKind::sphere,
+          (spheroid ? Vec3(1.5, 1.0, 1.0) : Vec3::Ones()) * kRmin * (1 + 0.1 * double(k % 7)), kRho,
+          Vec3(0.1 + 0.03 * double(k), 0.9 - 0.02 * double(k), 1e-3 * double(k + 1)),
+          Quat(1, 0.1 * double(k), -0.2, 0.05 * double(k)).normalized());
+  }
   for (std::size_t k = 0; k < n; ++k) {
     const double x = double(k) - 11.0;
     p.damping_translation[k] = k % 3 == 0 ? 0.0 : 3.7e5;
@@ -364,7 +370,8 @@ TEST(Integrator, KickThatTranslatesIsTheKickThenTheDrift) {
   h << 0.08, 0.004, -0.002, 0.001, 0.081, 0.003, -0.0005, 0.002, 0.083;
   const Cell cell = make_cell(h);
   const CellMap move(1e-7 * cell.h_inv);
-  std::vector<double> dissipated(n), kinetic(n), dissipated2(n), kinetic2(n);
+  std::vector<double> dissipated(n), kinetic(n), dissipated2(n), kinetic2(n), path0(n);
+  for (std::size_t k = 0; k < n; ++k) path0[k] = 1e-7 * double(k);
   for (const char* kick : {"viscous", "local", "energy"}) {
     Model model;
     model.dt = 1e-7;
@@ -372,18 +379,21 @@ TEST(Integrator, KickThatTranslatesIsTheKickThenTheDrift) {
     const bool energy = kick == std::string("energy");
     for (const auto& [lo, hi] : {std::pair<std::size_t, std::size_t>{0, n}, {1, n}, {2, 11}, {5, 8}}) {
       Particles together = p, apart = p;
+      std::vector<double> path_together = path0, path_apart = path0;
       const double v2 = integrate_velocities(model, together, lo, hi,
                                              energy ? KickEnergy{dissipated.data(), kinetic.data()} : KickEnergy{},
-                                             &move);
+                                             &move, path_together.data());
+      turn_orientations(model, together, path_together, lo, hi, kick_settles(model), true);
       const double v2_apart = integrate_velocities(
           model, apart, lo, hi, energy ? KickEnergy{dissipated2.data(), kinetic2.data()} : KickEnergy{});
-      advance_positions(model, cell, apart, {}, lo, hi, kick_settles(model));
+      advance_positions(model, cell, apart, path_apart, lo, hi, kick_settles(model));
       EXPECT_EQ(v2, v2_apart) << kick;
       for (std::size_t k = 0; k < n; ++k) {
         EXPECT_TRUE(together.s[k] == apart.s[k]) << kick << " kick, particle " << k << " of [" << lo << ", " << hi << ")";
         EXPECT_TRUE(together.v[k] == apart.v[k] && together.angmom[k] == apart.angmom[k] &&
-                    together.omega[k] == apart.omega[k])
+                    together.omega[k] == apart.omega[k] && together.q[k].coeffs() == apart.q[k].coeffs())
             << kick << " kick, particle " << k;
+        EXPECT_EQ(path_together[k], path_apart[k]) << kick << " kick, particle " << k;
         if (k < lo || k >= hi) {
           EXPECT_TRUE(together.s[k] == p.s[k]) << "outside the range: " << k;
         }

@@ -333,10 +333,11 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   for (; i < hi; ++i) translate_one(m, dt, slow, pos[i], vel[i], path ? path + i : nullptr);
 }
 
-// With `move` (dt h^-1) it also translates the particles, s += dt h^-1 v with the new v, as
-// translate does (the same bits: a settled v is zeros or not small, so no particle is still).
+// With `move` (dt h^-1) it also translates the particles, s += dt h^-1 v with the new v, and adds
+// dt |v| to a surface `path`, as translate does (the same bits: a settled v is zeros or not
+// small, so no particle is still).
 QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi,
-                                 const CellMap* move) {
+                                 const CellMap* move, double* path) {
   hi = std::min(hi, p.size());
   const double dt = model.dt;
   const KickArrays arrays(p);
@@ -352,6 +353,10 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
     store_xyz4(arrays.vel + i, v);
     if (move) store_xyz4(arrays.pos + i, moved(*move, load_xyz4(arrays.pos + i), v));
     const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
+    if (path) {
+      const Lanes4 speed{std::sqrt(v2[0]), std::sqrt(v2[1]), std::sqrt(v2[2]), std::sqrt(v2[3])};
+      store4(path + i, load4(path + i) + dt * speed);
+    }
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2) lane by lane
     kick_rot.update(load4(arrays.damping_rot_of + i), dt);
     const Xyz4 l =
@@ -372,7 +377,7 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
   double out = 0;
   for (std::size_t k = 0; k < 4; ++k) out = std::max(out, v2max[k]);
   out = std::max(out, kick_particles<false, false>(model, p, i, hi, {}));
-  if (move) translate(*move, dt, still_speed(*move), arrays.pos, arrays.vel, nullptr, i, hi);
+  if (move) translate(*move, dt, still_speed(*move), arrays.pos, arrays.vel, path, i, hi);
   return out;
 }
 
@@ -384,15 +389,15 @@ bool kick_settles(const Model& model) {
 }
 
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy,
-                            const CellMap* move) {
+                            const CellMap* move, double* path) {
   const bool local = !kick_settles(model);
-  if (!local && !energy.dissipated) return viscous_kick(model, p, lo, hi, move);  // (moves in its pass)
+  if (!local && !energy.dissipated) return viscous_kick(model, p, lo, hi, move, path);  // (moves in its pass)
   double v2max;
   if (energy.dissipated)
     v2max = local ? kick_particles<true, true>(model, p, lo, hi, energy) : kick_particles<false, true>(model, p, lo, hi, energy);
   else
     v2max = local_kick(p, lo, hi, model.dt, model.damping.cundall_translation, model.damping.cundall_rotation);
-  if (move) translate(*move, model.dt, still_speed(*move), p.s.data(), p.v.data(), nullptr, lo, std::min(hi, p.size()));
+  if (move) translate(*move, model.dt, still_speed(*move), p.s.data(), p.v.data(), path, lo, std::min(hi, p.size()));
   return v2max;
 }
 
@@ -804,10 +809,13 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
   return r.normalized();
 }
 
-void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path,
-                       std::size_t lo, std::size_t hi, bool settled, bool normalize) {
+namespace {
+
+// advance_positions, and without `translate` turn_orientations.
+void drift(const Model& model, const Cell* cell, Particles& p, std::span<double> surface_path, std::size_t lo,
+           std::size_t hi, bool settled, bool normalize, bool translate_too) {
   const double dt = model.dt;
-  const Mat3 step_map = dt * cell.h_inv;
+  const Mat3 step_map = translate_too ? Mat3(dt * cell->h_inv) : Mat3::Zero();
   const std::size_t n = p.size();
   const bool track = surface_path.size() == n;
   hi = std::min(hi, n);
@@ -829,7 +837,7 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   for (std::size_t r0 = lo, r1; r0 < hi; r0 = r1) {
     r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
     const int size = static_cast<int>(r1 - r0);
-    translate(step_map_parts, dt, slow, pos, vel, track ? path : nullptr, r0, r1);  // x = h s moves by dt v
+    if (translate_too) translate(step_map_parts, dt, slow, pos, vel, track ? path : nullptr, r0, r1);  // x = h s moves by dt v
     if (const int kind = sort_run(spin.symmetry_axis, spin.l, r0, size, settled); kind != kMixed) {
       if (kind == kAllSpheres) continue;  // a sphere's orientation changes nothing
       run.size = size;
@@ -870,6 +878,18 @@ void advance_positions(const Model& model, const Cell& cell, Particles& p, std::
   }
   for (int k = 0; k < 3; ++k)
     if (lanes[k].size > 0) turn_spheroids(k, lanes[k], spin, dt, normalize);
+}
+
+}  // namespace
+
+void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path,
+                       std::size_t lo, std::size_t hi, bool settled, bool normalize) {
+  drift(model, &cell, p, surface_path, lo, hi, settled, normalize, true);
+}
+
+void turn_orientations(const Model& model, Particles& p, std::span<double> surface_path, std::size_t lo,
+                       std::size_t hi, bool settled, bool normalize) {
+  drift(model, nullptr, p, surface_path, lo, hi, settled, normalize, false);
 }
 
 }  // namespace qsdem

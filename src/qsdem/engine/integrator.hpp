@@ -40,10 +40,11 @@ struct KickEnergy {
 // Particles [lo, hi), on the calling thread (the step runs it on each thread's range, step.cpp).
 // Returns the largest |v|^2 after the kick (NeighborState::fluctuation_path).
 // With `move` (dt h^-1 of the deformed cell) the particles are also translated, s += dt h^-1 v,
-// with the same bits as advance_positions: for particles whose drift is that alone (spheres with
-// no surface path). The viscous kick does it in its own pass, while it holds v.
+// and dt |v| is added to `path` (a surface path, or null), with the same bits as
+// advance_positions: the step's translation, which the viscous kick makes in its own pass while it
+// holds v (turn_orientations then does the rest of the drift).
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo = 0, std::size_t hi = SIZE_MAX,
-                            KickEnergy energy = {}, const CellMap* move = nullptr);
+                            KickEnergy energy = {}, const CellMap* move = nullptr, double* path = nullptr);
 
 // Whether integrate_velocities with this model settles the momenta (SPEC 5.2: every viscous
 // model; Cundall's local damping does not): after it, every angular momentum is zero or has a
@@ -74,5 +75,10 @@ inline bool normalizes_orientations(long step) { return step % kNormalizeEvery =
 // (normalizes_orientations), else left as the turns' product.
 void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path = {},
                        std::size_t lo = 0, std::size_t hi = SIZE_MAX, bool settled = false, bool normalize = true);
+
+// advance_positions without the translation (which integrate_velocities' `move` made): the
+// ellipsoids' turn, omega and the turn's part of the surface path.
+void turn_orientations(const Model& model, Particles& p, std::span<double> surface_path, std::size_t lo,
+                       std::size_t hi, bool settled, bool normalize);
 
 }  // namespace qsdem

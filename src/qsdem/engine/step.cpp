@@ -34,8 +34,8 @@ void pair_forces(const Model& model, State& s, Schedule& schedule) {
 
 // Stages 4-6 in one parallel region with no barrier: each thread owns a contiguous range of
 // particles, adds their j-end contact forces, kicks them and drifts them (a particle's update
-// reads only itself and the pair results; for spheres only, the kick's pass translates them and
-// the stage "advance positions" has nothing left). One fork-join per step instead of three, one pass
+// reads only itself and the pair results). The kick's pass also translates them (timed as
+// "integrate velocities"); "advance positions" is the ellipsoids' turn. One fork-join per step instead of three, one pass
 // over the particle arrays. The region's wall time is shared among the three stages in
 // proportion to the threads' summed time in each.
 double update_particles(const Model& model, State& s, Schedule& schedule) {
@@ -54,10 +54,11 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   std::array<double, 3> busy{};  // gather, kick, drift, summed over the threads
   schedule.owner_seconds.assign(owners, 0.0);
   const bool normalize = normalizes_orientations(s.step);
-  // Spheres only: the drift is a translation alone (no turn; no surface path, which only
-  // ellipsoids need), made by the kick's pass (integrate_velocities' `move`), which holds v.
-  const bool translate_in_kick = !p.has_ellipsoids() && s.neighbor.surface_path.empty();
+  // The drift's translation is made by the kick's pass (integrate_velocities' `move`, while it
+  // holds v); the turn of the ellipsoids' orientations follows (spheres have none).
   const CellMap move(model.dt * s.cell.h_inv);
+  double* const path = s.neighbor.surface_path.size() == p.size() ? s.neighbor.surface_path.data() : nullptr;
+  const bool turns = p.has_ellipsoids();
   const double start = omp_get_wtime();
   // Thread r takes the particles the force stage assigned it (Schedule::owner_first, cut by the
   // owners' measured times) and reads only their contacts, which the force stage grouped by owner.
@@ -73,10 +74,9 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
       if (!s.contact_stiffness.empty()) gather_contact_stiffness(s.pairs, schedule, s, static_cast<std::size_t>(r));
       const double t1 = omp_get_wtime();
       update_damping(model, s, lo, hi);  // the damping stage, before the kick (damping/stage.hpp)
-      m = std::max(m, integrate_velocities(model, p, lo, hi, kick_energy, translate_in_kick ? &move : nullptr));
+      m = std::max(m, integrate_velocities(model, p, lo, hi, kick_energy, &move, path));
       const double t2 = omp_get_wtime();
-      if (!translate_in_kick)
-        advance_positions(model, s.cell, p, s.neighbor.surface_path, lo, hi, kick_settles(model), normalize);
+      if (turns) turn_orientations(model, p, s.neighbor.surface_path, lo, hi, kick_settles(model), normalize);
       const double t3 = omp_get_wtime();
       mine[0] += t1 - t0, mine[1] += t2 - t1, mine[2] += t3 - t2;
       schedule.owner_seconds[r] = t3 - t0;

@@ -6,6 +6,8 @@
 
 namespace qsdem {
 
+// integrate: the kick and the drift's translation (one pass, integrate_velocities); advance: the
+// ellipsoids' turn (turn_orientations).
 enum class Stage { neighbor, contact_forces, gather, integrate, servo, advance, measures, output, count };
 
 inline constexpr std::array<const char*, static_cast<std::size_t>(Stage::count)> stage_names{
