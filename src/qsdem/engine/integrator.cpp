@@ -296,6 +296,15 @@ struct KickFactors {
   if (path) *path += dt * std::sqrt((v.x() * v.x() + v.y() * v.y()) + v.z() * v.z());
 }
 
+// |v|^2 in lanes, summed as Eigen's squaredNorm.
+[[gnu::always_inline]] inline Lanes4 squared(const Xyz4& v) { return (v.x * v.x + v.y * v.y) + v.z * v.z; }
+
+// The surface path's part of a translation, path += dt |v| (NeighborState::surface_path), in lanes.
+[[gnu::always_inline]] inline void add_speed(double* path, const Lanes4& v2, double dt) {
+  const Lanes4 speed{std::sqrt(v2[0]), std::sqrt(v2[1]), std::sqrt(v2[2]), std::sqrt(v2[3])};
+  store4(path, load4(path) + dt * speed);
+}
+
 // s + m v in lanes (the order of CellMap::apply).
 [[gnu::always_inline]] inline Xyz4 moved(const CellMap& m, const Xyz4& s, const Xyz4& v) {
   return {s.x + ((m.h00 * v.x + m.h01 * v.y) + m.h02 * v.z), s.y + ((m.h10 * v.x + m.h11 * v.y) + m.h12 * v.z),
@@ -324,11 +333,7 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
       continue;
     }
     store_xyz4(pos + i, moved(m, load_xyz4(pos + i), v));
-    if (path) {
-      const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
-      const Lanes4 speed{std::sqrt(v2[0]), std::sqrt(v2[1]), std::sqrt(v2[2]), std::sqrt(v2[3])};
-      store4(path + i, load4(path + i) + dt * speed);
-    }
+    if (path) add_speed(path + i, squared(v), dt);
   }
   for (; i < hi; ++i) translate_one(m, dt, slow, pos[i], vel[i], path ? path + i : nullptr);
 }
@@ -352,11 +357,8 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
     const Xyz4 v = damped_kick_lanes(kick, load_xyz4(arrays.vel + i), {f.x * m, f.y * m, f.z * m});
     store_xyz4(arrays.vel + i, v);
     if (move) store_xyz4(arrays.pos + i, moved(*move, load_xyz4(arrays.pos + i), v));
-    const Lanes4 v2 = (v.x * v.x + v.y * v.y) + v.z * v.z;
-    if (path) {
-      const Lanes4 speed{std::sqrt(v2[0]), std::sqrt(v2[1]), std::sqrt(v2[2]), std::sqrt(v2[3])};
-      store4(path + i, load4(path + i) + dt * speed);
-    }
+    const Lanes4 v2 = squared(v);
+    if (path) add_speed(path + i, v2, dt);
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2) lane by lane
     kick_rot.update(load4(arrays.damping_rot_of + i), dt);
     const Xyz4 l =
@@ -809,25 +811,13 @@ Quat free_rotation(const Quat& q, const Vec3& inertia, const Vec3& angmom, doubl
   return r.normalized();
 }
 
-namespace {
-
-// advance_positions, and without `translate` turn_orientations.
-void drift(const Model& model, const Cell* cell, Particles& p, std::span<double> surface_path, std::size_t lo,
-           std::size_t hi, bool settled, bool normalize, bool translate_too) {
+void turn_orientations(const Model& model, Particles& p, std::span<double> surface_path, std::size_t lo,
+                       std::size_t hi, bool settled, bool normalize) {
   const double dt = model.dt;
-  const Mat3 step_map = translate_too ? Mat3(dt * cell->h_inv) : Mat3::Zero();
   const std::size_t n = p.size();
   const bool track = surface_path.size() == n;
   hi = std::min(hi, n);
-  // Through local pointers, as in integrate_velocities.
-  Vec3* const pos = p.s.data();
-  const Vec3* const vel = p.v.data();
-  double* const path = surface_path.data();
-  const SpinArrays spin(p, track ? path : nullptr);
-  // A rattler's v decays to subnormal numbers too: below still_speed s and the path would keep
-  // their bits (|v|^2 rounds to 0), and are left alone (translate_one).
-  const CellMap step_map_parts(step_map);
-  const double slow = still_speed(step_map_parts);
+  const SpinArrays spin(p, track ? surface_path.data() : nullptr);
   // The particles go in runs of a lane set's size. A run whose every particle is a turning
   // spheroid of one symmetry axis turns in place; otherwise its spheroids wait in lanes, one set
   // per symmetry axis, and turn a full set at a time.
@@ -837,7 +827,6 @@ void drift(const Model& model, const Cell* cell, Particles& p, std::span<double>
   for (std::size_t r0 = lo, r1; r0 < hi; r0 = r1) {
     r1 = std::min(hi, (r0 / run_size + 1) * run_size);  // runs from multiples of run_size: aligned lanes
     const int size = static_cast<int>(r1 - r0);
-    if (translate_too) translate(step_map_parts, dt, slow, pos, vel, track ? path : nullptr, r0, r1);  // x = h s moves by dt v
     if (const int kind = sort_run(spin.symmetry_axis, spin.l, r0, size, settled); kind != kMixed) {
       if (kind == kAllSpheres) continue;  // a sphere's orientation changes nothing
       run.size = size;
@@ -880,16 +869,15 @@ void drift(const Model& model, const Cell* cell, Particles& p, std::span<double>
     if (lanes[k].size > 0) turn_spheroids(k, lanes[k], spin, dt, normalize);
 }
 
-}  // namespace
-
 void advance_positions(const Model& model, const Cell& cell, Particles& p, std::span<double> surface_path,
                        std::size_t lo, std::size_t hi, bool settled, bool normalize) {
-  drift(model, &cell, p, surface_path, lo, hi, settled, normalize, true);
-}
-
-void turn_orientations(const Model& model, Particles& p, std::span<double> surface_path, std::size_t lo,
-                       std::size_t hi, bool settled, bool normalize) {
-  drift(model, nullptr, p, surface_path, lo, hi, settled, normalize, false);
+  // x = h s moves by dt v; a rattler's v decays to subnormal numbers too: below still_speed s and
+  // the path would keep their bits (|v|^2 rounds to 0), and are left alone (translate_one).
+  const CellMap step_map(model.dt * cell.h_inv);
+  const bool track = surface_path.size() == p.size();
+  translate(step_map, model.dt, still_speed(step_map), p.s.data(), p.v.data(), track ? surface_path.data() : nullptr,
+            lo, std::min(hi, p.size()));
+  turn_orientations(model, p, surface_path, lo, hi, settled, normalize);
 }
 
 }  // namespace qsdem
