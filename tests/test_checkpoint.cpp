@@ -795,6 +795,30 @@ TEST(CheckpointFile, Format3LeavesEllipsoidRunsWithoutAMotionBound) {
   EXPECT_EQ(reload_as(spheres, 3, "format3-spheres.qsck"), 3e-9);
 }
 
+// A checkpoint does not store NeighborState::ellipsoids: the load takes it from the particles, so
+// that a run resumed with its list valid steps spheroids as spheroids (has_ellipsoids of a State,
+// which the step asks instead of passing over the particles).
+TEST(CheckpointFile, RestoredListKnowsWhetherItsParticlesIncludeEllipsoids) {
+  const fs::path spheroid_case = fs::path(QSDEM_SOURCE_DIR) / "examples" / "paper-A-small.toml";
+  for (const bool spheroids : {true, false}) {
+    SCOPED_TRACE(spheroids ? "spheroids" : "spheres");
+    const Params params = spheroids ? parse_case(qsdem_test::slurp(spheroid_case), spheroid_case.string())
+                                    : parse_case(small_case, "small.toml");
+    State st = generate_loose_sample(params);
+    ASSERT_EQ(st.particles.has_ellipsoids(), spheroids);
+    build_pairs(st.particles, st.cell, 0.2 * smallest_equiv_radius(st.particles), st.pairs, st.neighbor);
+    EXPECT_EQ(has_ellipsoids(st), spheroids) << "as the build recorded it";
+    const fs::path f = scratch(spheroids ? "list-spheroids.qsck" : "list-spheres.qsck");
+    RunProgress run;
+    run.phases.resize(params.protocol.size());
+    save_checkpoint(f, params.case_text, params.source, st, run);
+    const State back = load_checkpoint(f).state;
+    ASSERT_TRUE(back.neighbor.valid);
+    EXPECT_EQ(back.neighbor.ellipsoids, spheroids);
+    EXPECT_EQ(has_ellipsoids(back), spheroids);
+  }
+}
+
 // A prepared sample of checkpoint format 1 (written before apart pairs were skipped: no skip
 // state) still loads and shears, to the series the build that wrote it gives: 120 spheroids,
 // tests/golden/format1-sample (made by the build of 7240daa, see tests/golden/README.md).

@@ -193,6 +193,25 @@ TEST(NeighborList, EqualsBruteForce) {
       }
 }
 
+// Whether some particle is an ellipsoid, which the step asks twice per step: the list build
+// records it (NeighborState::ellipsoids, with the surface paths it sizes), and without a valid
+// list has_ellipsoids(State) passes over the particles; the same answer either way.
+TEST(NeighborList, RecordsWhetherItsParticlesIncludeEllipsoids) {
+  for (const bool ellipsoid : {false, true}) {
+    SCOPED_TRACE(ellipsoid ? "one ellipsoid" : "spheres only");
+    State st = random_sample(200, 1.0, Mat3(Vec3(1.0, 1.1, 0.9).asDiagonal()), 0.4, 7);
+    if (ellipsoid)
+      st.particles.add(200, ShapeKind::ellipsoid, Vec3(2 * kR0, kR0, kR0), kRho, Vec3(0.5, 0.5, 0.5),
+                       Quat::Identity());
+    ASSERT_FALSE(st.neighbor.valid);
+    EXPECT_EQ(has_ellipsoids(st), ellipsoid) << "no list yet: from the particles";
+    build_pairs(st.particles, st.cell, kSkin, st.pairs, st.neighbor);
+    EXPECT_EQ(st.neighbor.ellipsoids, ellipsoid);
+    EXPECT_EQ(has_ellipsoids(st), ellipsoid);
+    EXPECT_EQ(st.neighbor.surface_path.size(), ellipsoid ? st.particles.size() : 0u);
+  }
+}
+
 // A wide grading (size ratio 1000: 300 spheres of 1 mm and 5 of 1 um, the skin 0.2 R_min): the
 // grids hold at most one bin per particle and class, where bins of 2 R_min + skin would number
 // ~1e11 (an int overflow, then gigabytes), and the list is still exact.

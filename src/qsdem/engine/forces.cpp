@@ -615,7 +615,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   }
   // Shape matrices once per particle (each takes part in several pairs); only when some particle
   // is an ellipsoid, so a sphere run pays nothing.
-  const bool all_spheres = !p.has_ellipsoids();
+  const bool all_spheres = !has_ellipsoids(state);
   if (!all_spheres) {
     state.shapes.resize(n);
 #pragma omp parallel if (n > parallel_threshold)

@@ -100,7 +100,8 @@ void check_cell_size(const Particles& p, const Cell& cell, double skin) {
 }
 
 void NeighborState::restart_motion(const Particles& p) {
-  if (p.has_ellipsoids())
+  ellipsoids = p.has_ellipsoids();
+  if (ellipsoids)
     surface_path.assign(p.size(), 0.0);
   else
     surface_path.clear();

@@ -117,6 +117,9 @@ struct NeighborState {
   long distance_checks = 0;  // pair distances computed by the last build (linear in N, not N^2)
   long grid_bins = 0;        // bins of the last build's grids: at most one per particle and class
   bool valid = false;
+  // Some particle of the list's particles is an ellipsoid (restart_motion): what the step asks
+  // twice per step, without a pass over the particles (has_ellipsoids(State)).
+  bool ellipsoids = false;
 
   // Motion since the last build, for skipping pairs that are provably apart. Per step the branch
   // vector of a pair changes by l <- (I + dt L) l + dt (v_j - v_i) (advance_positions), and a

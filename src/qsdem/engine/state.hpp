@@ -98,4 +98,10 @@ struct State {
   std::vector<EllipsoidShape> shapes;   // scratch: per-particle shape matrices at time t
 };
 
+// Whether some particle is an ellipsoid: as the neighbour list recorded it when it holds these
+// particles (NeighborState::ellipsoids), else by a pass over them.
+inline bool has_ellipsoids(const State& s) {
+  return s.neighbor.valid ? s.neighbor.ellipsoids : s.particles.has_ellipsoids();
+}
+
 }  // namespace qsdem

@@ -58,7 +58,7 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   // holds v); the turn of the ellipsoids' orientations follows (spheres have none).
   const CellMap move(model.dt * s.cell.h_inv);
   double* const path = s.neighbor.surface_path.size() == p.size() ? s.neighbor.surface_path.data() : nullptr;
-  const bool turns = p.has_ellipsoids();
+  const bool turns = has_ellipsoids(s);
   const double start = omp_get_wtime();
   // Thread r takes the particles the force stage assigned it (Schedule::owner_first, cut by the
   // owners' measured times) and reads only their contacts, which the force stage grouped by owner.

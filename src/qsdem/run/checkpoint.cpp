@@ -877,7 +877,8 @@ Checkpoint parse_checkpoint(std::string_view bytes, const std::string& name, Sea
   // apart sphere pair is skipped and the skin test runs in full until the next build.
   if (version < 3) c.state.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
   // Before format 4 a run with ellipsoids did not sum it (it was kept for spheres only).
-  if (version < 4 && c.state.particles.has_ellipsoids())
+  c.state.neighbor.ellipsoids = c.state.particles.has_ellipsoids();  // not stored: the particles tell
+  if (version < 4 && c.state.neighbor.ellipsoids)
     c.state.neighbor.fluctuation_path = std::numeric_limits<double>::infinity();
   return c;
 }
