@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <vector>
 
 #include "qsdem/engine/damping/stage.hpp"
 #include "qsdem/engine/forces.hpp"
@@ -32,11 +33,37 @@ void pair_forces(const Model& model, State& s, Schedule& schedule) {
   }
 }
 
+namespace {
+
+// The kick's energy terms into the ledger: each chunk of energy_chunk particles summed in particle
+// order on the threads, then the chunks in order, so that the sums have the same bits for any
+// number of threads and no pass over the particles runs on one thread.
+void add_kick_energy(State& s) {
+  constexpr std::size_t energy_chunk = 4096;
+  const std::size_t n = s.particles.size(), chunks = (n + energy_chunk - 1) / energy_chunk;
+  std::vector<std::array<double, 2>> part(chunks);
+  const double* const dissipation = s.kick_dissipation.data();
+  const double* const kinetic = s.kick_kinetic.data();
+#pragma omp parallel for schedule(static) if (chunks > 1)
+  for (std::size_t c = 0; c < chunks; ++c) {
+    double d = 0, k = 0;
+    const std::size_t end = std::min(n, (c + 1) * energy_chunk);
+    for (std::size_t i = c * energy_chunk; i < end; ++i) d += dissipation[i], k += kinetic[i];
+    part[c] = {d, k};
+  }
+  double dissipated = 0, kinetic_sum = 0;
+  for (const auto& [d, k] : part) dissipated += d, kinetic_sum += k;
+  s.energy.damping += dissipated;
+  s.energy.kinetic = kinetic_sum;
+}
+
+}  // namespace
+
 // Stages 4-6 in one parallel region with no barrier: each thread owns a contiguous range of
 // particles, adds their j-end contact forces, kicks them and drifts them (a particle's update
 // reads only itself and the pair results). The kick's pass also translates them (timed as
-// "integrate velocities"); "advance positions" is the ellipsoids' turn. One fork-join per step instead of three, one pass
-// over the particle arrays. The region's wall time is shared among the three stages in
+// "integrate velocities"); "advance positions" is the ellipsoids' turn. One fork-join per step
+// instead of three, one pass over the particle arrays. The region's wall time is shared among the three stages in
 // proportion to the threads' summed time in each.
 double update_particles(const Model& model, State& s, Schedule& schedule) {
   Particles& p = s.particles;
@@ -92,12 +119,8 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   constexpr std::array stages{Stage::gather, Stage::integrate, Stage::advance};
   for (std::size_t k = 0; k < 3; ++k)
     s.timers.seconds[static_cast<std::size_t>(stages[k])] += sum > 0 ? wall * busy[k] / sum : wall / 3;
-  if (model.track_energy) {  // in particle order: the same sums for any thread count
-    double dissipated = 0, kinetic = 0;
-    for (std::size_t i = 0; i < p.size(); ++i) dissipated += s.kick_dissipation[i], kinetic += s.kick_kinetic[i];
-    s.energy.damping += dissipated;
-    s.energy.kinetic = kinetic;
-  }
+  if (model.track_energy) add_kick_energy(s);
+
   return v2max;
 }
 
