@@ -63,8 +63,8 @@ void add_kick_energy(State& s) {
 // particles, adds their j-end contact forces, kicks them and drifts them (a particle's update
 // reads only itself and the pair results). The kick's pass also translates them (timed as
 // "integrate velocities"); "advance positions" is the ellipsoids' turn. One fork-join per step
-// instead of three, one pass over the particle arrays. The region's wall time is shared among the three stages in
-// proportion to the threads' summed time in each.
+// instead of three, one pass over the particle arrays. The region's wall time is shared among the
+// three stages in proportion to the threads' summed time in each.
 double update_particles(const Model& model, State& s, Schedule& schedule) {
   Particles& p = s.particles;
   // The force stage fixed the threads' particle ranges for this step (Schedule::owner_first).
@@ -120,7 +120,6 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   for (std::size_t k = 0; k < 3; ++k)
     s.timers.seconds[static_cast<std::size_t>(stages[k])] += sum > 0 ? wall * busy[k] / sum : wall / 3;
   if (model.track_energy) add_kick_energy(s);
-
   return v2max;
 }
 
