@@ -181,7 +181,7 @@ TEST(Run, ThreadCountDoesNotChangeLargePacking) {
 }
 
 // The same packing with the energy ledger kept (output.energy, docs/physics.md 12): its sums are
-// in block order (force stage) and in fixed chunks of particles (kick; 5000 particles are two),
+// in block order (force stage) and in fixed blocks of particles (kick; 5000 particles are three),
 // so 1 and 2 threads give the same ledger bit for bit; keeping it changes no particle's state.
 TEST(Run, ThreadCountDoesNotChangeTheEnergyLedger) {
   const auto [start, plain] = large_packing();

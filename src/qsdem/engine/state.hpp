@@ -88,7 +88,7 @@ struct State {
   std::vector<double> contact_stiffness, contact_rotational_stiffness;
   EnergyLedger energy;
   // Per particle, only when Model::track_energy: what its last kick dissipated and its kinetic
-  // energy after it (J), summed by the step in fixed chunks of particles (thread-count independent).
+  // energy after it (J), summed by the step in fixed blocks of particles (thread-count independent).
   std::vector<double> kick_dissipation, kick_kinetic;
 
   std::vector<ForceBlock> blocks;       // per force block (PairList::block_first)

@@ -7,11 +7,11 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
-#include <vector>
 
 #include "qsdem/engine/damping/stage.hpp"
 #include "qsdem/engine/forces.hpp"
 #include "qsdem/engine/integrator.hpp"
+#include "qsdem/engine/measures.hpp"
 #include "qsdem/engine/reorder.hpp"
 #include "qsdem/engine/servo.hpp"
 
@@ -32,32 +32,6 @@ void pair_forces(const Model& model, State& s, Schedule& schedule) {
     compute_contact_forces(model, s, schedule);
   }
 }
-
-namespace {
-
-// The kick's energy terms into the ledger: each chunk of energy_chunk particles summed in particle
-// order on the threads, then the chunks in order, so that the sums have the same bits for any
-// number of threads and no pass over the particles runs on one thread.
-void add_kick_energy(State& s) {
-  constexpr std::size_t energy_chunk = 4096;
-  const std::size_t n = s.particles.size(), chunks = (n + energy_chunk - 1) / energy_chunk;
-  std::vector<std::array<double, 2>> part(chunks);
-  const double* const dissipation = s.kick_dissipation.data();
-  const double* const kinetic = s.kick_kinetic.data();
-#pragma omp parallel for schedule(static) if (chunks > 1)
-  for (std::size_t c = 0; c < chunks; ++c) {
-    double d = 0, k = 0;
-    const std::size_t end = std::min(n, (c + 1) * energy_chunk);
-    for (std::size_t i = c * energy_chunk; i < end; ++i) d += dissipation[i], k += kinetic[i];
-    part[c] = {d, k};
-  }
-  double dissipated = 0, kinetic_sum = 0;
-  for (const auto& [d, k] : part) dissipated += d, kinetic_sum += k;
-  s.energy.damping += dissipated;
-  s.energy.kinetic = kinetic_sum;
-}
-
-}  // namespace
 
 // Stages 4-6 in one parallel region with no barrier: each thread owns a contiguous range of
 // particles, adds their j-end contact forces, kicks them and drifts them (a particle's update
@@ -119,7 +93,14 @@ double update_particles(const Model& model, State& s, Schedule& schedule) {
   constexpr std::array stages{Stage::gather, Stage::integrate, Stage::advance};
   for (std::size_t k = 0; k < 3; ++k)
     s.timers.seconds[static_cast<std::size_t>(stages[k])] += sum > 0 ? wall * busy[k] / sum : wall / 3;
-  if (model.track_energy) add_kick_energy(s);
+  if (model.track_energy) {
+    // Summed in fixed blocks on the threads (blocked_sum): the same bits for any thread count.
+    const Eigen::Vector2d sums = blocked_sum<Eigen::Vector2d>(p.size(), Eigen::Vector2d::Zero(), [&](std::size_t i) {
+      return Eigen::Vector2d(s.kick_dissipation[i], s.kick_kinetic[i]);
+    });
+    s.energy.damping += sums[0];
+    s.energy.kinetic = sums[1];
+  }
   return v2max;
 }
 
