@@ -338,11 +338,63 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   for (; i < hi; ++i) translate_one(m, dt, slow, pos[i], vel[i], path ? path + i : nullptr);
 }
 
+// a . b and a x b in lanes, in the order of Eigen's dot and cross.
+[[gnu::always_inline]] inline Lanes4 dot(const Xyz4& a, const Xyz4& b) { return (a.x * b.x + a.y * b.y) + a.z * b.z; }
+[[gnu::always_inline]] inline Xyz4 cross(const Xyz4& a, const Xyz4& b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+
+// Eigen's q * v in lanes (Quaternion::_transformVector): uv = q.vec x v, uv += uv,
+// v + w uv + q.vec x uv.
+[[gnu::always_inline]] inline Xyz4 rotated(const Lanes4& w, const Xyz4& u, const Xyz4& v) {
+  Xyz4 uv = cross(u, v);
+  uv = {uv.x + uv.x, uv.y + uv.y, uv.z + uv.z};
+  const Xyz4 c = cross(u, uv);
+  return {v.x + w * uv.x + c.x, v.y + w * uv.y + c.y, v.z + w * uv.z + c.z};
+}
+
+// The kick's energy terms of four particles (kick_particles' Track, the same operations in the
+// same order): the dissipation (dt F - m dv).v_mid + (dt M - dL).omega(L_mid) and the kinetic
+// energy m |v|^2 / 2 + L.omega(L) / 2, with a sphere's omega = L / I and any other body's
+// angular_velocity (R I^-1 R^T L at the orientation before the drift).
+[[gnu::always_inline]] inline void kick_energy_lanes(const Particles& p, std::size_t i, bool spheres, double dt,
+                                                     const Lanes4& inv_mass, const Xyz4& f, const Xyz4& v_old,
+                                                     const Xyz4& v, const Xyz4& torque, const Xyz4& l_old,
+                                                     const Xyz4& l, KickEnergy energy) {
+  const Lanes4 inv_moment = load4(p.inv_transverse_moment.data() + i);
+  Mask4 sphere{};
+  Lanes4 w{};
+  Xyz4 axis{}, inertia{};
+  if (!spheres) {
+    for (int k = 0; k < 4; ++k) sphere[k] = p.shape[i + k] == ShapeKind::sphere ? -1 : 0;
+    w = load4(p.q.component(3) + i);
+    axis = {load4(p.q.component(0) + i), load4(p.q.component(1) + i), load4(p.q.component(2) + i)};
+    inertia = load_xyz4(p.inertia.data() + i);
+  }
+  const auto spin = [&](const Xyz4& x) {
+    const Xyz4 round{x.x * inv_moment, x.y * inv_moment, x.z * inv_moment};
+    if (spheres) return round;
+    const Xyz4 body = rotated(w, {-axis.x, -axis.y, -axis.z}, x);  // q.conjugate() * x
+    const Xyz4 out = rotated(w, axis, {body.x / inertia.x, body.y / inertia.y, body.z / inertia.z});
+    const auto pick = [&](const Lanes4& a, const Lanes4& b) { return sphere ? a : b; };
+    return Xyz4{pick(round.x, out.x), pick(round.y, out.y), pick(round.z, out.z)};
+  };
+  const Lanes4 half{0.5, 0.5, 0.5, 0.5};
+  const Xyz4 v_mid{half * (v_old.x + v.x), half * (v_old.y + v.y), half * (v_old.z + v.z)};
+  const Xyz4 l_mid{half * (l_old.x + l.x), half * (l_old.y + l.y), half * (l_old.z + l.z)};
+  const Lanes4 mass = 1 / inv_mass;
+  const Xyz4 lost{dt * f.x - mass * (v.x - v_old.x), dt * f.y - mass * (v.y - v_old.y), dt * f.z - mass * (v.z - v_old.z)};
+  const Xyz4 lost_rot{dt * torque.x - (l.x - l_old.x), dt * torque.y - (l.y - l_old.y), dt * torque.z - (l.z - l_old.z)};
+  store4(energy.dissipated + i, dot(lost, v_mid) + dot(lost_rot, spin(l_mid)));
+  store4(energy.kinetic + i, half * mass * squared(v) + half * dot(l, spin(l)));
+}
+
 // With `move` (dt h^-1) it also translates the particles, s += dt h^-1 v with the new v, and adds
 // dt |v| to a surface `path`, as translate does (the same bits: a settled v is zeros or not
-// small, so no particle is still).
+// small, so no particle is still). Track: also the energy terms (kick_particles<false, true>).
+template <bool Track>
 QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi,
-                                 const CellMap* move, double* path) {
+                                 const CellMap* move, double* path, KickEnergy energy) {
   hi = std::min(hi, p.size());
   const double dt = model.dt;
   const KickArrays arrays(p);
@@ -354,19 +406,21 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
     const Lanes4 m = load4(arrays.inv_mass + i);
     const Xyz4 f = load_xyz4(arrays.force + i);
     kick.update(load4(arrays.damping_of + i), dt);
-    const Xyz4 v = damped_kick_lanes(kick, load_xyz4(arrays.vel + i), {f.x * m, f.y * m, f.z * m});
+    const Xyz4 v_old = load_xyz4(arrays.vel + i);
+    const Xyz4 v = damped_kick_lanes(kick, v_old, {f.x * m, f.y * m, f.z * m});
     store_xyz4(arrays.vel + i, v);
     if (move) store_xyz4(arrays.pos + i, moved(*move, load_xyz4(arrays.pos + i), v));
     const Lanes4 v2 = squared(v);
     if (path) add_speed(path + i, v2, dt);
     v2max = v2max < v2 ? v2 : v2max;  // std::max(v2max, v2) lane by lane
     kick_rot.update(load4(arrays.damping_rot_of + i), dt);
-    const Xyz4 l =
-        damped_kick_lanes(kick_rot, {load4(lx + i), load4(ly + i), load4(lz + i)}, load_xyz4(arrays.torque + i));
+    const Xyz4 l_old{load4(lx + i), load4(ly + i), load4(lz + i)}, torque = load_xyz4(arrays.torque + i);
+    const Xyz4 l = damped_kick_lanes(kick_rot, l_old, torque);
     store4(lx + i, l.x), store4(ly + i, l.y), store4(lz + i, l.z);
     // A sphere's omega = L / I (kick_particles); an ellipsoid's is the drift's.
     std::uint32_t kinds;
     std::memcpy(&kinds, arrays.shape + i, sizeof kinds);
+    if constexpr (Track) kick_energy_lanes(p, i, kinds == 0, dt, m, f, v_old, v, torque, l_old, l, energy);
     if (kinds == 0) {  // four spheres (ShapeKind::sphere = 0)
       const Lanes4 inv = load4(arrays.inv_moment + i);
       store_xyz4(arrays.omega + i, {l.x * inv, l.y * inv, l.z * inv});
@@ -378,7 +432,7 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
   }
   double out = 0;
   for (std::size_t k = 0; k < 4; ++k) out = std::max(out, v2max[k]);
-  out = std::max(out, kick_particles<false, false>(model, p, i, hi, {}));
+  out = std::max(out, kick_particles<false, Track>(model, p, i, hi, energy));
   if (move) translate(*move, dt, still_speed(*move), arrays.pos, arrays.vel, path, i, hi);
   return out;
 }
@@ -393,12 +447,12 @@ bool kick_settles(const Model& model) {
 double integrate_velocities(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy,
                             const CellMap* move, double* path) {
   const bool local = !kick_settles(model);
-  if (!local && !energy.dissipated) return viscous_kick(model, p, lo, hi, move, path);  // (moves in its pass)
-  double v2max;
-  if (energy.dissipated)
-    v2max = local ? kick_particles<true, true>(model, p, lo, hi, energy) : kick_particles<false, true>(model, p, lo, hi, energy);
-  else
-    v2max = local_kick(p, lo, hi, model.dt, model.damping.cundall_translation, model.damping.cundall_rotation);
+  if (!local)  // (moves in its pass)
+    return energy.dissipated ? viscous_kick<true>(model, p, lo, hi, move, path, energy)
+                             : viscous_kick<false>(model, p, lo, hi, move, path, {});
+  const double v2max = energy.dissipated ? kick_particles<true, true>(model, p, lo, hi, energy)
+                                         : local_kick(p, lo, hi, model.dt, model.damping.cundall_translation,
+                                                      model.damping.cundall_rotation);
   if (move) translate(*move, model.dt, still_speed(*move), p.s.data(), p.v.data(), path, lo, std::min(hi, p.size()));
   return v2max;
 }
