@@ -37,13 +37,13 @@ constexpr double kSettled = 0x1p-540;
   return settled(x.x(), x.y(), x.z()) ? Vec3::Zero() : x;
 }
 
-// The kick with local damping of particles [lo, hi) without the energy terms: kick_particles<true,
-// false> on components, in vector lanes, translation and rotation in two loops (one loop of both
-// ran out of registers). One particle at a time it cost 4-5 times the viscous kick (1001 spheres,
-// random signs of the rattlers' velocities: 25-55 us against 4-13 us per step). `local` has no
-// viscous factors (A_i = B_i = 0: a Cundall model, damping/models.hpp): the kick is v + dt a, the bits of DampedKick(0, dt)
-// (1 v + dt a). Sums in the order of Eigen's for 3-vectors (left to right). Built for AVX-512 too
-// (no FMA: the same bits), as the spheres' rotation: the kick of 1001 spheres 5.5 -> 3.7 us.
+// The kick with Cundall's local damping of particles [lo, hi), on components, in vector lanes,
+// translation and rotation in two loops (one loop of both ran out of registers). One particle at a
+// time it cost 4-5 times the viscous kick (1001 spheres, random signs of the rattlers' velocities:
+// 25-55 us against 4-13 us per step). `local` has no viscous factors (A_i = B_i = 0: a Cundall
+// model, damping/models.hpp): the kick is v + dt a, the bits of DampedKick(0, dt) (1 v + dt a).
+// Sums in the order of Eigen's for 3-vectors (left to right). Built for AVX-512 too (no FMA: the
+// same bits), as the spheres' rotation: the kick of 1001 spheres 5.5 -> 3.7 us.
 QSDEM_CLONES_WIDE double local_kick_translation(const double* inv_mass, const Vec3* force, Vec3* vel, std::size_t lo,
                                            std::size_t hi, double dt, double alpha) {
   double v2max = 0;
@@ -157,13 +157,26 @@ struct KickArrays {
         pos(p.s.data()) {}
 };
 
-// The kick of particles [lo, hi); Local: with Cundall's damping (alpha on translation and
-// rotation), else the viscous factors alone (the code of the viscous models, unchanged). Track:
-// also each particle's dissipation and kinetic energy (KickEnergy).
-template <bool Local, bool Track>
+// The kick's energy identity of particle i: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the
+// damping took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
+// drift keeps the rotational energy: a free rotation). Also the kinetic energy after the kick.
+inline void kick_energy(const Particles& p, std::size_t i, double dt, const Vec3& v_old, const Vec3& v,
+                        const Vec3& l_old, const Vec3& l, KickEnergy energy) {
+  const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
+  const auto spin = [&](const Vec3& x) {
+    return p.shape[i] == ShapeKind::sphere ? Vec3(x * p.inv_transverse_moment[i])
+                                           : angular_velocity(p.q[i], p.inertia[i], x);
+  };
+  const double mass = 1 / p.inv_mass[i];
+  energy.dissipated[i] = (dt * p.force[i] - mass * (v - v_old)).dot(v_mid) + (dt * p.torque[i] - (l - l_old)).dot(spin(l_mid));
+  energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(spin(l));
+}
+
+// The viscous kick of particles [lo, hi), one particle at a time (the lanes' last particles).
+// Track: also each particle's dissipation and kinetic energy (KickEnergy).
+template <bool Track>
 double kick_particles(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
   const double dt = model.dt;
-  const double alpha = model.damping.cundall_translation, alpha_rot = model.damping.cundall_rotation;
   hi = std::min(hi, p.size());
   double v2max = 0;
   // The factors of the last damping seen, for translation and rotation (one value each in most runs).
@@ -174,40 +187,14 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
     if (arrays.damping_of[i] != damping) kick = DampedKick(damping = arrays.damping_of[i], dt);  // A_i (SPEC 6)
     if (arrays.damping_rot_of[i] != damping_rot)
       kick_rot = DampedKick(damping_rot = arrays.damping_rot_of[i], dt);  // B_i
-    Vec3 accel = arrays.force[i] * arrays.inv_mass[i];
-    Vec3 moment = arrays.torque[i];
-    if constexpr (Local) {
-      // The sign of the fluctuating velocity at t predicted from t - dt/2 (YADE's cundallDamp2nd);
-      // a sphere's omega has the signs of L; an ellipsoid's moment is damped by omega at q(t) from
-      // L(t - dt/2) (YADE's cundallDamp1st for aspherical bodies).
-      accel = cundall_damped(accel, arrays.vel[i] + 0.5 * dt * accel, alpha);
-      moment = cundall_damped(moment,
-                              arrays.shape[i] == ShapeKind::sphere ? Vec3(arrays.angmom[i] + 0.5 * dt * moment)
-                                                                   : arrays.omega[i],
-                              alpha_rot);
-    }
-    // Cundall's damping leaves a free particle's momentum alone: only the viscous decay settles it.
-    const Vec3 v = Local ? kick(arrays.vel[i], accel) : settle(kick(arrays.vel[i], accel));
     const Vec3 v_old = arrays.vel[i], l_old = arrays.angmom[i];
+    const Vec3 v = settle(kick(v_old, arrays.force[i] * arrays.inv_mass[i]));
     arrays.vel[i] = v;
     v2max = std::max(v2max, v.squaredNorm());
     // Rotation with D_i = B_i I_i: the same form on the angular momentum (SPEC 5).
-    const Vec3 l = Local ? kick_rot(l_old, moment) : settle(kick_rot(l_old, moment));
+    const Vec3 l = settle(kick_rot(l_old, arrays.torque[i]));
     arrays.angmom.set(i, l);
-    if constexpr (Track) {
-      // The kick's energy identity: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the damping
-      // took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
-      // drift keeps the rotational energy: a free rotation).
-      const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
-      const auto spin = [&](const Vec3& x) {
-        return arrays.shape[i] == ShapeKind::sphere ? Vec3(x * arrays.inv_moment[i])
-                                                    : angular_velocity(p.q[i], p.inertia[i], x);
-      };
-      const double mass = 1 / arrays.inv_mass[i];
-      energy.dissipated[i] = (dt * arrays.force[i] - mass * (v - v_old)).dot(v_mid) +
-                             (dt * arrays.torque[i] - (l - l_old)).dot(spin(l_mid));
-      energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(spin(l));
-    }
+    if constexpr (Track) kick_energy(p, i, dt, v_old, v, l_old, l, energy);
     // A sphere's inertia is isotropic: omega = L / I, no frame change needed. An ellipsoid's
     // omega is set by advance_positions at its new orientation (nothing reads it before).
     if (arrays.shape[i] == ShapeKind::sphere) arrays.omega[i] = l * arrays.inv_moment[i];
@@ -215,7 +202,7 @@ double kick_particles(const Model& model, Particles& p, std::size_t lo, std::siz
   return v2max;
 }
 
-// The viscous kick (kick_particles<false, false>) four particles at a time. The 3-vector arrays
+// The viscous kick (kick_particles<false>) four particles at a time. The 3-vector arrays
 // are read as the components' lanes of four particles (load_xyz4: three loads and six shuffles),
 // so the arithmetic runs in vector lanes without the stride-3 loads GCC makes of them. Each lane
 // has its own factors of DampedKick, computed by the same operations (the same bits as the
@@ -353,9 +340,9 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   return {v.x + w * uv.x + c.x, v.y + w * uv.y + c.y, v.z + w * uv.z + c.z};
 }
 
-// The kick's energy terms of four particles (kick_particles' Track, the same operations in the
-// same order): the dissipation (dt F - m dv).v_mid + (dt M - dL).omega(L_mid) and the kinetic
-// energy m |v|^2 / 2 + L.omega(L) / 2, with a sphere's omega = L / I and any other body's
+// The kick's energy terms of four particles (kick_energy, the same operations in the same order):
+// the dissipation (dt F - m dv).v_mid + (dt M - dL).omega(L_mid) and the kinetic energy
+// m |v|^2 / 2 + L.omega(L) / 2, with a sphere's omega = L / I and any other body's
 // angular_velocity (R I^-1 R^T L at the orientation before the drift).
 [[gnu::always_inline]] inline void kick_energy_lanes(const Particles& p, std::size_t i, bool spheres, double dt,
                                                      const Lanes4& inv_mass, const Xyz4& f, const Xyz4& v_old,
@@ -391,7 +378,7 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
 
 // With `move` (dt h^-1) it also translates the particles, s += dt h^-1 v with the new v, and adds
 // dt |v| to a surface `path`, as translate does (the same bits: a settled v is zeros or not
-// small, so no particle is still). Track: also the energy terms (kick_particles<false, true>).
+// small, so no particle is still). Track: also the energy terms (kick_energy).
 template <bool Track>
 QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t lo, std::size_t hi,
                                  const CellMap* move, double* path, KickEnergy energy) {
@@ -432,9 +419,43 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
   }
   double out = 0;
   for (std::size_t k = 0; k < 4; ++k) out = std::max(out, v2max[k]);
-  out = std::max(out, kick_particles<false, Track>(model, p, i, hi, energy));
+  out = std::max(out, kick_particles<Track>(model, p, i, hi, energy));
   if (move) translate(*move, dt, still_speed(*move), arrays.pos, arrays.vel, path, i, hi);
   return out;
+}
+
+// Cundall's local kick with the energy terms: chunk by chunk, the momenta before the kick kept,
+// the chunk kicked by local_kick, then kick_energy of each particle from both (in lanes, four at a
+// time; the chunk's last particles one at a time).
+QSDEM_CLONES double local_kick_tracked(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
+  hi = std::min(hi, p.size());
+  const double dt = model.dt;
+  constexpr std::size_t chunk = 256;
+  Vec3 v_old[chunk];
+  alignas(64) double lx[chunk], ly[chunk], lz[chunk];
+  const KickArrays arrays(p);
+  double v2max = 0;
+  for (std::size_t c0 = lo; c0 < hi; c0 += chunk) {
+    const std::size_t c1 = std::min(hi, c0 + chunk), n = c1 - c0;
+    std::copy(arrays.vel + c0, arrays.vel + c1, v_old);
+    std::copy(arrays.angmom.x + c0, arrays.angmom.x + c1, lx);
+    std::copy(arrays.angmom.y + c0, arrays.angmom.y + c1, ly);
+    std::copy(arrays.angmom.z + c0, arrays.angmom.z + c1, lz);
+    v2max = std::max(v2max, local_kick(p, c0, c1, dt, model.damping.cundall_translation, model.damping.cundall_rotation));
+    std::size_t a = 0;
+    for (; a + 4 <= n; a += 4) {
+      const std::size_t i = c0 + a;
+      std::uint32_t kinds;
+      std::memcpy(&kinds, arrays.shape + i, sizeof kinds);
+      kick_energy_lanes(p, i, kinds == 0, dt, load4(arrays.inv_mass + i), load_xyz4(arrays.force + i),
+                        load_xyz4(v_old + a), load_xyz4(arrays.vel + i), load_xyz4(arrays.torque + i),
+                        {load4(lx + a), load4(ly + a), load4(lz + a)},
+                        {load4(arrays.angmom.x + i), load4(arrays.angmom.y + i), load4(arrays.angmom.z + i)}, energy);
+    }
+    for (; a < n; ++a)
+      kick_energy(p, c0 + a, dt, v_old[a], arrays.vel[c0 + a], {lx[a], ly[a], lz[a]}, arrays.angmom[c0 + a], energy);
+  }
+  return v2max;
 }
 
 }  // namespace
@@ -450,7 +471,7 @@ double integrate_velocities(const Model& model, Particles& p, std::size_t lo, st
   if (!local)  // (moves in its pass)
     return energy.dissipated ? viscous_kick<true>(model, p, lo, hi, move, path, energy)
                              : viscous_kick<false>(model, p, lo, hi, move, path, {});
-  const double v2max = energy.dissipated ? kick_particles<true, true>(model, p, lo, hi, energy)
+  const double v2max = energy.dissipated ? local_kick_tracked(model, p, lo, hi, energy)
                                          : local_kick(p, lo, hi, model.dt, model.damping.cundall_translation,
                                                       model.damping.cundall_rotation);
   if (move) translate(*move, model.dt, still_speed(*move), p.s.data(), p.v.data(), path, lo, std::min(hi, p.size()));
