@@ -249,7 +249,8 @@ TEST(LocalDamping, KickIsThePlainSignFormulaBitForBit) {
         if (!track) continue;
         // The energy identity (physics.md 12): what the damping took, and the kinetic energy after.
         const auto omega = [&](const Vec3& x) {
-          return sphere ? Vec3(x * before.inv_transverse_moment[k]) : angular_velocity(before.q[k], before.inertia[k], x);
+          return sphere ? Vec3(x * before.inv_transverse_moment[k])
+                        : angular_velocity(before.q[k], before.inertia[k], x);
         };
         const double m = 1 / before.inv_mass[k];
         const Vec3 v_mid = 0.5 * (before.v[k] + v), l_mid = 0.5 * (before.angmom[k] + l);

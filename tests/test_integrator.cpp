@@ -405,24 +405,24 @@ TEST(Integrator, KickThatTranslatesIsTheKickThenTheDrift) {
   }
 }
 
-// The viscous kick that tracks energy runs in the same lanes: its dissipation and kinetic energy
-// are bit for bit the plain formula of one particle at a time (kick_particles' energy identity,
-// with a sphere's omega = L / I and any other body's R I^-1 R^T L at its orientation), for any
-// range (the last particles go one at a time), spheres, spheroids and ellipsoids of three moments
-// mixed within a group of four, turned bodies, and momenta that settle; and the kick itself is the
-// kick without the ledger.
-TEST(Integrator, EnergyKickInLanesIsTheFormulaBitForBit) {
+namespace {
+
+// The particles of the kick's lane tests: 27 (six groups of four and three left), spheres and
+// spheroids mixed within groups of four, one group of four spheroids and one of spheres; with
+// `all_bodies` also ellipsoids of three moments and turned bodies. Each lane its own damping
+// factors: none in the first group, one value from particle 16 on (the lanes keep their factors).
+// Particles 2, 9 and 17 have no force: their momenta settle (below 2^-540), or keep a normal
+// component. Omega is a marker that the viscous kick leaves an ellipsoid's alone.
+Particles kick_lane_particles(bool all_bodies) {
   const std::size_t n = 27;
   Particles p;
   for (std::size_t k = 0; k < n; ++k) {
-    const bool spheroid = k % 5 == 2 || (k >= 12 && k < 16), three = k % 7 == 3;  // a group of four bodies, one of spheres
+    const bool spheroid = k % 5 == 2 || (k >= 12 && k < 16), three = all_bodies && k % 7 == 3;
     const Vec3 axes = three ? Vec3(1.5, 1.2, 1.0) : spheroid ? Vec3(1.5, 1.0, 1.0) : Vec3::Ones();
     p.add(static_cast<std::uint32_t>(k), spheroid || three ? ShapeKind::ellipsoid : ShapeKind::sphere,
           axes * kRmin * (1 + 0.1 * double(k % 7)), kRho, Vec3::Constant(0.5),
-          Quat(1, 0.1 * double(k), -0.2, 0.05 * double(k)).normalized());
+          all_bodies ? Quat(Quat(1, 0.1 * double(k), -0.2, 0.05 * double(k)).normalized()) : Quat::Identity());
   }
-  Model model;
-  model.dt = 1e-7;
   const double factors[] = {0.0, 1e4, 3.7e5, 1e4, 2.1e6};
   for (std::size_t k = 0; k < n; ++k) {
     const double x = double(k) - 13.0;
@@ -432,12 +432,29 @@ TEST(Integrator, EnergyKickInLanesIsTheFormulaBitForBit) {
     p.torque[k] = Vec3(-x, 0.5, 1e-2 * x * x) * 1e-7;
     p.v[k] = Vec3(1e-4 * x, 2e-3, -3e-4 * x);
     p.angmom.set(k, Vec3(2e-12, -1e-13 * x, 5e-12 + 1e-13 * x));
+    p.omega[k] = Vec3(7, 8, 9);
   }
-  for (const std::size_t k : {2u, 9u, 17u}) {  // no force: these settle (below 2^-540), or keep a normal component
+  for (const std::size_t k : {2u, 9u, 17u}) {
     p.force[k] = p.torque[k] = Vec3::Zero();
     p.v[k] = 0x1p-545 * Vec3(1, -1, 0.5);
     p.angmom.set(k, k == 9 ? Vec3(0x1p-545, 1e-9, 0) : Vec3(-0x1p-545, 0, 0x1p-546));
   }
+  return p;
+}
+
+}  // namespace
+
+// The viscous kick that tracks energy runs in the same lanes: its dissipation and kinetic energy
+// are bit for bit the plain formula of one particle at a time (the energy identity, physics.md 12,
+// with a sphere's omega = L / I and any other body's R I^-1 R^T L at its orientation), for any
+// range (the last particles go one at a time), spheres, spheroids and ellipsoids of three moments
+// mixed within a group of four, turned bodies, and momenta that settle; and the kick itself is the
+// kick without the ledger.
+TEST(Integrator, EnergyKickInLanesIsTheFormulaBitForBit) {
+  const Particles p = kick_lane_particles(true);
+  const std::size_t n = p.size();
+  Model model;
+  model.dt = 1e-7;
   std::size_t bodies = 0;
   for (const auto& [lo, hi] : {std::pair<std::size_t, std::size_t>{0, n}, {1, n}, {2, 11}, {5, 8}, {6, 26}}) {
     Particles tracked = p, plain = p;
@@ -475,33 +492,10 @@ TEST(Integrator, EnergyKickInLanesIsTheFormulaBitForBit) {
 // [lo, hi) (the lanes' groups start at lo; the last particles go one at a time), spheres and
 // ellipsoids mixed within a group of four, and momenta that settle beside ones that do not.
 TEST(Integrator, ViscousKickInLanesIsTheFormulaBitForBit) {
-  const std::size_t n = 27;
-  Particles p;
-  for (std::size_t k = 0; k < n; ++k) {
-    const bool spheroid = k % 5 == 2 || (k >= 12 && k < 16);  // one group of four ellipsoids, one of spheres
-    p.add(static_cast<std::uint32_t>(k), spheroid ? ShapeKind::ellipsoid : ShapeKind::sphere,
-          (spheroid ? Vec3(1.5, 1.0, 1.0) : Vec3::Ones()) * kRmin * (1 + 0.1 * double(k % 7)), kRho,
-          Vec3::Constant(0.5), Quat::Identity());
-  }
+  const Particles p = kick_lane_particles(false);
+  const std::size_t n = p.size();
   Model model;
   model.dt = 1e-7;
-  const double factors[] = {0.0, 1e4, 3.7e5, 1e4, 2.1e6};
-  for (std::size_t k = 0; k < n; ++k) {
-    const double x = double(k) - 13.0;
-    // No damping in the first group, one value from particle 16 on (the lanes keep their factors).
-    p.damping_translation[k] = k < 4 ? 0.0 : k >= 16 ? 3.7e5 : factors[k % 5];
-    p.damping_rotation[k] = k < 4 ? 0.0 : k >= 16 ? 2.1e6 : factors[(k + 2) % 5];
-    p.force[k] = Vec3(0.3 * x, -1e-3 * x * x, 2.5) * 1e-2;
-    p.torque[k] = Vec3(-x, 0.5, 1e-2 * x * x) * 1e-7;
-    p.v[k] = Vec3(1e-4 * x, 2e-3, -3e-4 * x);
-    p.angmom.set(k, Vec3(2e-12, -1e-13 * x, 5e-12));
-    p.omega[k] = Vec3(7, 8, 9);
-  }
-  for (const std::size_t k : {2u, 9u, 17u}) {  // no force: these settle (below 2^-540), or keep a normal component
-    p.force[k] = p.torque[k] = Vec3::Zero();
-    p.v[k] = 0x1p-545 * Vec3(1, -1, 0.5);
-    p.angmom.set(k, k == 9 ? Vec3(0x1p-545, 1e-9, 0) : Vec3(-0x1p-545, 0, 0x1p-546));
-  }
   for (const auto& [lo, hi] : {std::pair<std::size_t, std::size_t>{0, n}, {1, n}, {2, 11}, {5, 8}, {6, 26}}) {
     Particles q = p;
     const double v2max = integrate_velocities(model, q, lo, hi);

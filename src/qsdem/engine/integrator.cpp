@@ -168,7 +168,8 @@ inline void kick_energy(const Particles& p, std::size_t i, double dt, const Vec3
                                            : angular_velocity(p.q[i], p.inertia[i], x);
   };
   const double mass = 1 / p.inv_mass[i];
-  energy.dissipated[i] = (dt * p.force[i] - mass * (v - v_old)).dot(v_mid) + (dt * p.torque[i] - (l - l_old)).dot(spin(l_mid));
+  energy.dissipated[i] =
+      (dt * p.force[i] - mass * (v - v_old)).dot(v_mid) + (dt * p.torque[i] - (l - l_old)).dot(spin(l_mid));
   energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(spin(l));
 }
 
@@ -370,8 +371,10 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   const Xyz4 v_mid{half * (v_old.x + v.x), half * (v_old.y + v.y), half * (v_old.z + v.z)};
   const Xyz4 l_mid{half * (l_old.x + l.x), half * (l_old.y + l.y), half * (l_old.z + l.z)};
   const Lanes4 mass = 1 / inv_mass;
-  const Xyz4 lost{dt * f.x - mass * (v.x - v_old.x), dt * f.y - mass * (v.y - v_old.y), dt * f.z - mass * (v.z - v_old.z)};
-  const Xyz4 lost_rot{dt * torque.x - (l.x - l_old.x), dt * torque.y - (l.y - l_old.y), dt * torque.z - (l.z - l_old.z)};
+  const Xyz4 lost{dt * f.x - mass * (v.x - v_old.x), dt * f.y - mass * (v.y - v_old.y),
+                  dt * f.z - mass * (v.z - v_old.z)};
+  const Xyz4 lost_rot{dt * torque.x - (l.x - l_old.x), dt * torque.y - (l.y - l_old.y),
+                      dt * torque.z - (l.z - l_old.z)};
   store4(energy.dissipated + i, dot(lost, v_mid) + dot(lost_rot, spin(l_mid)));
   store4(energy.kinetic + i, half * mass * squared(v) + half * dot(l, spin(l)));
 }
@@ -427,7 +430,8 @@ QSDEM_CLONES double viscous_kick(const Model& model, Particles& p, std::size_t l
 // Cundall's local kick with the energy terms: chunk by chunk, the momenta before the kick kept,
 // the chunk kicked by local_kick, then kick_energy of each particle from both (in lanes, four at a
 // time; the chunk's last particles one at a time).
-QSDEM_CLONES double local_kick_tracked(const Model& model, Particles& p, std::size_t lo, std::size_t hi, KickEnergy energy) {
+QSDEM_CLONES double local_kick_tracked(const Model& model, Particles& p, std::size_t lo, std::size_t hi,
+                                       KickEnergy energy) {
   hi = std::min(hi, p.size());
   const double dt = model.dt;
   constexpr std::size_t chunk = 256;
@@ -441,7 +445,8 @@ QSDEM_CLONES double local_kick_tracked(const Model& model, Particles& p, std::si
     std::copy(arrays.angmom.x + c0, arrays.angmom.x + c1, lx);
     std::copy(arrays.angmom.y + c0, arrays.angmom.y + c1, ly);
     std::copy(arrays.angmom.z + c0, arrays.angmom.z + c1, lz);
-    v2max = std::max(v2max, local_kick(p, c0, c1, dt, model.damping.cundall_translation, model.damping.cundall_rotation));
+    const double alpha = model.damping.cundall_translation, alpha_rot = model.damping.cundall_rotation;
+    v2max = std::max(v2max, local_kick(p, c0, c1, dt, alpha, alpha_rot));
     std::size_t a = 0;
     for (; a + 4 <= n; a += 4) {
       const std::size_t i = c0 + a;
