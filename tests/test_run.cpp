@@ -280,6 +280,67 @@ TEST(Run, ContactsGroupByTheOwnerOfTheirJEnd) {
   EXPECT_EQ(s.contact_owner_first, (std::vector<std::uint32_t>{0, 2, 3, 5, 5, 5, 8, 8, 8, 8, 8, 8}));
 }
 
+// A block's contacts as the force stage writes them (ForceBlock): those of the block's first
+// owner up from its first slot, the others down from its last (reverse pair order).
+// close_block_contacts moves the others after the first ones in pair order, grouped by owner,
+// and writes the block's row; the two ranges may overlap. owner_end gives the end of a
+// particle's owner's range.
+TEST(Run, BlockContactsCloseInPairOrderByOwner) {
+  Schedule s;
+  s.owner_first = {0, 10, 20, 30};  // three owners
+  EXPECT_EQ(owner_end(s, 0), 10u);
+  EXPECT_EQ(owner_end(s, 9), 10u);
+  EXPECT_EQ(owner_end(s, 10), 20u);
+  EXPECT_EQ(owner_end(s, 29), 30u);
+  Schedule one;
+  one.owner_first = {0, 30};
+  EXPECT_EQ(owner_end(one, 12), 30u);
+  // Block 0: slots [0, 9), particles of owner 1 first: pairs 100-106 with j 12 25 15 22 28 19 21
+  // (owners 1 2 1 2 2 1 2): 12 15 19 up from slot 0, 25 22 28 21 down from slot 9.
+  // Block 1: slots [9, 12), j 14 16 18 all owner 1: nothing moves. Block 2: slots [12, 17), its
+  // first owner 1: j 23 24 (owner 2) down from 17, no contact up: the ranges overlap.
+  const std::size_t n = 17;
+  PairList pairs;
+  pairs.contact_j.assign(n, 999);
+  pairs.contact_pairs.assign(n, 999);
+  pairs.contact_force.assign(n, Vec3::Constant(-1));
+  pairs.contact_torque_j.assign(n, Vec3::Constant(-1));
+  const auto put = [&](std::uint32_t slot, std::uint32_t pair, std::uint32_t j) {
+    pairs.contact_j[slot] = j, pairs.contact_pairs[slot] = pair;
+    pairs.contact_force[slot] = Vec3(pair, 0, 0), pairs.contact_torque_j[slot] = Vec3(0, pair, 0);
+  };
+  put(0, 100, 12), put(1, 102, 15), put(2, 105, 19);
+  put(8, 101, 25), put(7, 103, 22), put(6, 104, 28), put(5, 106, 21);
+  put(9, 110, 14), put(10, 111, 16), put(11, 112, 18);
+  put(16, 120, 23), put(15, 121, 24);
+  s.contact_owner_first.assign(3 * 4, 0);
+  std::vector<ForceBlock> blocks(3);
+  blocks[0].first_contact = 0, blocks[0].slot_end = 9, blocks[0].contacts = 3, blocks[0].later_contacts = 4;
+  blocks[1].first_contact = 9, blocks[1].slot_end = 12, blocks[1].contacts = 3, blocks[1].later_contacts = 0;
+  blocks[2].first_contact = 12, blocks[2].slot_end = 17, blocks[2].contacts = 0, blocks[2].later_contacts = 2;
+  for (std::size_t b = 0; b < 3; ++b) {
+    blocks[b].first_owner_end = 20;
+    close_block_contacts(s, pairs, b, blocks[b]);
+  }
+  EXPECT_EQ(blocks[0].contacts, 7u);
+  EXPECT_EQ(blocks[1].contacts, 3u);
+  EXPECT_EQ(blocks[2].contacts, 2u);
+  const std::vector<std::uint32_t> j_of_block0 = {12, 15, 19, 25, 22, 28, 21};  // owner 1, then owner 2 by pair
+  EXPECT_EQ(std::vector<std::uint32_t>(pairs.contact_j.begin(), pairs.contact_j.begin() + 7), j_of_block0);
+  EXPECT_EQ(std::vector<std::uint32_t>(pairs.contact_pairs.begin(), pairs.contact_pairs.begin() + 7),
+            (std::vector<std::uint32_t>{100, 102, 105, 101, 103, 104, 106}));
+  EXPECT_EQ(std::vector<std::uint32_t>(pairs.contact_j.begin() + 9, pairs.contact_j.begin() + 14),
+            (std::vector<std::uint32_t>{14, 16, 18, 23, 24}));
+  EXPECT_EQ(pairs.contact_pairs[12], 120u);
+  EXPECT_EQ(pairs.contact_pairs[13], 121u);
+  for (const std::uint32_t m : {0u, 1u, 2u, 3u, 4u, 5u, 6u, 9u, 10u, 11u, 12u, 13u}) {
+    EXPECT_EQ(pairs.contact_force[m].x(), pairs.contact_pairs[m]) << "slot " << m;
+    EXPECT_EQ(pairs.contact_torque_j[m].y(), pairs.contact_pairs[m]) << "slot " << m;
+  }
+  // Rows: owner 0 none, owner 1 [0, 3), owner 2 [3, 7); block 1 all owner 1; block 2 all owner 2.
+  EXPECT_EQ(s.contact_owner_first, (std::vector<std::uint32_t>{0, 0, 3, 7, 9, 9, 12, 12, 12, 12, 12, 14}));
+}
+
 // A thread done with its blocks takes those left at the end of another thread's range
 // (compute_contact_forces). Here every step's cut gives all the blocks to thread 1 (the smoothed
 // block times are overwritten: the first block seems to cost everything), so thread 0 can only

@@ -39,7 +39,7 @@ struct ForceInputs {
   const EllipsoidShape* shapes;  // per particle, when some particle is an ellipsoid
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
-  Schedule& schedule;            // owners of the update region (group_contacts_by_owner)
+  Schedule& schedule;            // owners of the update region (close_block_contacts)
   double* contact_stiffness = nullptr;             // State's, for a law that sums stiffnesses
   double* contact_rotational_stiffness = nullptr;
 };
@@ -221,29 +221,35 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, con
   for (int q = 0; q < 3; ++q) stiffness[q] = acc.stiffness_sum[q], shear_stiffness[q] = acc.shear_stiffness_sum[q];
   double max_overlap = acc.max_overlap;
   std::size_t max_overlap_pair = acc.max_overlap_pair;
-  const std::uint32_t slot = acc.first_contact + acc.contacts;  // the lanes' first contact slot
-  std::uint32_t* const contact_j = pairs.contact_j.data() + slot;
-  std::uint32_t* const contact_pairs = pairs.contact_pairs.data() + slot;
-  Vec3* const contact_force = pairs.contact_force.data() + slot;
-  Vec3* const contact_torque = pairs.contact_torque_j.data() + slot;
+  // Each contact's slot: up from the block's first for a j end of the block's first owner, else
+  // down from its last (ForceBlock; close_block_contacts groups them).
+  std::uint32_t up = acc.first_contact + acc.contacts, down = acc.slot_end - acc.later_contacts;
+  std::uint32_t at[ContactLanes<Law>::stride];
+  std::uint32_t* const contact_j = pairs.contact_j.data();
+  std::uint32_t* const contact_pairs = pairs.contact_pairs.data();
+  Vec3* const contact_force = pairs.contact_force.data();
+  Vec3* const contact_torque = pairs.contact_torque_j.data();
   double* const overlap = pairs.overlap.data();
   double* const history = pairs.history.values.data();
   Vec3* const force = p.force.data();
   Vec3* const torque = p.torque.data();
   for (int a = 0; a < c.size; ++a) {
     const std::uint32_t k = c.pair[a], i = c.first[a], j = c.second[a];
+    const std::uint32_t first_owner = j < acc.first_owner_end ? 1 : 0;
+    at[a] = first_owner != 0 ? up : down - 1;
+    up += first_owner, down -= 1 - first_owner;
     const double delta = g.overlap[BySlot ? c.slot[a] : a];
     overlap[k] = delta;
-    contact_j[a] = j;
-    contact_pairs[a] = k;
+    contact_j[at[a]] = j;
+    contact_pairs[at[a]] = k;
     if (delta > max_overlap * c.r_min[a]) {  // delta / R_min > max, without a division per contact
       max_overlap = delta / c.r_min[a];
       max_overlap_pair = k;
     }
     for (int m = 0; m < width; ++m) history[width * k + m] = c.history[m][a];
     const Vec3 f(c.fx[a], c.fy[a], c.fz[a]);
-    contact_force[a] = f;
-    contact_torque[a] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
+    contact_force[at[a]] = f;
+    contact_torque[at[a]] = Vec3(c.tjx[a], c.tjy[a], c.tjz[a]);
     force[i] -= f;
     torque[i] += Vec3(c.tix[a], c.tiy[a], c.tiz[a]);
     for (int m = 0; m < 9; ++m) stress[m] += c.stress[m][a];
@@ -254,7 +260,7 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, con
       const std::uint32_t i = c.first[a];
       in.contact_stiffness[i] += c.kn[a];
       in.contact_rotational_stiffness[i] += c.kt_arm_i[a];
-      pairs.contact_stiffness_j[slot + a] = {c.kn[a], c.kt_arm_j[a]};
+      pairs.contact_stiffness_j[at[a]] = {c.kn[a], c.kt_arm_j[a]};
     }
   if constexpr (Law::has_dashpots)
     for (int a = 0; a < c.size; ++a)
@@ -267,7 +273,8 @@ void commit_contacts(const ForceInputs<Law>& in, const ContactLanes<Law>& c, con
       acc.viscous_work += c.viscous_work[a];
       acc.stiffness_work += c.stiffness_work[a];
     }
-  acc.contacts += static_cast<std::uint32_t>(c.size);
+  acc.contacts = up - acc.first_contact;
+  acc.later_contacts = acc.slot_end - down;
   for (int r = 0; r < 3; ++r)
     for (int q = 0; q < 3; ++q) acc.stress_sum(r, q) = stress[3 * r + q];
   for (int q = 0; q < 3; ++q) acc.stiffness_sum[q] = stiffness[q], acc.shear_stiffness_sum[q] = shear_stiffness[q];
@@ -306,6 +313,16 @@ inline void mark_apart(PairList& pairs, std::uint32_t k) {
     for (int m = 0; m < width; ++m) h[m] = Law::history.released[m];
 }
 
+// Block b's results before its pairs: where its contacts go (ForceBlock::first_contact,
+// first_owner_end, slot_end).
+inline ForceBlock open_block(const Schedule& schedule, const PairList& pairs, std::size_t b) {
+  ForceBlock acc;
+  acc.first_contact = pairs.first_i[pairs.block_first[b]];
+  acc.slot_end = pairs.first_i[pairs.block_first[b + 1]];
+  acc.first_owner_end = owner_end(schedule, pairs.block_first[b]);
+  return acc;
+}
+
 // Zeroes the i-side resultants of block b's particles (the pair loop sums into them), and their
 // stiffness sums for a law that sums stiffnesses.
 template <class Law>
@@ -336,8 +353,7 @@ QSDEM_CLONES void to_test(const double* path, const std::uint32_t* pair_i,
 // Built as the lanes it calls are (their inlined parts in vector lanes of the same width).
 template <class Law>
 QSDEM_CLONES_WIDE ForceBlock force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs, std::size_t b) {
-  ForceBlock acc;
-  acc.first_contact = pairs.first_i[pairs.block_first[b]];
+  ForceBlock acc = open_block(in.schedule, pairs, b);
   clear_block_resultants(in, p, pairs, b);
   constexpr int capacity = EllipsoidContactBatch::capacity;
   EllipsoidContactBatch batch;
@@ -436,7 +452,7 @@ QSDEM_CLONES_WIDE ForceBlock force_block(const ForceInputs<Law>& in, Particles& 
     }
   }
   flush_contacts(in, contacts, batch.geometry, p, pairs, acc);
-  group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
+  close_block_contacts(in.schedule, pairs, b, acc);
   return acc;
 }
 
@@ -469,8 +485,7 @@ QSDEM_CLONES_WIDE void sphere_tests(const CellMap& h, double* lx, double* ly, do
 template <class Law>
 QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Particles& p, PairList& pairs,
                                                 std::size_t b) {
-  ForceBlock acc;
-  acc.first_contact = pairs.first_i[pairs.block_first[b]];
+  ForceBlock acc = open_block(in.schedule, pairs, b);
   clear_block_resultants(in, p, pairs, b);
   constexpr std::uint32_t chunk = 128;
   std::uint32_t tested[chunk], touching[chunk], lost[chunk];
@@ -528,7 +543,7 @@ QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Part
     }
   }
   flush_sphere_contacts(in, contacts, p, pairs, acc);
-  group_contacts_by_owner(in.schedule, pairs, b, acc.first_contact, acc.contacts);
+  close_block_contacts(in.schedule, pairs, b, acc);
   return acc;
 }
 

@@ -152,6 +152,47 @@ QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::siz
   }
 }
 
+std::uint32_t owner_end(const Schedule& s, std::size_t i) {
+  // The first owner whose range starts after i (owner_first ascends): i's owner is the one before.
+  const auto after = std::upper_bound(s.owner_first.begin() + 1, s.owner_first.end() - 1, i);
+  return static_cast<std::uint32_t>(*after);
+}
+
+void close_block_contacts(Schedule& s, PairList& pairs, std::size_t b, ForceBlock& block) {
+  const std::size_t owners = s.owners();
+  std::uint32_t* const row = s.contact_owner_first.data() + b * (owners + 1);
+  const std::uint32_t first = block.first_contact, front = block.contacts, later = block.later_contacts;
+  // The block's first owner: the one whose range ends at first_owner_end.
+  std::size_t home = 0;
+  while (home + 1 < owners && s.owner_first[home + 1] < block.first_owner_end) ++home;
+  block.contacts = front + later;
+  block.later_contacts = 0;
+  if (later == 0) {
+    for (std::size_t t = 0; t <= owners; ++t) row[t] = t <= home ? first : first + front;
+    return;
+  }
+  // The others, reversed into pair order right after the first owner's (through a copy: the two
+  // ranges may overlap).
+  const std::uint32_t from = block.slot_end - later, to = first + front;
+  const auto reverse_into_place = [&](auto& array, auto& copy) {
+    copy.assign(array.begin() + from, array.begin() + from + later);
+    std::copy(copy.rbegin(), copy.rend(), array.begin() + to);
+  };
+  thread_local std::vector<std::uint32_t> copy_u32;
+  thread_local std::vector<Vec3> copy_vec;
+  reverse_into_place(pairs.contact_pairs, copy_u32);
+  reverse_into_place(pairs.contact_j, copy_u32);
+  reverse_into_place(pairs.contact_force, copy_vec);
+  reverse_into_place(pairs.contact_torque_j, copy_vec);
+  if (!pairs.contact_stiffness_j.empty()) {
+    thread_local std::vector<std::array<double, 2>> copy_stiffness;
+    reverse_into_place(pairs.contact_stiffness_j, copy_stiffness);
+  }
+  // Their owners all follow the first owner (j > i): with two owners they are one group.
+  group_contacts_by_owner(s, pairs, b, to, later);
+  for (std::size_t t = 0; t <= home; ++t) row[t] = first;
+}
+
 void record_thread_balance(const Schedule& s, StageTimers& timers) {
   double busiest = 0, sum = 0;
   for (const double busy : s.thread_busy) {

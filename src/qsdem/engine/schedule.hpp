@@ -66,6 +66,18 @@ void assign_single_owner(Schedule& s, const State& state);
 // writes the block's row of contact_owner_first.
 void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first, std::uint32_t count);
 
+// The end of the particles of the owner of particle i: the force stage's block that starts at i
+// writes the contacts whose j end is below it up from its first slot, the others down from its
+// last (ForceBlock::first_owner_end). With one owner, every particle's.
+std::uint32_t owner_end(const Schedule& s, std::size_t i);
+
+// Block b's contacts as the force stage wrote them (ForceBlock: those of the block's first owner
+// up from first_contact, in pair order; the others down from slot_end, in reverse pair order):
+// the others moved after the first ones in pair order and grouped by owner
+// (group_contacts_by_owner), the block's row of contact_owner_first written, and `contacts` the
+// block's count. Only the others move: a block whose j ends its first owner holds moves nothing.
+void close_block_contacts(Schedule& s, PairList& pairs, std::size_t b, ForceBlock& block);
+
 // Block b took `seconds` this step: its time and smoothed weight.
 inline void record_block_time(Schedule& s, std::size_t b, double seconds) {
   s.block_seconds[b] = seconds;

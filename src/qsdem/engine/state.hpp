@@ -33,6 +33,11 @@ struct ForceBlock {
   // order (Schedule::contact_owner_first).
   std::uint32_t first_contact = 0;
   std::uint32_t contacts = 0;
+  // While the block runs: the contacts whose j end the block's first owner holds (j below
+  // first_owner_end) go up from first_contact (`contacts` counts them), the others down from
+  // slot_end, the end of its pairs' slots (later_contacts); close_block_contacts then moves the
+  // others after the first ones.
+  std::uint32_t first_owner_end = 0, slot_end = 0, later_contacts = 0;
 };
 
 // The energy of a run since its start (docs/physics.md 12), kept only when Model::track_energy.
