@@ -1,6 +1,7 @@
 #include "qsdem/engine/schedule.hpp"
 
 #include <algorithm>
+#include <array>
 
 #include "qsdem/engine/clones.hpp"
 
@@ -88,6 +89,25 @@ void assign_single_owner(Schedule& s, const State& state) {
   }
 }
 
+namespace {
+
+// The arrays of a block's contacts that move together when they are grouped (PairList::
+// contact_pairs, contact_j, contact_force, contact_torque_j and, when summed,
+// contact_stiffness_j): f(array, copy) with the calling thread's scratch copy of its type.
+template <class F>
+void for_each_contact_array(PairList& pairs, F&& f) {
+  thread_local std::vector<std::uint32_t> copy_u32;
+  thread_local std::vector<Vec3> copy_vec;
+  thread_local std::vector<std::array<double, 2>> copy_stiffness;
+  f(pairs.contact_pairs, copy_u32);
+  f(pairs.contact_j, copy_u32);
+  f(pairs.contact_force, copy_vec);
+  f(pairs.contact_torque_j, copy_vec);
+  if (!pairs.contact_stiffness_j.empty()) f(pairs.contact_stiffness_j, copy_stiffness);
+}
+
+}  // namespace
+
 QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first,
                                           std::uint32_t count) {
   const std::size_t owners = s.owners();
@@ -98,8 +118,7 @@ QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::siz
   }
   // Each contact's owner: the number of the owners' first particles, after the first, at or below
   // its j (in vector lanes; the arrays are the thread's own, kept from block to block).
-  thread_local std::vector<std::uint32_t> group, slot, copy_u32;
-  thread_local std::vector<Vec3> copy_vec;
+  thread_local std::vector<std::uint32_t> group, slot;
   group.resize(count);
   const std::uint32_t* const js = pairs.contact_j.data() + first;
   std::uint32_t* const g = group.data();
@@ -138,18 +157,10 @@ QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::siz
       at -= mine;
     }
   }
-  const auto move = [&](auto& array, auto& copy) {
+  for_each_contact_array(pairs, [&](auto& array, auto& copy) {
     copy.assign(array.begin() + first, array.begin() + first + count);
     for (std::uint32_t c = 0; c < count; ++c) array[to[c]] = copy[c];
-  };
-  move(pairs.contact_pairs, copy_u32);
-  move(pairs.contact_j, copy_u32);
-  move(pairs.contact_force, copy_vec);
-  move(pairs.contact_torque_j, copy_vec);
-  if (!pairs.contact_stiffness_j.empty()) {
-    thread_local std::vector<std::array<double, 2>> copy_stiffness;
-    move(pairs.contact_stiffness_j, copy_stiffness);
-  }
+  });
 }
 
 std::uint32_t owner_end(const Schedule& s, std::size_t i) {
@@ -174,20 +185,10 @@ void close_block_contacts(Schedule& s, PairList& pairs, std::size_t b, ForceBloc
   // The others, reversed into pair order right after the first owner's (through a copy: the two
   // ranges may overlap).
   const std::uint32_t from = block.slot_end - later, to = first + front;
-  const auto reverse_into_place = [&](auto& array, auto& copy) {
+  for_each_contact_array(pairs, [&](auto& array, auto& copy) {
     copy.assign(array.begin() + from, array.begin() + from + later);
     std::copy(copy.rbegin(), copy.rend(), array.begin() + to);
-  };
-  thread_local std::vector<std::uint32_t> copy_u32;
-  thread_local std::vector<Vec3> copy_vec;
-  reverse_into_place(pairs.contact_pairs, copy_u32);
-  reverse_into_place(pairs.contact_j, copy_u32);
-  reverse_into_place(pairs.contact_force, copy_vec);
-  reverse_into_place(pairs.contact_torque_j, copy_vec);
-  if (!pairs.contact_stiffness_j.empty()) {
-    thread_local std::vector<std::array<double, 2>> copy_stiffness;
-    reverse_into_place(pairs.contact_stiffness_j, copy_stiffness);
-  }
+  });
   // Their owners all follow the first owner (j > i): with two owners they are one group.
   group_contacts_by_owner(s, pairs, b, to, later);
   for (std::size_t t = 0; t <= home; ++t) row[t] = first;
