@@ -157,9 +157,10 @@ struct KickArrays {
         pos(p.s.data()) {}
 };
 
-// The kick's energy identity of particle i: m (v' - v).(v' + v)/2 = dt F.v_mid - dissipated, so the
-// damping took (dt F - m dv).v_mid; the same with M, L and omega = I^-1 L at this orientation (the
-// drift keeps the rotational energy: a free rotation). Also the kinetic energy after the kick.
+// The kick's energy identity of particle i (physics.md 12, D_p): m (v' - v).(v' + v)/2 =
+// dt F.v_mid - dissipated, so the damping took (dt F - m dv).v_mid; the same with M, L and
+// omega = I^-1 L at this orientation (the drift keeps the rotational energy: a free rotation).
+// Also the kinetic energy after the kick.
 inline void kick_energy(const Particles& p, std::size_t i, double dt, const Vec3& v_old, const Vec3& v,
                         const Vec3& l_old, const Vec3& l, KickEnergy energy) {
   const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
