@@ -86,12 +86,13 @@ inline void record_block_time(Schedule& s, std::size_t b, double seconds) {
 }
 
 // Runs every block once on nthreads threads: run(b) returns its seconds. Each thread starts with
-// its range (block_cut), from the front; a thread done with it takes the blocks left at the end
-// of the others' ranges, one at a time, from the back: the owner and the thief meet where the
+// its range (block_cut), from the back: a block's pairs reach forward (j > i), to particles the
+// blocks run before it have just loaded. A thread done with its range takes the blocks left at
+// the front of the others', one at a time, from the front: the owner and the thief meet where the
 // range's work is shared as it happens (the smoothed cut misses by the noise of the last steps).
-// A block is claimed once, by an atomic exchange
-// of its flag; the owner stops at the first block a thief has claimed, and a thief at the first
-// one claimed by anyone, so each range is a prefix of its owner's and a suffix of one thief's.
+// A block is claimed once, by an atomic exchange of its flag; the owner stops at the first block a
+// thief has claimed, and a thief at the first one claimed by anyone, so each range is a suffix of
+// its owner's and a prefix of one thief's.
 template <class Run>
 void run_blocks(Schedule& s, std::size_t nblocks, int nthreads, Run&& run) {
   s.block_claimed.assign(nblocks, 0);
@@ -105,10 +106,10 @@ void run_blocks(Schedule& s, std::size_t nblocks, int nthreads, Run&& run) {
     const int team = omp_get_num_threads(), me = omp_get_thread_num();
     double busy = 0;
     for (int r = me; r < nthreads; r += team)
-      for (std::size_t b = cut[r]; b < cut[r + 1] && claim(b); ++b) busy += run(b);
+      for (std::size_t b = cut[r + 1]; b-- > cut[r] && claim(b);) busy += run(b);
     for (int d = 1; d < nthreads; ++d) {
       const int r = (me + d) % nthreads;
-      for (std::size_t b = cut[r + 1]; b-- > cut[r] && claim(b);) busy += run(b);
+      for (std::size_t b = cut[r]; b < cut[r + 1] && claim(b); ++b) busy += run(b);
     }
     s.thread_busy[static_cast<std::size_t>(me)] = busy;
   }
