@@ -82,6 +82,13 @@ TEST(Bench, StepsACheckpointAsARunDoes) {
   EXPECT_EQ(b["particles"].get<long>(), 120);
   EXPECT_EQ(b["ellipsoids"].get<long>(), 120);
   EXPECT_GT(b["particle_steps_per_s"].get<double>(), 0.0);
+  // 120 particles are within any cache: not prefetched, unless asked; the same bits either way.
+  EXPECT_EQ(b["prefetch_j_ends"]["used"], false);
+  EXPECT_EQ(b["prefetch_j_ends"]["engine_choice"], false);
+  const nlohmann::json prefetched = bench_packing(dir, "", {}, 30, false, true);
+  EXPECT_EQ(prefetched["prefetch_j_ends"]["used"], true);
+  EXPECT_EQ(prefetched["prefetch_j_ends"]["engine_choice"], false);
+  EXPECT_EQ(prefetched["ekin_J"].get<double>(), ref.ekin_trans + ref.ekin_rot);
 }
 
 TEST(Bench, APackingStartsAtRestWithoutHistory) {

@@ -102,6 +102,7 @@ struct CommandLine {
   std::string bench_source;
   long steps = 1000;
   bool as_spheres = false;
+  std::string prefetch = "auto";
   std::string study_file;
   int parallel = 0;
   std::string order;
@@ -195,6 +196,10 @@ void add_bench(CLI::App& app, CommandLine& c, const CLI::Validator& cores) {
   c.bench->add_flag("--as-spheres", c.as_spheres,
                     "Replace every ellipsoid by its equal-volume sphere at the same centre first, at rest and without "
                     "contact history (the sphere path on the same packing)");
+  c.bench->add_option("--prefetch", c.prefetch,
+                      "Whether the pair loops fetch the j ends' data ahead: auto (when the particles' arrays take "
+                      "more than half the last-level cache), on or off; the results are the same bits")
+      ->check(CLI::IsMember({"auto", "on", "off"}));
 }
 
 // `study`, `analyze` and `converge`: studies, their analysis, and a case's certificate.
@@ -317,7 +322,9 @@ int execute(CommandLine& c) {
     qsdem::analyze_study(c.analyze_dir);
     std::cout << "Analysis written to " << c.analyze_dir << "/analysis/\n";
   } else if (*c.bench) {
-    std::cout << qsdem::json_text(qsdem::bench_packing(c.bench_source, c.case_path, c.overrides, c.steps, c.as_spheres), -1) << std::endl;
+    std::cout << qsdem::json_text(qsdem::bench_packing(c.bench_source, c.case_path, c.overrides, c.steps, c.as_spheres,
+                                                                   c.prefetch == "auto" ? std::nullopt
+                                                                                        : std::optional<bool>(c.prefetch == "on")), -1) << std::endl;
   }
   return 0;
 }

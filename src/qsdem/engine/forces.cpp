@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <fstream>
+#include <string>
 #include <stdexcept>
 
 #include "qsdem/engine/clones.hpp"
@@ -39,10 +41,26 @@ struct ForceInputs {
   const EllipsoidShape* shapes;  // per particle, when some particle is an ellipsoid
   const NeighborState& ns;
   bool skip_apart;               // skip pairs provably apart (neighbor.hpp)
+  bool prefetch_j_ends;          // fetch the j ends' data ahead (Model::prefetch_j_ends)
   Schedule& schedule;            // owners of the update region (close_block_contacts)
   double* contact_stiffness = nullptr;             // State's, for a law that sums stiffnesses
   double* contact_rotational_stiffness = nullptr;
 };
+
+// The size of the largest cache of CPU 0 from sysfs (in a virtual machine, sysconf gives the
+// host's total of every L3), else 32 MiB.
+long last_level_cache_bytes() {
+  long largest = 0;
+  for (int index = 0;; ++index) {
+    std::ifstream in("/sys/devices/system/cpu/cpu0/cache/index" + std::to_string(index) + "/size");
+    long size = 0;
+    char unit = 0;
+    if (!(in >> size)) break;
+    in >> unit;
+    largest = std::max(largest, size * (unit == 'K' ? 1l << 10 : unit == 'M' ? 1l << 20 : 1l));
+  }
+  return largest > 0 ? largest : 32l << 20;
+}
 
 // The pair driver: written once, instantiated per contact law (contact/law.hpp).
 //
@@ -313,6 +331,22 @@ inline void mark_apart(PairList& pairs, std::uint32_t k) {
     for (int m = 0; m < width; ++m) h[m] = Law::history.released[m];
 }
 
+// What the pair loops read of a pair's j end (its position, radius and shape) and of a contact's
+// (its velocities and R_j), fetched ahead (Model::prefetch_j_ends).
+inline void prefetch_pair_end(const Particles& p, const EllipsoidShape* shapes, std::uint32_t j) {
+  __builtin_prefetch(p.s.data() + j);
+  __builtin_prefetch(p.bound_radius.data() + j);
+  if (shapes != nullptr) {
+    __builtin_prefetch(p.shape.data() + j);
+    __builtin_prefetch(shapes + j);
+  }
+}
+inline void prefetch_contact_end(const Particles& p, std::uint32_t j) {
+  __builtin_prefetch(p.v.data() + j);
+  __builtin_prefetch(p.omega.data() + j);
+  __builtin_prefetch(p.equiv_radius.data() + j);
+}
+
 // Block b's results before its pairs: where its contacts go (ForceBlock::first_contact,
 // first_owner_end, slot_end).
 inline ForceBlock open_block(const Schedule& schedule, const PairList& pairs, std::size_t b) {
@@ -395,6 +429,12 @@ QSDEM_CLONES_WIDE ForceBlock force_block(const ForceInputs<Law>& in, Particles& 
     for (std::uint32_t m0 = 0; m0 < nl; m0 += capacity) {
       const int nt = static_cast<int>(std::min<std::uint32_t>(capacity, nl - m0));
       const std::uint32_t* const tested = listed + m0;
+      if (in.prefetch_j_ends)  // the next batch's j ends (and the window's first batch's own)
+        for (std::uint32_t m = m0 == 0 ? 0 : m0 + capacity; m < std::min(nl, m0 + 2 * capacity); ++m) {
+          const std::uint32_t j = pair_j[listed[m]];
+          prefetch_pair_end(p, in.shapes, j);
+          prefetch_contact_end(p, j);
+        }
       // The batch writes its geometry in the other half of its slots: the lanes may still hold the
       // last batch's contacts. Any left from the batch before, whose half is reused (after batches
       // of few contacts), are evaluated first.
@@ -495,12 +535,15 @@ QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Part
   const std::uint32_t k0 = pairs.first_i[pairs.block_first[b]], k1 = pairs.first_i[pairs.block_first[b + 1]];
   const bool overlap_known = pairs.overlap_known;
   const double moved = in.skip_apart ? in.ns.moved_any() : 0;
+  const bool prefetch = in.prefetch_j_ends;
   const CellMap cell_map(in.cell.h);
   for (std::uint32_t c0 = k0; c0 < k1; c0 += chunk) {
     const std::uint32_t c1 = std::min(k1, c0 + chunk);
     // The pairs to test: not (still) provably apart, i.e. overlap 0 and no history since the test
     // that proved it. Listed without a branch on the outcome (it is ~50/50 and mispredicts).
     std::uint32_t nk = 0;
+    if (prefetch)  // the next chunk's
+      for (std::uint32_t k = c1; k < std::min(k1, c1 + chunk); ++k) prefetch_pair_end(p, nullptr, pairs.j[k]);
     for (std::uint32_t k = c0; k < c1; ++k) {
       tested[nk] = k;
       nk += in.skip_apart && moved < pairs.apart_until[k] ? 0 : 1;
@@ -526,6 +569,10 @@ QSDEM_CLONES_WIDE ForceBlock sphere_force_block(const ForceInputs<Law>& in, Part
       // The law's history, for a contact (the address by arithmetic, for the same reason); the
       // contacts are every ~9th listed pair, too sparse for the hardware prefetcher.
       __builtin_prefetch(pairs.history.values.data() + width * (c0 + (k - c0) * t), 1);
+      if (prefetch) {  // and its j end's velocities (else i's, already loaded)
+        const std::uint32_t i = pairs.i[k];
+        prefetch_contact_end(p, i + (pairs.j[k] - i) * t);
+      }
       lost[nl] = k;
       nl += (1 - t) & ((pairs.overlap[k] != 0 ? 1u : 0u) | (overlap_known ? 0u : 1u));
       if (in.skip_apart) pairs.apart_until[k] = until[m];
@@ -606,6 +653,11 @@ void sum_force_blocks(const Model& model, State& state) {
 
 }  // namespace
 
+bool beyond_cache(const Particles& p) {
+  static const long cache = last_level_cache_bytes();
+  return p.heap_bytes() > static_cast<std::size_t>(cache / 2);
+}
+
 void compute_contact_forces(const Model& model, State& state, Schedule& schedule) {
   Particles& p = state.particles;
   PairList& pairs = state.pairs;
@@ -657,12 +709,15 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
   assign_owners(schedule, pairs, n, owners, nthreads);
   const bool skip_apart = model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np;
+  // Beyond the cache a j end far from i in Morton order is in no cache, and its loads stall the
+  // pair loop; within it the prefetches cost a few per cent of the force stage.
+  const bool prefetch_j_ends = model.prefetch_j_ends.value_or(beyond_cache(p));
   std::visit(
       [&]<class Law>(const Law& law) {
         const auto run = [&]<bool Stiffness, bool Energy>() {
           const DrivenLaw<Law, Stiffness, Energy> driven{law};
           const ForceInputs<DrivenLaw<Law, Stiffness, Energy>> in{
-              driven,     model.dt, state.cell, state.shapes.data(), ns, skip_apart, schedule,
+              driven,     model.dt, state.cell, state.shapes.data(), ns, skip_apart, prefetch_j_ends, schedule,
               Stiffness ? state.contact_stiffness.data() : nullptr,
               Stiffness ? state.contact_rotational_stiffness.data() : nullptr};
           run_force_blocks(in, state, nblocks, nthreads, all_spheres);

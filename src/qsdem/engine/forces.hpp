@@ -16,6 +16,10 @@ namespace qsdem {
 // blocks among the threads by `schedule` and sets its owners for the update region.
 void compute_contact_forces(const Model& model, State& state, Schedule& schedule);
 
+// Whether the particles' arrays take more than half the last-level cache: when Model::prefetch_j_ends
+// is unset, compute_contact_forces then fetches the j ends' data ahead.
+bool beyond_cache(const Particles& p);
+
 // The contact forces on the j ends of the last evaluation by pair (PairList keeps them by
 // contact), zero for a pair that is not a contact: each pair's slot in PairList::contact_force,
 // 4 bytes a pair where a copy of the forces would take 24. For measures and checks; it allocates.

@@ -59,6 +59,9 @@ struct Model {
   bool track_energy = false;    // keep State::energy (the force stage and the kick sum their terms)
   bool skip_apart_pairs = false;  // skip ellipsoid pairs while provably apart (neighbor.hpp); needs
                                   // every move to go through step(); the protocols turn it on
+  // The pair loops fetch the j ends' data ahead: unset, when the particles' arrays outgrow the
+  // cache (forces.hpp, beyond_cache). Speed only: the results are the same bits either way.
+  std::optional<bool> prefetch_j_ends;
 };
 
 // The contact law `settings` names, made for `material` with Coulomb friction mu (InputError for an

@@ -29,6 +29,18 @@ bool Particles::has_ellipsoids() const {
   return any != 0;
 }
 
+std::size_t Particles::heap_bytes() const {
+  std::size_t bytes = 0;
+  const auto add = [&]<class T, class A>(const std::vector<T, A>& a) { bytes += a.capacity() * sizeof(T); };
+  for_each_field(*this, [&]<class Array>(const Array& array, ParticleField) {
+    if constexpr (requires { array.components(); })
+      for (const auto& c : array.components()) add(c);
+    else
+      add(array);
+  });
+  return bytes;
+}
+
 void Particles::derive_inverses() {
   resize(mass.size());  // sizes the derived arrays
   for (std::size_t i = 0; i < mass.size(); ++i) derive_inverses(i);

@@ -51,6 +51,7 @@ struct Particles {
 
   std::size_t size() const { return id.size(); }
   bool has_ellipsoids() const;
+  std::size_t heap_bytes() const;  // held by the arrays
   // Sets inv_mass, symmetry_axis and the inverse moments from mass and inertia (a restored
   // checkpoint stores only these).
   void derive_inverses();

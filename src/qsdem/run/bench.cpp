@@ -7,6 +7,7 @@
 #include <chrono>
 
 #include "qsdem/engine/damping/stage.hpp"
+#include "qsdem/engine/forces.hpp"
 #include "qsdem/engine/measures.hpp"
 #include "qsdem/engine/neighbor.hpp"
 #include "qsdem/engine/schedule.hpp"
@@ -27,20 +28,13 @@ template <class T, class A>
 double kib(const std::vector<T, A>& v) {
   return static_cast<double>(v.capacity() * sizeof(T)) / 1024;
 }
-template <class T>
-double kib(const ComponentArrays<T>& v) {
-  double sum = 0;
-  for (const auto& c : v.components()) sum += kib(c);
-  return sum;
-}
 
 // Heap held by the state's arrays (KiB), by structure: what `peak_rss_kib` is made of besides
 // the binary, its libraries and transient build buffers.
 nlohmann::json memory_kib(const State& st, const Schedule& schedule) {
   const Particles& p = st.particles;
   const PairList& q = st.pairs;
-  double particles = 0;
-  for_each_field(p, [&](const auto& array, ParticleField) { particles += kib(array); });
+  const double particles = static_cast<double>(p.heap_bytes()) / 1024;
   double history = kib(q.i) + kib(q.j) + kib(q.image);
   for_each_pair_field([&](const HistoryLayout&, PairField, const std::vector<double>& values) { history += kib(values); },
                       q);
@@ -121,7 +115,8 @@ long contact_count(const State& st) {
 }  // namespace
 
 nlohmann::json bench_packing(const std::filesystem::path& source, const std::string& case_path,
-                             const std::vector<std::string>& overrides, long steps, bool as_spheres) {
+                             const std::vector<std::string>& overrides, long steps, bool as_spheres,
+                             std::optional<bool> prefetch_j_ends) {
   BenchInput in = bench_input(source, case_path, overrides);
   State& st = in.state;
   const Params& params = in.params;
@@ -144,6 +139,7 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
   Model model = phase_model(params, phase, phase.controls, st.particles, st.cell.h);
   for (auto& c : model.control) c = {};
   assign_damping(model, st.particles);
+  model.prefetch_j_ends = prefetch_j_ends;
   // A packing's first list build is set-up, not stepping (LIGGGHTS' loop time leaves its own
   // out); at rest it changes no history. A checkpoint's list and history are stepped as they are.
   // The threads are started first: a run's rebuilds find them running, so first_build_s is the
@@ -178,6 +174,10 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
           {"pairs", st.pairs.size()},
           {"narrow_tests_per_step", static_cast<double>(narrow_tests) / static_cast<double>(std::max(1L, steps))},
           {"pw_iterations_per_step", static_cast<double>(pw_iterations) / static_cast<double>(std::max(1L, steps))},
+          // whether the pair loops fetched the j ends ahead, and whether the engine would by itself
+          {"prefetch_j_ends",
+           {{"used", model.prefetch_j_ends.value_or(beyond_cache(st.particles))},
+            {"engine_choice", beyond_cache(st.particles)}}},
           {"ekin_J", m.ekin_trans + m.ekin_rot},
           {"ekin_trans_J", m.ekin_trans},
           {"steps", steps},

@@ -1,6 +1,7 @@
 // `qsdem bench` (docs/benchmarks.md): the stepping of a packing or of a run's state, timed.
 #pragma once
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -18,7 +19,9 @@ namespace qsdem {
 //     checkpoint's own, or `case_path` when given (its material and time.step_ratio must equal it).
 // `overrides` are --set strings applied to the case. With `as_spheres`, every ellipsoid is first
 // replaced by its equal-volume sphere at the same centre, at rest and without contact history.
+// `prefetch_j_ends` sets Model::prefetch_j_ends (unset: the engine's choice).
 nlohmann::json bench_packing(const std::filesystem::path& source, const std::string& case_path,
-                             const std::vector<std::string>& overrides, long steps, bool as_spheres = false);
+                             const std::vector<std::string>& overrides, long steps, bool as_spheres = false,
+                             std::optional<bool> prefetch_j_ends = std::nullopt);
 
 }  // namespace qsdem
