@@ -332,19 +332,20 @@ inline void mark_apart(PairList& pairs, std::uint32_t k) {
 }
 
 // What the pair loops read of a pair's j end (its position, radius and shape) and of a contact's
-// (its velocities and R_j), fetched ahead (Model::prefetch_j_ends).
+// (its velocities and R_j), fetched ahead (Model::prefetch_j_ends) into L2 (prefetcht1): the
+// lines wait there while the lanes in between, which fill the L1, run.
 inline void prefetch_pair_end(const Particles& p, const EllipsoidShape* shapes, std::uint32_t j) {
-  __builtin_prefetch(p.s.data() + j);
-  __builtin_prefetch(p.bound_radius.data() + j);
+  __builtin_prefetch(p.s.data() + j, 0, 2);
+  __builtin_prefetch(p.bound_radius.data() + j, 0, 2);
   if (shapes != nullptr) {
-    __builtin_prefetch(p.shape.data() + j);
-    __builtin_prefetch(shapes + j);
+    __builtin_prefetch(p.shape.data() + j, 0, 2);
+    __builtin_prefetch(shapes + j, 0, 2);
   }
 }
 inline void prefetch_contact_end(const Particles& p, std::uint32_t j) {
-  __builtin_prefetch(p.v.data() + j);
-  __builtin_prefetch(p.omega.data() + j);
-  __builtin_prefetch(p.equiv_radius.data() + j);
+  __builtin_prefetch(p.v.data() + j, 0, 2);
+  __builtin_prefetch(p.omega.data() + j, 0, 2);
+  __builtin_prefetch(p.equiv_radius.data() + j, 0, 2);
 }
 
 // Block b's results before its pairs: where its contacts go (ForceBlock::first_contact,
