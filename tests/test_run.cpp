@@ -341,10 +341,10 @@ TEST(Run, BlockContactsCloseInPairOrderByOwner) {
   EXPECT_EQ(s.contact_owner_first, (std::vector<std::uint32_t>{0, 0, 3, 7, 9, 9, 12, 12, 12, 12, 12, 14}));
 }
 
-// A thread done with its blocks takes those left at the end of another thread's range
-// (compute_contact_forces). Here every step's cut gives all the blocks to thread 1 (the smoothed
-// block times are overwritten: the first block seems to cost everything), so thread 0 can only
-// work by taking blocks from the back of thread 1's range while thread 1 works from the front.
+// A thread done with its blocks takes those left at the front of another thread's range
+// (run_blocks). Here every step's cut gives all the blocks to thread 1 (the smoothed block times
+// are overwritten: the first block seems to cost everything), so thread 0 can only work by taking
+// blocks from the front of thread 1's range while thread 1 works from the back.
 // The state must stay bit for bit that of one thread, and thread 0 must have taken blocks.
 TEST(Run, ThreadsShareTheBlocksTheCutLeftUneven) {
   const auto [start, model] = large_packing();

@@ -710,9 +710,7 @@ void compute_contact_forces(const Model& model, State& state, Schedule& schedule
   const std::size_t owners = n > parallel_threshold ? static_cast<std::size_t>(omp_get_max_threads()) : 1;
   assign_owners(schedule, pairs, n, owners, nthreads);
   const bool skip_apart = model.skip_apart_pairs && motion_known && pairs.apart_until.size() == np;
-  // Beyond the cache a j end far from i in Morton order is in no cache, and its loads stall the
-  // pair loop; within it the prefetches gain nothing (docs/benchmarks.md, "Large samples").
-  const bool prefetch_j_ends = model.prefetch_j_ends.value_or(beyond_cache(p));
+  const bool prefetch_j_ends = prefetches_j_ends(model, p);
   std::visit(
       [&]<class Law>(const Law& law) {
         const auto run = [&]<bool Stiffness, bool Energy>() {

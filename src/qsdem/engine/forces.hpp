@@ -16,9 +16,15 @@ namespace qsdem {
 // blocks among the threads by `schedule` and sets its owners for the update region.
 void compute_contact_forces(const Model& model, State& state, Schedule& schedule);
 
-// Whether the particles' arrays take more than half the last-level cache: when Model::prefetch_j_ends
-// is unset, compute_contact_forces then fetches the j ends' data ahead.
+// Whether the particles' arrays take more than half the last-level cache.
 bool beyond_cache(const Particles& p);
+
+// Whether compute_contact_forces fetches the j ends' data ahead: Model::prefetch_j_ends, or when
+// unset, beyond the cache (within it the prefetches gain nothing: docs/benchmarks.md, "Large
+// samples"; beyond it a j end far from i in Morton order is in no cache).
+inline bool prefetches_j_ends(const Model& model, const Particles& p) {
+  return model.prefetch_j_ends.value_or(beyond_cache(p));
+}
 
 // The contact forces on the j ends of the last evaluation by pair (PairList keeps them by
 // contact), zero for a pair that is not a contact: each pair's slot in PairList::contact_force,

@@ -60,7 +60,7 @@ struct Model {
   bool skip_apart_pairs = false;  // skip ellipsoid pairs while provably apart (neighbor.hpp); needs
                                   // every move to go through step(); the protocols turn it on
   // The pair loops fetch the j ends' data ahead: unset, when the particles' arrays outgrow the
-  // cache (forces.hpp, beyond_cache). Speed only: the results are the same bits either way.
+  // cache (forces.hpp, prefetches_j_ends). Speed only: the results are the same bits either way.
   std::optional<bool> prefetch_j_ends;
 };
 

@@ -163,19 +163,19 @@ QSDEM_CLONES void group_contacts_by_owner(Schedule& s, PairList& pairs, std::siz
   });
 }
 
-std::uint32_t owner_end(const Schedule& s, std::size_t i) {
+std::size_t owner_of(const Schedule& s, std::size_t i) {
   // The first owner whose range starts after i (owner_first ascends): i's owner is the one before.
   const auto after = std::upper_bound(s.owner_first.begin() + 1, s.owner_first.end() - 1, i);
-  return static_cast<std::uint32_t>(*after);
+  return static_cast<std::size_t>(after - s.owner_first.begin()) - 1;
 }
+
+std::uint32_t owner_end(const Schedule& s, std::size_t i) { return s.owner_first[owner_of(s, i) + 1]; }
 
 void close_block_contacts(Schedule& s, PairList& pairs, std::size_t b, ForceBlock& block) {
   const std::size_t owners = s.owners();
   std::uint32_t* const row = s.contact_owner_first.data() + b * (owners + 1);
   const std::uint32_t first = block.first_contact, front = block.contacts, later = block.later_contacts;
-  // The block's first owner: the one whose range ends at first_owner_end.
-  std::size_t home = 0;
-  while (home + 1 < owners && s.owner_first[home + 1] < block.first_owner_end) ++home;
+  const std::size_t home = owner_of(s, block.first_owner_end - 1);  // the block's first owner
   block.contacts = front + later;
   block.later_contacts = 0;
   if (later == 0) {

@@ -66,6 +66,9 @@ void assign_single_owner(Schedule& s, const State& state);
 // writes the block's row of contact_owner_first.
 void group_contacts_by_owner(Schedule& s, PairList& pairs, std::size_t b, std::uint32_t first, std::uint32_t count);
 
+// The owner of particle i: the last whose range (Schedule::owner_first) starts at or below it.
+std::size_t owner_of(const Schedule& s, std::size_t i);
+
 // The end of the particles of the owner of particle i: the force stage's block that starts at i
 // writes the contacts whose j end is below it up from its first slot, the others down from its
 // last (ForceBlock::first_owner_end). With one owner, every particle's.

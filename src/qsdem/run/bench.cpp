@@ -176,7 +176,7 @@ nlohmann::json bench_packing(const std::filesystem::path& source, const std::str
           {"pw_iterations_per_step", static_cast<double>(pw_iterations) / static_cast<double>(std::max(1L, steps))},
           // whether the pair loops fetched the j ends ahead, and whether the engine would by itself
           {"prefetch_j_ends",
-           {{"used", model.prefetch_j_ends.value_or(beyond_cache(st.particles))},
+           {{"used", prefetches_j_ends(model, st.particles)},
             {"engine_choice", beyond_cache(st.particles)}}},
           {"ekin_J", m.ekin_trans + m.ekin_rot},
           {"ekin_trans_J", m.ekin_trans},
