@@ -157,6 +157,43 @@ TEST(EnergyLedger, FreeParticlesLoseTheirKineticEnergyToTheDamping) {
   }
 }
 
+// Nine free bodies of every kind the kick tells apart (spheres, prolate and oblate spheroids, three
+// distinct moments), spinning about arbitrary axes: the kick takes them four at a time in vector
+// lanes (the last one alone), each lane's omega by the form its moments allow (a spheroid's about
+// its symmetry axis). Its ledger holds the kinetic energy by the general R I^-1 R^T L to round-off,
+// and the damping takes the rest.
+TEST(EnergyLedger, EveryBodyInTheKicksLanesKeepsTheLedger) {
+  const qsdem_test::SingleThread one_thread;
+  const double r = 1e-3;
+  const Model m = energy_model("od", 0.05, r);
+  State st;
+  st.cell = make_cell(0.1 * Mat3::Identity());
+  const Vec3 axes[] = {Vec3::Constant(r), Vec3(1.6 * r, r, r), Vec3(1.4 * r, 1.4 * r, r), Vec3(1.5 * r, 1.2 * r, r)};
+  const int kinds[] = {1, 0, 2, 3, 1, 2, 0, 3, 2};  // index into axes: mixed within each four
+  for (int n = 0; n < 9; ++n) {
+    const Vec3 a = axes[kinds[n]];
+    st.particles.add(static_cast<std::uint32_t>(n), kinds[n] == 0 ? ShapeKind::sphere : ShapeKind::ellipsoid, a, kRho,
+                     Vec3(0.1 + 0.09 * n, 0.5, 0.5), Quat(Eigen::AngleAxisd(0.3 + 0.4 * n, Vec3(1, 2 - n, 3).normalized())));
+  }
+  Particles& p = st.particles;
+  EXPECT_EQ(p.symmetry_axis[0], 0);  // prolate: about a
+  EXPECT_EQ(p.symmetry_axis[2], 2);  // oblate: about c
+  EXPECT_EQ(p.symmetry_axis[3], kThreeMoments);
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const double x = static_cast<double>(i);
+    p.v[i] = Vec3(0.02, -0.01 * x, 0.005);
+    p.angmom.set(i, p.inertia[i].x() * Vec3(3 - x, 1, -2 + 0.5 * x));
+    p.omega[i] = angular_velocity(p.q[i], p.inertia[i], p.angmom[i]);
+  }
+  assign_damping(m, p);
+  const double k0 = kinetic_energy(p);
+  for (int n = 0; n < 500; ++n) step(m, st);
+  const double k = kinetic_energy(p);
+  EXPECT_LT(k, 0.9 * k0) << "the damping took a share";
+  EXPECT_NEAR(st.energy.kinetic, k, 1e-12 * k0);
+  EXPECT_NEAR(st.energy.damping + st.energy.kinetic, k0, 1e-12 * k0);
+}
+
 // Two spheres, and two spheroids (long axes across the normal, so that they touch at r1 + r2),
 // colliding obliquely with spin (friction 0.3: the contact slides and sticks), under no damping,
 // od, local and contact (dashpot) damping, in a fixed cell (no work done on them). After they part

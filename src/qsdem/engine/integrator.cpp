@@ -1,6 +1,7 @@
 #include "qsdem/engine/integrator.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -35,6 +36,49 @@ constexpr double kSettled = 0x1p-540;
 }
 [[gnu::always_inline]] inline Vec3 settle(const Vec3& x) {
   return settled(x.x(), x.y(), x.z()) ? Vec3::Zero() : x;
+}
+
+// Column K of R(q), q = (w, x, y, z): the body axis K in the world frame (T: a double or vector lanes).
+template <int K, class T>
+[[gnu::always_inline]] inline void body_axis(const T& w, const T& x, const T& y, const T& z, T& ax, T& ay, T& az) {
+  if constexpr (K == 0) {
+    ax = 1 - 2 * (y * y + z * z), ay = 2 * (x * y + w * z), az = 2 * (x * z - w * y);
+  } else if constexpr (K == 1) {
+    ax = 2 * (x * y - w * z), ay = 1 - 2 * (x * x + z * z), az = 2 * (y * z + w * x);
+  } else {
+    ax = 2 * (x * z + w * y), ay = 2 * (y * z - w * x), az = 1 - 2 * (x * x + y * y);
+  }
+}
+
+// omega = R I^-1 R^T L of a body with two equal moments, symmetry axis K: I^-1 = inv_perp 1 +
+// (inv_s - inv_perp) e e^T with e = R e_K (SPEC 5), one column of R instead of two rotations.
+template <int K, class T>
+[[gnu::always_inline]] inline void axisymmetric_omega(const T& w, const T& x, const T& y, const T& z, const T& lx,
+                                                      const T& ly, const T& lz, const T& inv_s, const T& inv_perp,
+                                                      T& ox, T& oy, T& oz) {
+  T ex, ey, ez;
+  body_axis<K>(w, x, y, z, ex, ey, ez);
+  const T f = (inv_s - inv_perp) * (ex * lx + ey * ly + ez * lz);
+  ox = inv_perp * lx + f * ex, oy = inv_perp * ly + f * ey, oz = inv_perp * lz + f * ez;
+}
+inline Vec3 axisymmetric_omega(int k, const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
+  Vec3 o;
+  const auto at = [&]<int K>() {
+    axisymmetric_omega<K>(q.w(), q.x(), q.y(), q.z(), l.x(), l.y(), l.z(), inv_s, inv_perp, o.x(), o.y(), o.z());
+  };
+  if (k == 0) at.template operator()<0>();
+  else if (k == 1) at.template operator()<1>();
+  else at.template operator()<2>();
+  return o;
+}
+
+// A particle's omega from its angular momentum L (angular_velocity), by the cheapest exact form
+// its moments allow (Particles::symmetry_axis).
+inline Vec3 particle_omega(const Particles& p, std::size_t i, const Vec3& l) {
+  const int k = p.symmetry_axis[i];
+  if (k == kSphereBody) return l * p.inv_transverse_moment[i];
+  if (k >= 0) return axisymmetric_omega(k, p.q[i], l, p.inv_axial_moment[i], p.inv_transverse_moment[i]);
+  return angular_velocity(p.q[i], p.inertia[i], l);
 }
 
 // The kick with Cundall's local damping of particles [lo, hi), on components, in vector lanes,
@@ -164,10 +208,7 @@ struct KickArrays {
 inline void kick_energy(const Particles& p, std::size_t i, double dt, const Vec3& v_old, const Vec3& v,
                         const Vec3& l_old, const Vec3& l, KickEnergy energy) {
   const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
-  const auto spin = [&](const Vec3& x) {
-    return p.shape[i] == ShapeKind::sphere ? Vec3(x * p.inv_transverse_moment[i])
-                                           : angular_velocity(p.q[i], p.inertia[i], x);
-  };
+  const auto spin = [&](const Vec3& x) { return particle_omega(p, i, x); };
   const double mass = 1 / p.inv_mass[i];
   energy.dissipated[i] =
       (dt * p.force[i] - mass * (v - v_old)).dot(v_mid) + (dt * p.torque[i] - (l - l_old)).dot(spin(l_mid));
@@ -342,32 +383,63 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
   return {v.x + w * uv.x + c.x, v.y + w * uv.y + c.y, v.z + w * uv.z + c.z};
 }
 
+// What omega = I^-1 L (particle_omega) needs of four particles: each lane's kind (a sphere, symmetry
+// axis 0, 1 or 2, three distinct moments) and the moments and orientation that kind reads.
+struct LanesBodies {
+  bool spheres;                  // four spheres: nothing else is loaded
+  Lanes4 inv_transverse, inv_axial, w;
+  Xyz4 axis, inertia;            // q's vector part; the moments, for three distinct ones
+  std::array<Mask4, 3> about;  // the lanes of symmetry axis 0, 1, 2
+  Mask4 three;                 // the lanes of three distinct moments
+};
+[[gnu::always_inline]] inline bool any(const Mask4& m) { return (m[0] | m[1] | m[2] | m[3]) != 0; }
+[[gnu::always_inline]] inline LanesBodies lanes_bodies(const Particles& p, std::size_t i, bool spheres) {
+  LanesBodies b;  // (no zeros written: the fields a lane's kind does not read stay unset)
+  b.spheres = spheres;
+  b.inv_transverse = load4(p.inv_transverse_moment.data() + i);
+  if (spheres) return b;
+  const std::int8_t* const k = p.symmetry_axis.data() + i;
+  const Mask4 kind{k[0], k[1], k[2], k[3]};
+  for (int K = 0; K < 3; ++K) b.about[K] = kind == K;
+  b.three = kind == kThreeMoments;
+  b.w = load4(p.q.component(3) + i);
+  b.axis = {load4(p.q.component(0) + i), load4(p.q.component(1) + i), load4(p.q.component(2) + i)};
+  b.inv_axial = load4(p.inv_axial_moment.data() + i);
+  if (any(b.three)) b.inertia = load_xyz4(p.inertia.data() + i);
+  return b;
+}
+[[gnu::always_inline]] inline void pick(const Mask4& m, const Xyz4& c, Xyz4& out) {
+  out = {m ? c.x : out.x, m ? c.y : out.y, m ? c.z : out.z};
+}
+template <int K>
+[[gnu::always_inline]] inline void pick_axisymmetric(const LanesBodies& b, const Xyz4& l, Xyz4& out) {
+  if (!any(b.about[K])) return;
+  Xyz4 c;
+  axisymmetric_omega<K>(b.w, b.axis.x, b.axis.y, b.axis.z, l.x, l.y, l.z, b.inv_axial, b.inv_transverse, c.x, c.y, c.z);
+  pick(b.about[K], c, out);
+}
+// particle_omega of four particles, lane by lane.
+[[gnu::always_inline]] inline Xyz4 lanes_omega(const LanesBodies& b, const Xyz4& l) {
+  Xyz4 out{l.x * b.inv_transverse, l.y * b.inv_transverse, l.z * b.inv_transverse};  // a sphere's
+  if (b.spheres) return out;
+  pick_axisymmetric<0>(b, l, out);
+  pick_axisymmetric<1>(b, l, out);
+  pick_axisymmetric<2>(b, l, out);
+  if (any(b.three)) {
+    const Xyz4 body = rotated(b.w, {-b.axis.x, -b.axis.y, -b.axis.z}, l);  // q.conjugate() * l
+    pick(b.three, rotated(b.w, b.axis, {body.x / b.inertia.x, body.y / b.inertia.y, body.z / b.inertia.z}), out);
+  }
+  return out;
+}
+
 // The kick's energy terms of four particles (kick_energy, the same operations in the same order):
 // the dissipation (dt F - m dv).v_mid + (dt M - dL).omega(L_mid) and the kinetic energy
-// m |v|^2 / 2 + L.omega(L) / 2, with a sphere's omega = L / I and any other body's
-// angular_velocity (R I^-1 R^T L at the orientation before the drift).
+// m |v|^2 / 2 + L.omega(L) / 2, with each lane's omega as particle_omega gives it.
 [[gnu::always_inline]] inline void kick_energy_lanes(const Particles& p, std::size_t i, bool spheres, double dt,
                                                      const Lanes4& inv_mass, const Xyz4& f, const Xyz4& v_old,
                                                      const Xyz4& v, const Xyz4& torque, const Xyz4& l_old,
                                                      const Xyz4& l, KickEnergy energy) {
-  const Lanes4 inv_moment = load4(p.inv_transverse_moment.data() + i);
-  Mask4 sphere{};
-  Lanes4 w{};
-  Xyz4 axis{}, inertia{};
-  if (!spheres) {
-    for (int k = 0; k < 4; ++k) sphere[k] = p.shape[i + k] == ShapeKind::sphere ? -1 : 0;
-    w = load4(p.q.component(3) + i);
-    axis = {load4(p.q.component(0) + i), load4(p.q.component(1) + i), load4(p.q.component(2) + i)};
-    inertia = load_xyz4(p.inertia.data() + i);
-  }
-  const auto spin = [&](const Xyz4& x) {
-    const Xyz4 round{x.x * inv_moment, x.y * inv_moment, x.z * inv_moment};
-    if (spheres) return round;
-    const Xyz4 body = rotated(w, {-axis.x, -axis.y, -axis.z}, x);  // q.conjugate() * x
-    const Xyz4 out = rotated(w, axis, {body.x / inertia.x, body.y / inertia.y, body.z / inertia.z});
-    const auto pick = [&](const Lanes4& a, const Lanes4& b) { return sphere ? a : b; };
-    return Xyz4{pick(round.x, out.x), pick(round.y, out.y), pick(round.z, out.z)};
-  };
+  const LanesBodies bodies = lanes_bodies(p, i, spheres);
   const Lanes4 half{0.5, 0.5, 0.5, 0.5};
   const Xyz4 v_mid{half * (v_old.x + v.x), half * (v_old.y + v.y), half * (v_old.z + v.z)};
   const Xyz4 l_mid{half * (l_old.x + l.x), half * (l_old.y + l.y), half * (l_old.z + l.z)};
@@ -376,8 +448,8 @@ QSDEM_CLONES void translate(const CellMap m, double dt, double slow, Vec3* pos, 
                   dt * f.z - mass * (v.z - v_old.z)};
   const Xyz4 lost_rot{dt * torque.x - (l.x - l_old.x), dt * torque.y - (l.y - l_old.y),
                       dt * torque.z - (l.z - l_old.z)};
-  store4(energy.dissipated + i, dot(lost, v_mid) + dot(lost_rot, spin(l_mid)));
-  store4(energy.kinetic + i, half * mass * squared(v) + half * dot(l, spin(l)));
+  store4(energy.dissipated + i, dot(lost, v_mid) + dot(lost_rot, lanes_omega(bodies, l_mid)));
+  store4(energy.kinetic + i, half * mass * squared(v) + half * dot(l, lanes_omega(bodies, l)));
 }
 
 // With `move` (dt h^-1) it also translates the particles, s += dt h^-1 v with the new v, and adds
@@ -564,14 +636,7 @@ template <int K>
 // Column K of R(q): the body axis K in the world frame.
 template <int K>
 [[gnu::always_inline]] inline void body_axis(const QuatParts& q, double& ax, double& ay, double& az) {
-  const double w = q.w, x = q.x, y = q.y, z = q.z;
-  if constexpr (K == 0) {
-    ax = 1 - 2 * (y * y + z * z), ay = 2 * (x * y + w * z), az = 2 * (x * z - w * y);
-  } else if constexpr (K == 1) {
-    ax = 2 * (x * y - w * z), ay = 1 - 2 * (x * x + z * z), az = 2 * (y * z + w * x);
-  } else {
-    ax = 2 * (x * z + w * y), ay = 2 * (y * z - w * x), az = 1 - 2 * (x * x + y * y);
-  }
+  body_axis<K>(q.w, q.x, q.y, q.z, ax, ay, az);
 }
 
 // Free symmetric top, symmetry axis K, inverse moments inv_s (about K) and inv_perp, angular
@@ -836,19 +901,6 @@ inline bool resting(double x, double y, double z) {
 }
 inline bool resting(const Vec3& l) { return resting(l.x(), l.y(), l.z()); }
 
-template <int K>
-inline Vec3 resting_omega(const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
-  double ex, ey, ez;
-  body_axis<K>(parts(q), ex, ey, ez);
-  const double f = (inv_s - inv_perp) * (ex * l.x() + ey * l.y() + ez * l.z());
-  return {inv_perp * l.x() + f * ex, inv_perp * l.y() + f * ey, inv_perp * l.z() + f * ez};
-}
-
-inline Vec3 resting_omega(int k, const Quat& q, const Vec3& l, double inv_s, double inv_perp) {
-  if (k == 0) return resting_omega<0>(q, l, inv_s, inv_perp);
-  if (k == 1) return resting_omega<1>(q, l, inv_s, inv_perp);
-  return resting_omega<2>(q, l, inv_s, inv_perp);
-}
 
 // What a run of particles [i0, i0 + n) is, in vector lanes: kAllSpheres, or the symmetry axis k
 // (0 or 2) that every one of them turns about, none resting, or kMixed (advance_positions sorts
@@ -923,7 +975,7 @@ void turn_orientations(const Model& model, Particles& p, std::span<double> surfa
       if (k == kSphereBody) continue;  // a sphere's orientation changes nothing
       if (k >= 0) {
         if (resting(spin.l[i])) {
-          spin.omega[i] = resting_omega(k, spin.q(i), spin.l[i], spin.inv_axial[i], spin.inv_transverse[i]);
+          spin.omega[i] = axisymmetric_omega(k, spin.q(i), spin.l[i], spin.inv_axial[i], spin.inv_transverse[i]);
           continue;
         }
         axis[a] = k, ++turning;
