@@ -172,8 +172,9 @@ TEST(EnergyLedger, EveryBodyInTheKicksLanesKeepsTheLedger) {
   const int kinds[] = {1, 0, 2, 3, 1, 2, 0, 3, 2};  // index into axes: mixed within each four
   for (int n = 0; n < 9; ++n) {
     const Vec3 a = axes[kinds[n]];
+    const Quat q(Eigen::AngleAxisd(0.3 + 0.4 * n, Vec3(1, 2 - n, 3).normalized()));
     st.particles.add(static_cast<std::uint32_t>(n), kinds[n] == 0 ? ShapeKind::sphere : ShapeKind::ellipsoid, a, kRho,
-                     Vec3(0.1 + 0.09 * n, 0.5, 0.5), Quat(Eigen::AngleAxisd(0.3 + 0.4 * n, Vec3(1, 2 - n, 3).normalized())));
+                     Vec3(0.1 + 0.09 * n, 0.5, 0.5), q);
   }
   Particles& p = st.particles;
   EXPECT_EQ(p.symmetry_axis[0], 0);  // prolate: about a

@@ -208,11 +208,10 @@ struct KickArrays {
 inline void kick_energy(const Particles& p, std::size_t i, double dt, const Vec3& v_old, const Vec3& v,
                         const Vec3& l_old, const Vec3& l, KickEnergy energy) {
   const Vec3 v_mid = 0.5 * (v_old + v), l_mid = 0.5 * (l_old + l);
-  const auto spin = [&](const Vec3& x) { return particle_omega(p, i, x); };
   const double mass = 1 / p.inv_mass[i];
-  energy.dissipated[i] =
-      (dt * p.force[i] - mass * (v - v_old)).dot(v_mid) + (dt * p.torque[i] - (l - l_old)).dot(spin(l_mid));
-  energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(spin(l));
+  energy.dissipated[i] = (dt * p.force[i] - mass * (v - v_old)).dot(v_mid) +
+                         (dt * p.torque[i] - (l - l_old)).dot(particle_omega(p, i, l_mid));
+  energy.kinetic[i] = 0.5 * mass * v.squaredNorm() + 0.5 * l.dot(particle_omega(p, i, l));
 }
 
 // The viscous kick of particles [lo, hi), one particle at a time (the lanes' last particles).
@@ -900,7 +899,6 @@ inline bool resting(double x, double y, double z) {
   return settled(x, y, z) & !((x == 0) & (y == 0) & (z == 0));
 }
 inline bool resting(const Vec3& l) { return resting(l.x(), l.y(), l.z()); }
-
 
 // What a run of particles [i0, i0 + n) is, in vector lanes: kAllSpheres, or the symmetry axis k
 // (0 or 2) that every one of them turns about, none resting, or kMixed (advance_positions sorts
